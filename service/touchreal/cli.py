@@ -1,0 +1,52 @@
+"""The ``touchreal`` command line: one sub-command per job, registered by the module that owns it.
+
+Each command module exposes ``register(subparsers)``, which adds its parser and sets
+``func(args) -> int`` as the handler. Modules are imported lazily so ``touchreal --help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: Command modules, in the order they appear in ``touchreal --help``.
+COMMAND_MODULES = (
+    "touchreal.commands.demo",
+    "touchreal.commands.encode",
+    "touchreal.reference.command",
+    "touchreal.sensing.command",
+    "touchreal.fitting.command",
+    "touchreal.analysis.command",
+    "touchreal.bench.command",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="touchreal", description="TouchReal: tactile sensor signals -> SA1/RA/PC afferent spike trains."
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # command not built yet
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, OSError) as exc:  # clear message, no traceback, for user errors
+        print(f"touchreal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,153 @@
+"""The TouchReal parameter file: a validated, versioned JSON schema (pydantic).
+
+One file holds everything that turns raw sensor samples into spikes: the preprocessing
+configuration (with the PVDF gate calibration and the mains harmonics to notch) and one
+:class:`ClassParams` per afferent class. See docs/parameters.md for every field.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DATA
+
+SCHEMA_NAME = "touchreal.params"
+SCHEMA_VERSION = 1
+
+#: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
+WEIGHT_NAMES = ("ST+", "ST-", "dST+", "dST-", "PVDF+", "PVDF-", "dPVDF+", "dPVDF-")
+
+
+class ParamsError(ValueError):
+    """An invalid parameter file or upload; the message lists every problem."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
+
+class ClassParams(_Strict):
+    """Encoder parameters of one afferent class (TouchSim-style LIF at 5 kHz)."""
+
+    weights: list[float] = Field(
+        min_length=8, max_length=8, description="w1..w8 on (max(x,0), max(-x,0)) of ST [N], dST [N/s], PVDF [V], dPVDF [V/s]"
+    )
+    i_sat: float = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
+    tau_ms: float = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
+    ih: list[float] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
+    delay_ms: float = Field(ge=-100.0, le=500.0, description="output delay added to spike times (ms)")
+
+    @field_validator("weights", "ih")
+    @classmethod
+    def _bounded(cls, v: list[float]) -> list[float]:
+        if any(abs(x) > 1e9 for x in v):
+            raise ValueError("magnitudes above 1e9 are not meaningful")
+        return v
+
+    @property
+    def tau_samples(self) -> float:
+        return self.tau_ms * 5.0
+
+
+class GateCalibration(_Strict):
+    """PVDF spectral gate: per-frequency noise floor measured on a contact-free baseline."""
+
+    freqs_hz: list[float] = Field(min_length=2, description="frequency grid (Hz), increasing")
+    noise_asd: list[float] = Field(min_length=2, description="noise amplitude spectral density (V/sqrt(Hz))")
+    factor: float = Field(default=3.0, gt=0.0, le=100.0, description="keep bins above factor x expected noise magnitude")
+    attenuation: float = Field(default=0.05, ge=0.0, le=1.0, description="gain applied to bins below threshold")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "GateCalibration":
+        if len(self.freqs_hz) != len(self.noise_asd):
+            raise ValueError("freqs_hz and noise_asd must have equal length")
+        if np.any(np.diff(self.freqs_hz) <= 0):
+            raise ValueError("freqs_hz must be strictly increasing")
+        if min(self.noise_asd) < 0:
+            raise ValueError("noise_asd must be >= 0")
+        return self
+
+
+class PreprocessParams(_Strict):
+    """Causal preprocessing: raw SingleTact/PVDF -> ST, dST, PVDF, dPVDF at 5 kHz."""
+
+    window_ms: float = Field(default=DEFAULT_WINDOW_MS, ge=4.0, le=512.0, description="causal PVDF STFT window (ms)")
+    update_ms: float = Field(default=DEFAULT_UPDATE_MS, ge=1.0, le=1000.0, description="online update interval (ms)")
+    st_lowpass_hz: float = Field(default=20.0, gt=0.0, lt=50.0, description="SingleTact Butterworth low-pass cutoff (Hz)")
+    st_alpha: float = Field(default=0.5, gt=0.0, le=1.0, description="alpha-beta estimator position gain")
+    st_beta: float = Field(default=0.1, gt=0.0, lt=2.0, description="alpha-beta estimator velocity gain")
+    pvdf_lowpass_hz: float = Field(default=800.0, gt=0.0, lt=1000.0, description="PVDF Butterworth low-pass cutoff (Hz)")
+    mains_hz: float = Field(default=50.0, gt=0.0, description="mains frequency (Hz)")
+    notch_harmonics: list[int] = Field(default_factory=lambda: [1, 3, 5, 7], description="mains harmonics to notch")
+    notch_q: float = Field(default=30.0, gt=0.5, le=1000.0, description="quality factor of each notch")
+    gate: GateCalibration | None = Field(default=None, description="spectral gate; None passes all bins")
+
+    @field_validator("notch_harmonics")
+    @classmethod
+    def _harmonics(cls, v: list[int]) -> list[int]:
+        if any(h < 1 for h in v) or len(set(v)) != len(v):
+            raise ValueError("harmonics must be distinct integers >= 1")
+        return sorted(v)
+
+
+class EncoderParams(_Strict):
+    """A complete, versioned TouchReal parameter set."""
+
+    schema_name: Literal["touchreal.params"] = Field(default=SCHEMA_NAME, alias="schema")
+    version: Literal[1] = SCHEMA_VERSION
+    preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
+    classes: dict[str, ClassParams]
+    provenance: dict[str, str | float | int | list | dict] = Field(default_factory=dict)
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
+
+    @field_validator("classes")
+    @classmethod
+    def _classes(cls, v: dict[str, ClassParams]) -> dict[str, ClassParams]:
+        unknown = set(v) - set(CLASSES)
+        if unknown:
+            raise ValueError(f"unknown classes {sorted(unknown)}; expected a subset of {list(CLASSES)}")
+        if not v:
+            raise ValueError("at least one class is required")
+        return {c: v[c] for c in CLASSES if c in v}
+
+    def to_json(self) -> str:
+        return self.model_dump_json(by_alias=True, indent=1)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(self.to_json() + "\n")
+
+    @classmethod
+    def parse(cls, data: str | bytes | dict) -> "EncoderParams":
+        """Validate a JSON text or object; raise :class:`ParamsError` listing every problem."""
+        try:
+            if isinstance(data, (str, bytes)):
+                data = json.loads(data)
+            return cls.model_validate(data)
+        except json.JSONDecodeError as exc:
+            raise ParamsError(f"not valid JSON: {exc}") from exc
+        except ValidationError as exc:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or '<root>'}: {e['msg']}" for e in exc.errors())
+            raise ParamsError(f"invalid parameters: {problems}") from exc
+
+    @classmethod
+    def load(cls, path: str | Path) -> "EncoderParams":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise ParamsError(f"{path}: cannot read ({exc})") from exc
+        return cls.parse(text)
+
+
+DEFAULT_PARAMS_PATH = PACKAGE_DATA / "default_params.json"
+
+
+def default_params() -> EncoderParams:
+    """The parameter set shipped with the package."""
+    return EncoderParams.load(DEFAULT_PARAMS_PATH)
