@@ -1,0 +1,58 @@
+"""Causal PCHIP resampling of a knot stream onto the absolute 5 kHz output grid.
+
+Output sample k is at ``k / fs_out`` on the recording clock. A point between knots i and i+1 needs
+the PCHIP slopes at both, which depend on knots i-1 ... i+2, so output lags the newest knot by one
+knot interval (buffering). Points are evaluated only inside intervals whose four knots are known,
+so the result does not depend on how the knots were chunked.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+
+class CausalPchip:
+    """Stateful PCHIP resampler for (m, n_cols) knots with increasing times (s)."""
+
+    def __init__(self, fs_out_hz: float, n_cols: int = 1):
+        self.fs_out = float(fs_out_hz)
+        self.n_cols = n_cols
+        self._t = np.zeros(0)
+        self._y = np.zeros((0, n_cols))
+        self.next_k: int | None = None  # next output grid index to emit
+
+    def process(self, t: np.ndarray, y: np.ndarray) -> tuple[int, np.ndarray]:
+        """Add knots; return (first grid index, (T, n_cols) values) of the newly final points."""
+        t_all = np.concatenate((self._t, np.asarray(t, dtype=np.float64)))
+        y_all = np.concatenate((self._y, np.asarray(y, dtype=np.float64).reshape(-1, self.n_cols)))
+        if self.next_k is None and t_all.size >= 2:
+            k = math.ceil(t_all[1] * self.fs_out)
+            self.next_k = k if k / self.fs_out >= t_all[1] else k + 1
+        out = self._emit(t_all, y_all, end_s=t_all[-2] if t_all.size >= 4 else None)
+        self._t, self._y = t_all[-3:], y_all[-3:]
+        return out
+
+    def finish(self, until_s: float) -> tuple[int, np.ndarray]:
+        """End of stream: hold the last value for two more knots and emit points before ``until_s``."""
+        if self._t.size < 2 or self.next_k is None:
+            return (self.next_k or 0), np.zeros((0, self.n_cols))
+        dt = self._t[-1] - self._t[-2]
+        t_all = np.concatenate((self._t, self._t[-1] + dt * np.array([1.0, 2.0])))
+        y_all = np.concatenate((self._y, np.repeat(self._y[-1:], 2, axis=0)))
+        return self._emit(t_all, y_all, end_s=min(until_s, t_all[-2]))
+
+    def _emit(self, t_all: np.ndarray, y_all: np.ndarray, end_s: float | None) -> tuple[int, np.ndarray]:
+        k0 = self.next_k if self.next_k is not None else 0
+        if end_s is None or self.next_k is None:
+            return k0, np.zeros((0, self.n_cols))
+        tk = np.arange(k0, max(k0, math.ceil(end_s * self.fs_out) + 1)) / self.fs_out
+        tk = tk[tk < end_s]  # emit exactly the grid points before end_s
+        if tk.size == 0:
+            return k0, np.zeros((0, self.n_cols))
+        k_end = k0 + tk.size
+        values = PchipInterpolator(t_all, y_all, axis=0, extrapolate=False)(tk)
+        self.next_k = k_end
+        return k0, values

@@ -1,0 +1,77 @@
+"""Causal frame-based STFT -> spectral gate -> inverse STFT with overlap-add (PVDF, 2 kHz).
+
+Frames of N samples (the causal window) advance by H = N / 4 samples; each frame is Hann-windowed
+(periodic Hann, which sums to a constant 2 at 75 % overlap), transformed with a real FFT, every
+bin whose magnitude is below its threshold is multiplied by ``attenuation``, and the inverse FFT is
+overlap-added. Output sample n is final once the frame starting at n is processed, i.e. once input
+sample n + N - 1 has arrived: the stage's latency is the window. Frame boundaries are fixed by the
+absolute sample index, so the output does not depend on how the input is chunked. The stream is
+preceded by N - H virtual zeros so the output starts at input sample 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+
+def frame_length(window_ms: float, fs_hz: float) -> int:
+    """Frame length (samples) for a window: rounded to a multiple of 4, at least 8."""
+    return max(8, 4 * int(round(window_ms * fs_hz / 1000.0 / 4.0)))
+
+
+class StftGate:
+    """Stateful spectral gate over (n, n_taxels) chunks.
+
+    ``thresholds`` (n_bins,) are magnitude thresholds on the rfft of a Hann-windowed frame (V);
+    ``None`` keeps every bin (the stage is then an exact delay-free identity on the clock).
+    """
+
+    def __init__(self, n: int, n_taxels: int = 1, thresholds: np.ndarray | None = None, attenuation: float = 0.05):
+        if n < 8 or n % 4:
+            raise ValueError("frame length must be a multiple of 4, >= 8")
+        self.n, self.hop = n, n // 4
+        self.n_taxels = n_taxels
+        self.window = signal.get_window("hann", n, fftbins=True)
+        self.norm = self.window.sum() / self.hop  # constant overlap-add gain (2.0 for Hann at N/4)
+        self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64)
+        if self.thresholds is not None and self.thresholds.shape != (n // 2 + 1,):
+            raise ValueError(f"thresholds must have {n // 2 + 1} bins")
+        self.attenuation = float(attenuation)
+        self._buf = np.zeros((n - self.hop, n_taxels))  # input not yet consumed by a full frame
+        self._acc = np.zeros((n - self.hop, n_taxels))  # overlap-add tail of frames already done
+        self.frames = 0
+        self.gated_fraction = 0.0  # fraction of bins attenuated in the last processed chunk
+
+    def process(self, x: np.ndarray) -> np.ndarray:
+        """Consume input samples, return the newly finalised output samples (same units)."""
+        x = np.asarray(x, dtype=np.float64)
+        buf = np.concatenate((self._buf, x), axis=0)
+        n_frames = (buf.shape[0] - self.n) // self.hop + 1 if buf.shape[0] >= self.n else 0
+        if n_frames <= 0:
+            self._buf = buf
+            return np.zeros((0, self.n_taxels))
+        idx = np.arange(n_frames)[:, None] * self.hop + np.arange(self.n)[None, :]
+        frames = buf[idx] * self.window[None, :, None]  # (F, N, taxels)
+        spec = np.fft.rfft(frames, axis=1)
+        if self.thresholds is not None:
+            below = np.abs(spec) < self.thresholds[None, :, None]
+            spec = np.where(below, spec * self.attenuation, spec)
+            self.gated_fraction = float(below.mean())
+        y = np.fft.irfft(spec, n=self.n, axis=1)  # (F, N, taxels)
+        # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
+        total = (n_frames - 1) * self.hop + self.n
+        acc = np.zeros((total, self.n_taxels))
+        acc[: self._acc.shape[0]] += self._acc
+        for f in range(n_frames):  # at most a few frames per update; each add is vectorised
+            acc[f * self.hop : f * self.hop + self.n] += y[f]
+        done = n_frames * self.hop
+        out = acc[:done] / self.norm
+        self._acc = acc[done:]
+        self._buf = buf[done:]
+        self.frames += n_frames
+        return out
+
+    @property
+    def state_norm(self) -> float:
+        return float(max(np.max(np.abs(self._buf), initial=0.0), np.max(np.abs(self._acc), initial=0.0)))
