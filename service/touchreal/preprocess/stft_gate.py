@@ -3,8 +3,8 @@
 Frames of N samples (the causal window) advance by H = N / 4 samples; each frame is Hann-windowed
 (periodic Hann, which sums to a constant 2 at 75 % overlap), transformed with a real FFT, every
 bin whose magnitude is below its threshold is multiplied by ``attenuation``, and the inverse FFT is
-overlap-added. Output sample n is final once the frame starting at n is processed, i.e. once input
-sample n + N - 1 has arrived: the stage's latency is the window. Frame boundaries are fixed by the
+overlap-added. Output sample n is final once every frame covering it is processed, i.e. once input
+sample n + N - H - 1 + (H - 1 - n mod H) has arrived: the stage's latency is about one window. Frame boundaries are fixed by the
 absolute sample index, so the output does not depend on how the input is chunked. The stream is
 preceded by N - H virtual zeros so the output starts at input sample 0.
 """
@@ -40,6 +40,7 @@ class StftGate:
         self.attenuation = float(attenuation)
         self._buf = np.zeros((n - self.hop, n_taxels))  # input not yet consumed by a full frame
         self._acc = np.zeros((n - self.hop, n_taxels))  # overlap-add tail of frames already done
+        self._skip = n - self.hop  # leading outputs that belong to the virtual zeros
         self.frames = 0
         self.gated_fraction = 0.0  # fraction of bins attenuated in the last processed chunk
 
@@ -67,6 +68,9 @@ class StftGate:
             acc[f * self.hop : f * self.hop + self.n] += y[f]
         done = n_frames * self.hop
         out = acc[:done] / self.norm
+        if self._skip:
+            drop = min(self._skip, out.shape[0])
+            out, self._skip = out[drop:], self._skip - drop
         self._acc = acc[done:]
         self._buf = buf[done:]
         self.frames += n_frames

@@ -1,0 +1,37 @@
+"""``touchreal encode DATASET_DIR --params PARAMS.json --out OUT_DIR``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..params import EncoderParams, default_params
+from ..recording import Dataset
+from ..stream import encode_trial
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("encode", help="encode every trial of a dataset into SA1/RA/PC spike times")
+    p.add_argument("dataset", type=Path, help="dataset folder (manifest.json + trials/)")
+    p.add_argument("--params", type=Path, default=None, help="parameter file (default: the shipped set)")
+    p.add_argument("--out", type=Path, required=True, help="output folder for <trial_id>.json")
+    p.add_argument("--protocol", default=None, help="only trials of this protocol")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    params = EncoderParams.load(args.params) if args.params else default_params()
+    ds = Dataset.open(args.dataset)
+    entries = ds.entries(args.protocol)
+    args.out.mkdir(parents=True, exist_ok=True)
+    total = {c: 0 for c in params.classes}
+    for e in tqdm(entries, desc="encode", unit="trial"):
+        trains = encode_trial(ds.load(e), params)
+        (args.out / f"{e['id']}.json").write_text(json.dumps({c: [round(float(t), 6) for t in v] for c, v in trains.items()}))
+        for c, v in trains.items():
+            total[c] += v.size
+    print(f"encoded {len(entries)} trials -> {args.out}; spikes: " + ", ".join(f"{c} {n}" for c, n in total.items()))
+    return 0

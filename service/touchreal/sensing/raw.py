@@ -1,0 +1,30 @@
+"""The raw sample block every sensor source produces (simulated e-skin, replay, serial)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class RawChunk:
+    """Raw samples of N taxels on the recording clock.
+
+    ``st_t`` (n,) s and ``st`` (n, n_taxels) N for the SingleTact (100 Hz); ``pvdf_t`` (m,) s and
+    ``pvdf`` (m, n_taxels) V for the PVDF film (2 kHz). Either part may be empty.
+    """
+
+    st_t: np.ndarray
+    st: np.ndarray
+    pvdf_t: np.ndarray
+    pvdf: np.ndarray
+
+    @property
+    def n_taxels(self) -> int:
+        return self.st.shape[1] if self.st.ndim == 2 else 1
+
+    @classmethod
+    def empty(cls, n_taxels: int = 1) -> "RawChunk":
+        z = np.zeros(0)
+        return cls(z, np.zeros((0, n_taxels)), z.copy(), np.zeros((0, n_taxels)))

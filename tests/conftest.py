@@ -1,0 +1,36 @@
+"""Shared pytest fixtures: the ``../shared`` data folder and the rig-v1 dataset.
+
+Tests needing them are marked ``@pytest.mark.shared`` and skip with a clear reason when the folder
+is missing.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    """The shared data folder: env TOUCHREAL_SHARED (default ``../shared``), relative to the repo root."""
+    path = Path(os.environ.get("TOUCHREAL_SHARED", "../shared"))
+    if not path.is_absolute():
+        path = (REPO_ROOT / path).resolve()
+    if not path.is_dir():
+        pytest.skip(f"shared data folder not found at {path}: set TOUCHREAL_SHARED to the ../shared folder")
+    return path
+
+
+@pytest.fixture(scope="session")
+def rig(shared: Path):
+    """The rig-v1 development dataset (:class:`touchreal.recording.Dataset`)."""
+    from touchreal.recording import Dataset
+
+    root = shared / "datasets" / "rig-v1"
+    if not (root / "manifest.json").is_file():
+        pytest.skip(f"rig-v1 dataset not found at {root}")
+    return Dataset.open(root)

@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from touchreal.encoding.encoder import Encoder, channel_currents, encode_population, rectify
+from touchreal.encoding.lif import REFRACTORY_SAMPLES, LifPopulation, saturate
+from touchreal.params import ClassParams, default_params
+from touchreal.preprocess.pipeline import Channels
+from touchreal.settings import CLASSES
+
+
+def _channels(t=4000, taxels=1, seed=0):
+    rng = np.random.default_rng(seed)
+    tt = np.arange(t) / 5000.0
+    st = 2 + 2 * np.sin(2 * np.pi * 2 * tt)
+    base = np.stack([st, 8 * np.pi * np.cos(2 * np.pi * 2 * tt), 0.1 * np.sin(2 * np.pi * 150 * tt), 94 * np.cos(2 * np.pi * 150 * tt)], 1)
+    return base[:, None, :] * rng.uniform(0.5, 1.5, (1, taxels, 1))
+
+
+def test_rectify_order_and_channel_decomposition():
+    x = np.array([[1.0, -2.0, 3.0, -4.0]])
+    np.testing.assert_array_equal(rectify(x), [[1, 0, 0, 2, 3, 0, 0, 4]])
+    cp = ClassParams(weights=[1, 2, 3, 4, 5, 6, 7, 8], i_sat=0, tau_ms=10, ih=[0, 0], delay_ms=0)
+    cur = channel_currents(_channels()[:, 0], cp)
+    total = rectify(_channels()[:, 0]) @ np.array(cp.weights, float)
+    np.testing.assert_allclose(cur.sum(axis=1), total)  # eq. 11: additive before saturation
+
+
+def test_encoder_matches_population_api_and_delay_shifts():
+    p = default_params()
+    ch = _channels()
+    ev = Encoder(p).process(Channels(1000, ch))
+    pop = encode_population(ch[:, 0], 1000 / 5000.0, [p.classes[c] for c in CLASSES])
+    for c, train in zip(CLASSES, pop):
+        np.testing.assert_allclose(ev.train(c), train)
+        assert train.size > 0
+    shifted = p.classes["SA1"].model_copy(update={"delay_ms": 7.5})
+    np.testing.assert_allclose(encode_population(ch[:, 0], 0.2, [shifted])[0], pop[0] + 0.0075)
+
+
+def test_taxels_are_independent_and_classes_subset():
+    p = default_params()
+    ch = _channels(taxels=5, seed=1)
+    ev = Encoder(p, n_taxels=5).process(Channels(0, ch))
+    for j in range(5):
+        single = Encoder(p).process(Channels(0, ch[:, j : j + 1]))
+        for c in CLASSES:
+            np.testing.assert_array_equal(ev.train(c, j), single.train(c))
+    only_pc = Encoder(p, n_taxels=5, classes=["PC"])
+    assert only_pc.lif.n_neurons == 5
+    out = only_pc.process(Channels(0, ch))
+    assert set(out.cls.tolist()) == {CLASSES.index("PC")}
+    assert np.all(np.diff(ev.t_s) >= 0)
+    with pytest.raises(ValueError, match="no class"):
+        Encoder(p.model_copy(update={"classes": {"SA1": p.classes["SA1"]}}), classes=["RA"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(level=st.floats(0.0, 2.0), cuts=st.lists(st.integers(0, 300), max_size=8))
+def test_lif_chunk_invariance_and_refractory(level, cuts):
+    rng = np.random.default_rng(0)
+    current = level * rng.uniform(0, 1, (1200, 3))
+    ih = np.array([[-0.5] * 10 + [0.0] * 5] * 3)
+    whole = LifPopulation(np.array([5.0, 20.0, 100.0]), ih)
+    k, n = whole.step(current)
+    lif = LifPopulation(np.array([5.0, 20.0, 100.0]), ih)
+    edges = sorted(set([0, 1200] + [c * 4 for c in cuts if c * 4 < 1200]))
+    got = [(lambda kk, nn, a=a: (kk + a, nn))(*lif.step(current[a:b])) for a, b in zip(edges, edges[1:])]
+    np.testing.assert_array_equal(np.concatenate([g[0] for g in got]), k)
+    np.testing.assert_array_equal(np.concatenate([g[1] for g in got]), n)
+    for j in range(3):
+        assert np.all(np.diff(k[n == j]) > REFRACTORY_SAMPLES)
+
+
+def test_lif_constant_current_rate_matches_closed_form():
+    # no post-spike current: V_k = I * tau * (1 - (1 - 1/tau)^k); first k with V > 1 is the period
+    tau, i = 50.0, 0.05
+    lif = LifPopulation(np.array([tau]), np.zeros((1, 190)))
+    k, _ = lif.step(np.full((5000, 1), i))
+    period = int(np.ceil(np.log(1 - 1 / (i * tau)) / np.log(1 - 1 / tau)))
+    assert np.all(np.diff(k) == period)
+
+
+def test_saturation_bounds_current():
+    x = np.array([[-1e12, -1.0, 0.0, 1.0, 1e12]]).T
+    y = saturate(x, np.array([5.0]))
+    assert np.all(np.abs(y) < 5.0) and y[2, 0] == 0
+    np.testing.assert_array_equal(saturate(x, np.array([0.0])), x)
+
+
+def test_bad_parameters_rejected():
+    with pytest.raises(ValueError, match="tau"):
+        LifPopulation(np.array([0.5]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        LifPopulation(np.array([5.0]), np.full((1, 3), np.nan))

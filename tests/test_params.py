@@ -1,0 +1,58 @@
+import json
+
+import pytest
+
+from touchreal.params import EncoderParams, ParamsError, default_params
+
+
+def test_default_params_load_and_roundtrip(tmp_path):
+    p = default_params()
+    assert list(p.classes) == ["SA1", "RA", "PC"]
+    path = tmp_path / "p.json"
+    p.save(path)
+    assert EncoderParams.load(path) == p
+    assert json.loads(path.read_text())["schema"] == "touchreal.params"
+
+
+def _raw():
+    return json.loads(default_params().to_json())
+
+
+@pytest.mark.parametrize(
+    "mutate, fragment",
+    [
+        (lambda d: d["classes"]["SA1"].update(weights=[1.0] * 7), "classes.SA1.weights"),
+        (lambda d: d["classes"]["RA"].update(tau_ms=-1), "classes.RA.tau_ms"),
+        (lambda d: d["classes"].update(SA2=d["classes"]["SA1"]), "unknown classes"),
+        (lambda d: d["classes"]["PC"].update(colour="red"), "classes.PC.colour"),
+        (lambda d: d.update(version=2), "version"),
+        (lambda d: d["preprocess"].update(window_ms=1000), "preprocess.window_ms"),
+        (lambda d: d["preprocess"].update(notch_harmonics=[0, 1]), "preprocess.notch_harmonics"),
+        (lambda d: d.update(classes={}), "at least one class"),
+    ],
+)
+def test_invalid_uploads_name_the_field(mutate, fragment):
+    d = _raw()
+    mutate(d)
+    with pytest.raises(ParamsError, match="invalid parameters") as err:
+        EncoderParams.parse(d)
+    assert fragment in str(err.value)
+
+
+def test_nan_and_inf_rejected():
+    text = default_params().to_json().replace('"delay_ms": 0.0', '"delay_ms": NaN', 1)
+    assert "NaN" in text
+    with pytest.raises(ParamsError, match="delay_ms"):
+        EncoderParams.parse(text)
+
+
+def test_not_json():
+    with pytest.raises(ParamsError, match="not valid JSON"):
+        EncoderParams.parse("{weights: ")
+
+
+def test_gate_calibration_must_be_consistent():
+    d = _raw()
+    d["preprocess"]["gate"] = {"freqs_hz": [0, 10, 5], "noise_asd": [1, 1, 1]}
+    with pytest.raises(ParamsError, match="strictly increasing"):
+        EncoderParams.parse(d)

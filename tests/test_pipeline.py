@@ -1,0 +1,114 @@
+"""One code path: whole-recording and chunk-wise encoding give identical channels and spikes."""
+
+import numpy as np
+import pytest
+
+from touchreal.params import EncoderParams, PreprocessParams, default_params
+from touchreal.preprocess.gate import calibrate
+from touchreal.preprocess.pipeline import Channels, Preprocessor, preprocess_trial
+from touchreal.sensing.raw import RawChunk
+from touchreal.sensing.replay import ReplaySource
+from touchreal.settings import CLASSES
+from touchreal.stream import encode_chunks, encode_trial
+
+from helpers import synthetic_trial
+
+
+def _calibrated(trial) -> EncoderParams:
+    p = default_params()
+    pre = calibrate([trial.pvdf[trial.pvdf_t < 0.28]], p.preprocess)
+    return p.model_copy(update={"preprocess": pre})
+
+
+def _sample_chunks(trial):
+    """Chunks of one sample of either sensor, in time order (how a serial reader delivers them)."""
+    events = sorted([(t, 0, i) for i, t in enumerate(trial.st_t)] + [(t, 1, i) for i, t in enumerate(trial.pvdf_t)])
+    e = np.zeros(0)
+    for t, which, i in events:
+        if which == 0:
+            yield RawChunk(trial.st_t[i : i + 1], np.float64(trial.st[i : i + 1])[:, None], e, np.zeros((0, 1)))
+        else:
+            yield RawChunk(e, np.zeros((0, 1)), trial.pvdf_t[i : i + 1], np.float64(trial.pvdf[i : i + 1])[:, None])
+
+
+def _irregular_chunks(trial, seed=0):
+    rng = np.random.default_rng(seed)
+    src = ReplaySource(trial)
+    while not src.done:
+        yield src.read(float(rng.choice([0.0, 0.0004, 0.003, 0.032, 0.1, 0.25])))
+
+
+def _assert_same(a, b):
+    for c in CLASSES:
+        np.testing.assert_array_equal(a.train(c), b.train(c))
+
+
+def test_chunking_does_not_change_channels():
+    tr = synthetic_trial()
+    params = _calibrated(tr).preprocess
+    whole = preprocess_trial(tr, params)
+    pre = Preprocessor(params)
+    parts = [pre.process(c.st_t, c.st, c.pvdf_t, c.pvdf) for c in _irregular_chunks(tr)] + [pre.finish()]
+    got = Channels.concatenate(parts, 1)
+    assert got.k0 == whole.k0
+    np.testing.assert_array_equal(got.data, whole.data)
+    assert np.all(np.isfinite(whole.data))
+
+
+def test_one_code_path_single_sample_irregular_and_whole():
+    tr = synthetic_trial(duration_s=1.2)
+    params = _calibrated(tr)
+    whole = encode_chunks(params, [ReplaySource(tr).read(10.0)])
+    assert all(len(whole.train(c)) > 0 for c in CLASSES), "the synthetic press must drive every class"
+    _assert_same(whole, encode_chunks(params, _sample_chunks(tr)))
+    _assert_same(whole, encode_chunks(params, _irregular_chunks(tr, seed=3)))
+    trains = encode_trial(tr, params, update_s=0.032)
+    for c in CLASSES:
+        np.testing.assert_array_equal(trains[c], whole.train(c))
+
+
+@pytest.mark.parametrize("window_ms", [4, 8, 16, 32, 64, 128, 256, 512])
+def test_every_window_works_and_sets_the_latency(window_ms):
+    tr = synthetic_trial()
+    params = PreprocessParams(window_ms=window_ms)
+    pre = Preprocessor(params)
+    src = ReplaySource(tr)
+    head = pre.process(*_fields(src.read(1.0)))
+    # after 1 s of input the output reaches 1 s minus the latency (within one STFT hop and PCHIP knot)
+    end = head.t0_s + head.n_samples / 5000.0
+    assert 1.0 - pre.latency_s - 0.02 <= end <= 1.0 - window_ms / 1000.0 * 0.5 + 1e-9
+    ch = Channels.concatenate([head, pre.process(*_fields(src.read(10.0))), pre.finish()], 1)
+    assert np.all(np.isfinite(ch.data))
+    assert abs(ch.t0_s + ch.n_samples / 5000.0 - tr.st_t[-1]) < 0.01
+
+
+def _fields(c):
+    return c.st_t, c.st, c.pvdf_t, c.pvdf
+
+
+def test_channels_follow_the_physics():
+    tr = synthetic_trial()
+    ch = preprocess_trial(tr, _calibrated(tr).preprocess)
+    t = ch.t_s
+    st, dst = ch.data[:, 0, 0], ch.data[:, 0, 1]
+    hold = (t > 0.6) & (t < 0.85)
+    assert abs(st[hold].mean() - 3.0) < 0.05  # ST tracks the 3 N hold
+    assert dst[(t > 0.3) & (t < 0.45)].max() > 15  # pressing at 30 N/s
+    assert dst[(t > 0.9) & (t < 1.1)].min() < -10  # releasing at -20 N/s
+    pv = ch.data[:, 0, 2]
+    burst = (t > 0.55) & (t < 0.75)
+    quiet = (t > 1.2) & (t < 1.4)
+    assert pv[burst].std() > 10 * pv[quiet].std()  # vibration kept, mains + noise gated
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("protocol", ["ramp", "sine"])
+def test_rig_trials_identical_whole_update_and_single_samples(rig, protocol):
+    entries = rig.entries(protocol)
+    params = default_params()
+    e = entries[len(entries) // 2]
+    tr = rig.load(e)
+    whole = encode_chunks(params, [ReplaySource(tr).read(100.0)])
+    assert len(whole) > 0
+    _assert_same(whole, encode_chunks(params, ReplaySource(tr).chunks(0.032)))
+    _assert_same(whole, encode_chunks(params, _sample_chunks(tr)))

@@ -1,0 +1,185 @@
+"""Invariants of the causal preprocessing stages (sanitize, filters, alpha-beta, STFT gate, PCHIP)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy import signal
+from scipy.interpolate import PchipInterpolator
+
+from touchreal.params import GateCalibration, PreprocessParams
+from touchreal.preprocess.filters import AlphaBeta, SosFilter, butter_lowpass, mains_notches
+from touchreal.preprocess.gate import calibrate, detect_harmonics, gate_thresholds
+from touchreal.preprocess.resample import CausalPchip
+from touchreal.preprocess.sanitize import Sanitizer
+from touchreal.preprocess.stft_gate import StftGate, frame_length
+
+FS = 2000.0
+
+
+def _split_points(draw_sizes, n):
+    cuts, pos = [0], 0
+    for s in draw_sizes:
+        pos += s
+        if pos >= n:
+            break
+        cuts.append(pos)
+    cuts.append(n)
+    return cuts
+
+
+def _run_chunked(process, x, cuts):
+    return np.concatenate([process(x[a:b]) for a, b in zip(cuts, cuts[1:])], axis=0)
+
+
+signals = arrays(np.float64, st.integers(20, 400), elements=st.floats(-5, 5))
+sizes = st.lists(st.integers(0, 50), min_size=1, max_size=30)
+
+
+@settings(max_examples=40, deadline=None)
+@given(x=signals, sz=sizes)
+def test_sos_filter_is_chunk_invariant(x, sz):
+    whole = butter_lowpass(100.0, FS, 4).process(x[:, None])
+    f = butter_lowpass(100.0, FS, 4)
+    chunked = _run_chunked(f.process, x[:, None], _split_points(sz, x.size))
+    np.testing.assert_array_equal(whole, chunked)
+
+
+def test_sos_filter_starts_in_steady_state():
+    y = butter_lowpass(20.0, 100.0, 2).process(np.full((50, 3), 0.5))
+    np.testing.assert_allclose(y, 0.5, atol=1e-12)
+
+
+def test_notch_bank_removes_only_selected_harmonics():
+    t = np.arange(8000) / FS
+    x = np.sin(2 * np.pi * 150 * t) + np.sin(2 * np.pi * 100 * t)
+    y = mains_notches(50.0, [1, 3, 5], 30.0, FS).process(x[:, None])[4000:, 0]
+    f, p = signal.periodogram(y, FS)
+    p100, p150 = p[np.argmin(abs(f - 100))], p[np.argmin(abs(f - 150))]
+    assert p150 < 1e-4 * p100  # 150 Hz notched by > 40 dB, 100 Hz kept
+    assert mains_notches(50.0, [30], 30.0, FS) is None  # 1500 Hz is above Nyquist
+
+
+def test_alpha_beta_tracks_a_ramp_and_rejects_unstable_gains():
+    t = np.arange(300) / 100.0
+    x, v = AlphaBeta(0.5, 0.1, 100.0).process((2.0 * t)[:, None])
+    assert abs(v[-1, 0] - 2.0) < 1e-6 and abs(x[-1, 0] - 2.0 * t[-1]) < 1e-3
+    x, v = AlphaBeta(0.5, 0.1, 100.0).process(np.full((300, 1), 3.0))
+    assert np.all(v == 0) and np.all(x == 3.0)
+    with pytest.raises(ValueError, match="stable"):
+        AlphaBeta(0.5, 3.5, 100.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(x=signals, sz=sizes)
+def test_alpha_beta_chunk_invariant(x, sz):
+    ab = AlphaBeta(0.5, 0.1, 100.0)
+    whole = np.hstack(ab.process(x[:, None]))
+    ab2 = AlphaBeta(0.5, 0.1, 100.0)
+    chunked = _run_chunked(lambda c: np.hstack(ab2.process(c)), x[:, None], _split_points(sz, x.size))
+    np.testing.assert_array_equal(whole, chunked)
+
+
+@pytest.mark.parametrize("window_ms", [4, 8, 16, 32, 64, 128, 256, 512])
+def test_stft_gate_without_threshold_is_identity_on_the_clock(window_ms):
+    n = frame_length(window_ms, FS)
+    x = np.random.default_rng(1).normal(size=(3000, 2))
+    y = StftGate(n, 2).process(x)
+    h = n // 4
+    assert y.shape[0] == (3000 // h) * h - (n - h)  # final once every covering frame is done
+    np.testing.assert_allclose(y, x[: y.shape[0]], atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(x=signals, sz=sizes, thr=st.floats(0.0, 3.0))
+def test_stft_gate_chunk_invariant(x, sz, thr):
+    n = 32
+    make = lambda: StftGate(n, 1, np.full(n // 2 + 1, thr), 0.1)
+    whole = make().process(x[:, None])
+    g = make()
+    chunked = _run_chunked(g.process, x[:, None], _split_points(sz, x.size))
+    np.testing.assert_array_equal(whole, chunked)
+
+
+def test_gate_suppresses_noise_and_keeps_a_tone():
+    rng = np.random.default_rng(2)
+    t = np.arange(40000) / FS
+    raw = rng.normal(0, 0.01, t.size)
+    params = calibrate([raw[:8000]], PreprocessParams(notch_harmonics=[]))
+    noise = butter_lowpass(params.pvdf_lowpass_hz, FS, 4).process(raw[:, None])[:, 0]  # as in the pipeline
+    assert params.notch_harmonics == []
+    n = frame_length(128, FS)
+    gate = StftGate(n, 1)
+    thr = gate_thresholds(params.gate, gate.window, FS)
+    tone = 0.05 * np.sin(2 * np.pi * 300 * t)
+    g = StftGate(n, 1, thr, params.gate.attenuation)
+    y = g.process((tone + noise)[:, None])[:, 0]
+    m = y.size
+    err_in = np.std(noise[:m])
+    err_out = np.std(y[n:] - tone[n:m])
+    assert err_out < 0.5 * err_in  # broadband noise reduced by more than half
+    amp_out = np.sqrt(2) * np.std(y[n:])
+    assert 0.045 < amp_out < 0.056  # tone kept
+    assert StftGate(n, 1, thr).process(noise[:, None]).std() < 0.2 * noise.std()
+
+
+def test_harmonic_detection_finds_only_lines_above_the_floor():
+    rng = np.random.default_rng(3)
+    t = np.arange(20000) / FS
+    x = rng.normal(0, 0.003, t.size) + 0.01 * np.sin(2 * np.pi * 50 * t) + 0.005 * np.sin(2 * np.pi * 250 * t)
+    f, p = signal.welch(x, FS, nperseg=256)
+    assert detect_harmonics(f, p, 50.0, FS) == [1, 5]
+    assert calibrate([x], PreprocessParams()).notch_harmonics == [1, 5]
+
+
+def test_thresholds_scale_with_window_energy():
+    gate = GateCalibration(freqs_hz=[0, 1000], noise_asd=[1e-3, 1e-3], factor=2)
+    small, big = (gate_thresholds(gate, signal.get_window("hann", n), FS) for n in (64, 256))
+    np.testing.assert_allclose(big[::4] / small, 2.0, rtol=0.02)  # sqrt of the 4x window energy
+
+
+def test_pchip_matches_scipy_inside_and_is_chunk_invariant():
+    rng = np.random.default_rng(4)
+    t = 0.003 + np.arange(60) / 100.0
+    y = np.cumsum(rng.normal(size=(60, 2)), axis=0)
+    whole = CausalPchip(5000.0, 2)
+    k0, out = whole.process(t, y)
+    tk = (k0 + np.arange(out.shape[0])) / 5000.0
+    assert tk[0] >= t[1] and tk[-1] < t[-2]
+    np.testing.assert_allclose(out, PchipInterpolator(t, y, axis=0)(tk), rtol=1e-12, atol=1e-12)
+    pieces = CausalPchip(5000.0, 2)
+    got = [pieces.process(t[i : i + 1], y[i : i + 1]) for i in range(60)]
+    got = [g for g in got if g[1].shape[0]]
+    assert got[0][0] == k0
+    np.testing.assert_array_equal(np.concatenate([g[1] for g in got]), out)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=arrays(np.float64, st.integers(1, 200), elements=st.floats(allow_nan=True, allow_infinity=True, width=64)),
+    jitter=st.lists(st.sampled_from([0.0, 0.0, 0.0, -1.0, 2.0, np.nan]), min_size=200, max_size=200),
+)
+def test_sanitizer_output_is_finite_in_range_and_on_the_grid(x, jitter):
+    t = 0.0021 + np.arange(x.size) / 100.0 + np.array(jitter[: x.size]) / 100.0
+    s = Sanitizer(100.0, (0.0, 10.0))
+    first, y = s.push(t, x)
+    assert np.all(np.isfinite(y)) and np.all((y >= 0) & (y <= 10))
+    assert first == 0 and s.next_slot == y.shape[0]
+    st_ = s.stats
+    assert st_.accepted + st_.duplicate + st_.bad_time == x.size
+    assert st_.accepted + st_.gap_filled == y.shape[0]
+
+
+def test_sanitizer_policy_counts_each_repair():
+    s = Sanitizer(100.0, (0.0, 10.0))
+    t = np.array([0.00, 0.01, 0.01, np.nan, 0.02, 0.05, 0.04, 0.06])
+    x = np.array([1.0, np.nan, 5.0, 5.0, 12.0, 4.0, 3.0, np.inf])
+    first, y = s.push(t, x)
+    np.testing.assert_allclose(y[:, 0], [1.0, 1.0, 10.0, 8.0, 6.0, 4.0, 4.0])
+    assert s.stats.as_dict() == {
+        "accepted": 5, "bad_time": 1, "duplicate": 2, "non_finite": 2, "out_of_range": 1, "gaps": 1, "gap_filled": 2,
+    }
+    # next chunk continues on the same grid; a late sample is dropped
+    first, y = s.push(np.array([0.055, 0.07]), np.array([2.0, 2.0]))
+    assert first == 7 and y.shape == (1, 1) and s.stats.duplicate == 3
