@@ -32,6 +32,17 @@ class StreamEncoder:
     def latency_s(self) -> float:
         return self.pre.latency_s
 
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """All state: preprocessing stages plus the membrane potentials."""
+        return {**self.pre.state_arrays(), "lif_v": self.enc.lif.state.v}
+
+    def state_report(self) -> tuple[bool, float, int]:
+        """(all finite, largest magnitude, total bytes) over :meth:`state_arrays`."""
+        arrays = self.state_arrays().values()
+        finite = all(bool(np.all(np.isfinite(a))) for a in arrays)
+        peak = max((float(np.max(np.abs(a))) for a in arrays if a.size), default=0.0)
+        return finite, peak, sum(a.nbytes for a in arrays)
+
     def process(self, chunk: RawChunk) -> SpikeEvents:
         ch = self.pre.process(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
         return self.enc.process(ch)

@@ -131,6 +131,23 @@ class Preprocessor:
     def stats(self) -> dict[str, dict[str, int]]:
         return {"singletact": self.st_in.stats.as_dict(), "pvdf": self.pv_in.stats.as_dict()}
 
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Every numeric state variable of the stages (for stability checks and monitoring)."""
+        out = {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_ab_v": self.st_ab.v}
+        for name, f in (("st_lp", self.st_lp), ("pv_lp", self.pv_lp), ("pv_notch", self.pv_notch)):
+            if f is not None and f.zi is not None:
+                out[name] = f.zi
+        if self.st_ab.x is not None:
+            out["st_ab_x"] = self.st_ab.x
+        out["pv_gate_buf"], out["pv_gate_acc"] = self.pv_gate._buf, self.pv_gate._acc
+        for name, rs in (("st_rs", self.st_rs), ("pv_rs", self.pv_rs)):
+            out[name] = rs._y
+        for b, (_, held) in enumerate(self.align.parts):
+            out[f"align_{b}"] = held
+        if self.pv_prev is not None:
+            out["pv_prev"] = self.pv_prev
+        return out
+
     def process(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> Channels:
         """Feed raw samples (either sensor may be absent in a call); return new 5 kHz channels."""
         if st_t is not None and len(st_t):
