@@ -23,9 +23,11 @@ from .settings import CLASSES
 class StreamEncoder:
     """Raw samples of N taxels -> SA1/RA/PC spike events, chunk by chunk."""
 
-    def __init__(self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None):
+    def __init__(
+        self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None, dtype: type = np.float64
+    ):
         self.params = params
-        self.pre = Preprocessor(params.preprocess, n_taxels)
+        self.pre = Preprocessor(params.preprocess, n_taxels, dtype)
         self.enc = Encoder(params, n_taxels, classes)
 
     @property
@@ -56,15 +58,19 @@ class StreamEncoder:
         return self.enc.process(self.pre.finish())
 
 
-def encode_chunks(params: EncoderParams, chunks: Iterable[RawChunk], n_taxels: int = 1) -> SpikeEvents:
+def encode_chunks(
+    params: EncoderParams, chunks: Iterable[RawChunk], n_taxels: int = 1, dtype: type = np.float64
+) -> SpikeEvents:
     """Encode a finite stream of chunks (flushing at the end)."""
-    se = StreamEncoder(params, n_taxels)
+    se = StreamEncoder(params, n_taxels, dtype=dtype)
     parts = [se.process(c) for c in chunks]
     parts.append(se.finish())
     return SpikeEvents.concatenate(parts)
 
 
-def encode_trial(trial: Trial, params: EncoderParams, update_s: float | None = None) -> dict[str, np.ndarray]:
+def encode_trial(
+    trial: Trial, params: EncoderParams, update_s: float | None = None, dtype: type = np.float64
+) -> dict[str, np.ndarray]:
     """Spike times (s, recording clock) per class for one recorded trial.
 
     ``update_s=None`` feeds the whole recording at once; otherwise it is replayed in chunks of
@@ -72,5 +78,5 @@ def encode_trial(trial: Trial, params: EncoderParams, update_s: float | None = N
     """
     src = ReplaySource(trial)
     chunks = [src.read(trial.duration_s + 1.0)] if update_s is None else src.chunks(update_s)
-    events = encode_chunks(params, chunks)
+    events = encode_chunks(params, chunks, dtype=dtype)
     return {c: events.train(c) for c in CLASSES if c in params.classes}

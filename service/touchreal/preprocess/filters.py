@@ -18,14 +18,15 @@ class SosFilter:
     preload force) causes no start-up transient.
     """
 
-    def __init__(self, sos: np.ndarray, n_taxels: int = 1):
-        self.sos = np.atleast_2d(np.asarray(sos, dtype=np.float64))
+    def __init__(self, sos: np.ndarray, n_taxels: int = 1, dtype: type = np.float64):
+        self.dtype = np.dtype(dtype)
+        self.sos = np.atleast_2d(np.asarray(sos, dtype=np.float64)).astype(self.dtype)
         self.n_taxels = n_taxels
-        self._zi_unit = signal.sosfilt_zi(self.sos)  # (n_sections, 2)
+        self._zi_unit = signal.sosfilt_zi(self.sos).astype(self.dtype)  # (n_sections, 2)
         self.zi: np.ndarray | None = None
 
     def process(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
+        x = np.asarray(x, dtype=self.dtype)
         if x.shape[0] == 0:
             return x.copy()
         if self.zi is None:
@@ -38,12 +39,14 @@ class SosFilter:
         return 0.0 if self.zi is None else float(np.max(np.abs(self.zi)))
 
 
-def butter_lowpass(cutoff_hz: float, fs_hz: float, order: int, n_taxels: int = 1) -> SosFilter:
+def butter_lowpass(cutoff_hz: float, fs_hz: float, order: int, n_taxels: int = 1, dtype: type = np.float64) -> SosFilter:
     """Butterworth low-pass as a stateful :class:`SosFilter`."""
-    return SosFilter(signal.butter(order, cutoff_hz, btype="low", fs=fs_hz, output="sos"), n_taxels)
+    return SosFilter(signal.butter(order, cutoff_hz, btype="low", fs=fs_hz, output="sos"), n_taxels, dtype)
 
 
-def mains_notches(mains_hz: float, harmonics: list[int], q: float, fs_hz: float, n_taxels: int = 1) -> SosFilter | None:
+def mains_notches(
+    mains_hz: float, harmonics: list[int], q: float, fs_hz: float, n_taxels: int = 1, dtype: type = np.float64
+) -> SosFilter | None:
     """Comb of IIR notches at the given mains harmonics (below Nyquist), as one SOS cascade."""
     sections = []
     for h in harmonics:
@@ -53,7 +56,7 @@ def mains_notches(mains_hz: float, harmonics: list[int], q: float, fs_hz: float,
             sections.append(signal.tf2sos(b, a))
     if not sections:
         return None
-    return SosFilter(np.vstack(sections), n_taxels)
+    return SosFilter(np.vstack(sections), n_taxels, dtype)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -100,22 +100,24 @@ class _Aligner:
 class Preprocessor:
     """Causal, chunk-wise, stateful preprocessing of N taxels (see the module docstring)."""
 
-    def __init__(self, params: PreprocessParams | None = None, n_taxels: int = 1):
+    def __init__(self, params: PreprocessParams | None = None, n_taxels: int = 1, dtype: type = np.float64):
         self.params = params = params or PreprocessParams()
         self.n_taxels = n_taxels
+        self.dtype = dt = np.dtype(dtype)  # arithmetic of the filters and the STFT gate
         # SingleTact branch (100 Hz)
         self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
-        self.st_lp = butter_lowpass(params.st_lowpass_hz, ST_FS_HZ, _ST_LP_ORDER, n_taxels)
+        self.st_lp = butter_lowpass(params.st_lowpass_hz, ST_FS_HZ, _ST_LP_ORDER, n_taxels, dt)
         self.st_ab = AlphaBeta(params.st_alpha, params.st_beta, ST_FS_HZ, n_taxels)
         self.st_rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
         # PVDF branch (2 kHz)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
-        self.pv_lp = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels)
-        self.pv_notch = mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels)
+        self.pv_lp = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels, dt)
+        self.pv_notch = mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels, dt)
         n = frame_length(params.window_ms, PVDF_FS_HZ)
-        gate = StftGate(n, n_taxels)
+        gate = StftGate(n, n_taxels, dtype=dt)
         if params.gate is not None:
-            gate = StftGate(n, n_taxels, gate_thresholds(params.gate, gate.window, PVDF_FS_HZ), params.gate.attenuation)
+            thresholds = gate_thresholds(params.gate, gate.window.astype(np.float64), PVDF_FS_HZ)
+            gate = StftGate(n, n_taxels, thresholds, params.gate.attenuation, dtype=dt)
         self.pv_gate = gate
         self.pv_slot = 0  # PVDF grid slot of the next gate output sample
         self.pv_prev: np.ndarray | None = None  # last reconstructed PVDF sample (for the derivative)

@@ -4,6 +4,11 @@ Output sample k is at ``k / fs_out`` on the recording clock. A point between kno
 the PCHIP slopes at both, which depend on knots i-1 ... i+2, so output lags the newest knot by one
 knot interval (buffering). Points are evaluated only inside intervals whose four knots are known,
 so the result does not depend on how the knots were chunked.
+
+The interpolant is scipy's ``PchipInterpolator`` (Fritsch-Carlson slopes with the weighted harmonic
+mean at interior knots), evaluated here in a few vectorised lines because constructing scipy's
+object for every 32 ms update cost more than the rest of the pipeline; ``tests`` check equality
+with scipy to 1e-12.
 """
 
 from __future__ import annotations
@@ -11,7 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 
 
 class CausalPchip:
@@ -53,6 +57,32 @@ class CausalPchip:
         if tk.size == 0:
             return k0, np.zeros((0, self.n_cols))
         k_end = k0 + tk.size
-        values = PchipInterpolator(t_all, y_all, axis=0, extrapolate=False)(tk)
+        values = pchip_eval(t_all, y_all, tk)
         self.next_k = k_end
         return k0, values
+
+
+def pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """PCHIP derivatives at the interior knots 1 .. m-2 of (m,) knots ``x`` and (m, c) values ``y``."""
+    h = np.diff(x)[:, None]
+    delta = np.diff(y, axis=0) / h
+    w1 = 2 * h[1:] + h[:-1]
+    w2 = h[1:] + 2 * h[:-1]
+    flat = (np.sign(delta[1:]) != np.sign(delta[:-1])) | (delta[1:] == 0) | (delta[:-1] == 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        whmean = (w1 / delta[:-1] + w2 / delta[1:]) / (w1 + w2)
+        return np.where(flat, 0.0, 1.0 / whmean)
+
+
+def pchip_eval(x: np.ndarray, y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Evaluate the PCHIP interpolant of knots (x, y) at ``t``, all within [x[1], x[-2])."""
+    d = pchip_slopes(x, y)  # slope of knot j + 1
+    i = np.searchsorted(x, t, side="right") - 1  # interval [x_i, x_i+1) holding t, 1 <= i <= m - 3
+    h = (x[i + 1] - x[i])[:, None]
+    s = (t - x[i])[:, None]
+    y0, y1 = y[i], y[i + 1]
+    d0, d1 = d[i - 1], d[i]
+    m = (y1 - y0) / h
+    c2 = (3 * m - 2 * d0 - d1) / h
+    c3 = (d0 + d1 - 2 * m) / (h * h)
+    return y0 + s * (d0 + s * (c2 + s * c3))

@@ -27,31 +27,34 @@ class StftGate:
     ``None`` keeps every bin (the stage is then an exact delay-free identity on the clock).
     """
 
-    def __init__(self, n: int, n_taxels: int = 1, thresholds: np.ndarray | None = None, attenuation: float = 0.05):
+    def __init__(
+        self, n: int, n_taxels: int = 1, thresholds: np.ndarray | None = None, attenuation: float = 0.05, dtype: type = np.float64
+    ):
         if n < 8 or n % 4:
             raise ValueError("frame length must be a multiple of 4, >= 8")
         self.n, self.hop = n, n // 4
         self.n_taxels = n_taxels
-        self.window = signal.get_window("hann", n, fftbins=True)
+        self.dtype = np.dtype(dtype)
+        self.window = signal.get_window("hann", n, fftbins=True).astype(self.dtype)
         self.norm = self.window.sum() / self.hop  # constant overlap-add gain (2.0 for Hann at N/4)
         self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64)
         if self.thresholds is not None and self.thresholds.shape != (n // 2 + 1,):
             raise ValueError(f"thresholds must have {n // 2 + 1} bins")
         self.attenuation = float(attenuation)
-        self._buf = np.zeros((n - self.hop, n_taxels))  # input not yet consumed by a full frame
-        self._acc = np.zeros((n - self.hop, n_taxels))  # overlap-add tail of frames already done
+        self._buf = np.zeros((n - self.hop, n_taxels), self.dtype)  # input not yet consumed by a full frame
+        self._acc = np.zeros((n - self.hop, n_taxels), self.dtype)  # overlap-add tail of frames already done
         self._skip = n - self.hop  # leading outputs that belong to the virtual zeros
         self.frames = 0
         self.gated_fraction = 0.0  # fraction of bins attenuated in the last processed chunk
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """Consume input samples, return the newly finalised output samples (same units)."""
-        x = np.asarray(x, dtype=np.float64)
+        x = np.asarray(x, dtype=self.dtype)
         buf = np.concatenate((self._buf, x), axis=0)
         n_frames = (buf.shape[0] - self.n) // self.hop + 1 if buf.shape[0] >= self.n else 0
         if n_frames <= 0:
             self._buf = buf
-            return np.zeros((0, self.n_taxels))
+            return np.zeros((0, self.n_taxels), self.dtype)
         idx = np.arange(n_frames)[:, None] * self.hop + np.arange(self.n)[None, :]
         frames = buf[idx] * self.window[None, :, None]  # (F, N, taxels)
         spec = np.fft.rfft(frames, axis=1)
@@ -59,10 +62,10 @@ class StftGate:
             below = np.abs(spec) < self.thresholds[None, :, None]
             spec = np.where(below, spec * self.attenuation, spec)
             self.gated_fraction = float(below.mean())
-        y = np.fft.irfft(spec, n=self.n, axis=1)  # (F, N, taxels)
+        y = np.fft.irfft(spec, n=self.n, axis=1).astype(self.dtype, copy=False)  # (F, N, taxels)
         # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
         total = (n_frames - 1) * self.hop + self.n
-        acc = np.zeros((total, self.n_taxels))
+        acc = np.zeros((total, self.n_taxels), self.dtype)
         acc[: self._acc.shape[0]] += self._acc
         for f in range(n_frames):  # at most a few frames per update; each add is vectorised
             acc[f * self.hop : f * self.hop + self.n] += y[f]

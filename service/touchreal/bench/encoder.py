@@ -1,0 +1,168 @@
+"""Encoder benchmark: compute time per update, real-time factor, and run time against error per window.
+
+Part 1 drives the full online chain (preprocessing + LIF, all three classes) with the simulated
+e-skin's live scene for 1, 16 and 256 taxels in 32 ms updates and reports the compute time per
+update (mean, p95, p99, max) and the real-time factor (update interval / mean compute time), in
+float64 and in float32 preprocessing.
+
+Part 2 encodes ramp and sine trials with causal windows of 16-512 ms and reports, against the
+128 ms / float64 result, the mean absolute spike-count error (%) and the mean van Rossum distance
+(tau 10 ms), with the compute time per update for one taxel at that window. It uses rig-v1 from
+TOUCHREAL_SHARED when present, otherwise a small simulated dataset.
+
+Part 3 soaks the chain with a long simulated stream (``--soak-hours``) and reports the largest
+state magnitude, the state size at the start and end (flat memory) and the process RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..analysis.spiketrains import vr_distance
+from ..params import EncoderParams, default_params
+from ..recording import Dataset
+from ..sensing.raw import RawChunk
+from ..sensing.replay import ReplaySource
+from ..settings import CLASSES, shared_dir
+from ..stream import StreamEncoder, encode_chunks
+
+WINDOWS_MS = (16, 32, 64, 128, 256, 512)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--taxels", default="1,16,256", help="taxel counts for the timing part")
+    p.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per timing run")
+    p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
+    p.add_argument("--trials", type=int, default=40, help="trials per protocol for the window sweep")
+    p.add_argument("--soak-hours", type=float, default=0.0, help="also soak with this many simulated hours")
+    p.add_argument("--skip-sweep", action="store_true", help="only the timing part")
+
+
+def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0) -> list[RawChunk]:
+    from ..sensing.scene import SceneSource
+
+    src = SceneSource(n_taxels=n_taxels, seed=seed)
+    return [src.read(update_s) for _ in range(int(round(seconds / update_s)))]
+
+
+def _time_updates(params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type) -> np.ndarray:
+    se = StreamEncoder(params, n_taxels, dtype=dtype)
+    se.process(chunks[0])  # compile and warm up outside the measurement
+    times = np.empty(len(chunks) - 1)
+    for i, c in enumerate(chunks[1:]):
+        t = time.perf_counter()
+        se.process(c)
+        times[i] = time.perf_counter() - t
+    return times
+
+
+def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:
+    update_s = params.preprocess.update_ms / 1000.0
+    print(f"== compute time per {params.preprocess.update_ms:g} ms update (window {params.preprocess.window_ms:g} ms, 3 classes)")
+    print(f"{'taxels':>6} {'dtype':>7} {'mean ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'max ms':>8} {'real-time x':>11}")
+    for n in taxels:
+        chunks = _scene_chunks(n, seconds, update_s)
+        for dtype in (np.float64, np.float32):
+            ms = _time_updates(params, chunks, n, dtype) * 1000
+            print(
+                f"{n:6d} {np.dtype(dtype).name:>7} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f} "
+                f"{np.percentile(ms, 99):8.3f} {ms.max():8.3f} {update_s * 1000 / ms.mean():11.1f}"
+            )
+
+
+def _sweep_dataset(n_trials: int) -> tuple[Dataset, str]:
+    rig = shared_dir() / "datasets" / "rig-v1"
+    if (rig / "manifest.json").is_file():
+        return Dataset.open(rig), f"rig-v1 ({rig})"
+    from ..sensing.simulate import simulate_dataset
+
+    out = Path(tempfile.mkdtemp(prefix="touchreal-bench-"))
+    for proto in ("ramp", "sine"):
+        simulate_dataset(proto, out / proto, trials=n_trials, seed=0)
+    return Dataset.open(out / "ramp"), f"simulated ({out})"
+
+
+def _pick(ds: Dataset, protocol: str, n: int) -> list[dict]:
+    entries = ds.entries(protocol)
+    if not entries:
+        return []
+    step = max(1, len(entries) // n)
+    return entries[::step][:n]
+
+
+def sweep(params: EncoderParams, n_trials: int) -> None:
+    ds, name = _sweep_dataset(n_trials)
+    trials = []
+    datasets = [ds]
+    sine_root = ds.root.parent / "sine"
+    if not ds.entries("sine") and (sine_root / "manifest.json").is_file():
+        datasets.append(Dataset.open(sine_root))
+    for d in datasets:
+        for proto in ("ramp", "sine"):
+            trials += [d.load(e) for e in _pick(d, proto, n_trials)]
+    print(f"\n== run time against error per causal window ({len(trials)} ramp+sine trials of {name}; "
+          "reference: 128 ms, float64; VR tau 10 ms)")
+
+    def encode_all(window_ms: float, dtype: type) -> tuple[list[dict[str, np.ndarray]], float]:
+        p = params.model_copy(update={"preprocess": params.preprocess.model_copy(update={"window_ms": window_ms})})
+        out, spent, updates = [], 0.0, 0
+        for tr in trials:
+            chunks = list(ReplaySource(tr).chunks(p.preprocess.update_ms / 1000.0))
+            t = time.perf_counter()
+            ev = encode_chunks(p, chunks, dtype=dtype)
+            spent += time.perf_counter() - t
+            updates += len(chunks)
+            out.append({c: ev.train(c) for c in CLASSES})
+        return out, spent / updates * 1000
+
+    ref, _ = encode_all(128.0, np.float64)
+    print(f"{'window ms':>9} {'dtype':>7} {'ms/update':>9} " + " ".join(f"{c + ' cnt%':>9} {c + ' VR':>7}" for c in CLASSES))
+    for w in WINDOWS_MS:
+        for dtype in (np.float64, np.float32) if w == 128 else (np.float64,):
+            got, ms = encode_all(float(w), dtype)
+            cols = []
+            for c in CLASSES:
+                n_ref = np.array([len(r[c]) for r in ref], float)
+                n_got = np.array([len(g[c]) for g in got], float)
+                cnt = 100 * np.abs(n_got - n_ref).sum() / max(n_ref.sum(), 1.0)
+                vr = np.mean([vr_distance(g[c], r[c], 0.01) for g, r in zip(got, ref)])
+                cols.append(f"{cnt:9.2f} {vr:7.3f}")
+            print(f"{w:9d} {np.dtype(dtype).name:>7} {ms:9.3f} " + " ".join(cols))
+
+
+def soak(params: EncoderParams, hours: float) -> None:
+    from ..sensing.scene import SceneSource
+
+    se = StreamEncoder(params, 1)
+    src = SceneSource(n_taxels=1, seed=1)
+    chunk_s, total = 1.0, int(hours * 3600)
+    t0 = time.perf_counter()
+    first_bytes, peak, spikes = None, 0.0, 0
+    for i in range(total):
+        spikes += len(se.process(src.read(chunk_s)))
+        if i % 60 == 0 or i == total - 1:
+            finite, mag, nbytes = se.state_report()
+            if not finite:
+                raise RuntimeError(f"non-finite state after {i} s")
+            peak = max(peak, mag)
+            first_bytes = nbytes if first_bytes is None else first_bytes
+    wall = time.perf_counter() - t0
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"\n== soak: {hours:g} h simulated in {wall:.0f} s ({hours * 3600 / wall:.0f}x real time), {spikes} spikes")
+    print(f"state finite throughout; largest |state| {peak:.3g}; state bytes start {first_bytes} end {nbytes}; max RSS {rss_mb:.0f} MB")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = EncoderParams.load(args.params) if args.params else default_params()
+    timing(params, [int(x) for x in args.taxels.split(",")], args.seconds)
+    if not args.skip_sweep:
+        sweep(params, args.trials)
+    if args.soak_hours > 0:
+        soak(params, args.soak_hours)
+    return 0
