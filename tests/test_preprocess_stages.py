@@ -183,3 +183,13 @@ def test_sanitizer_policy_counts_each_repair():
     # next chunk continues on the same grid; a late sample is dropped
     first, y = s.push(np.array([0.055, 0.07]), np.array([2.0, 2.0]))
     assert first == 7 and y.shape == (1, 1) and s.stats.duplicate == 3
+
+
+@settings(max_examples=30, deadline=None)
+@given(x=arrays(np.float64, st.tuples(st.integers(1, 300), st.integers(1, 3)), elements=st.floats(-10, 10)))
+def test_sos_kernel_equals_scipy_sosfilt(x):
+    sos = np.vstack((signal.butter(4, 300, fs=FS, output="sos"), signal.tf2sos(*signal.iirnotch(150, 30, fs=FS))))
+    f = SosFilter(sos, x.shape[1])
+    zi0 = signal.sosfilt_zi(sos)[:, :, None] * x[0][None, None, :]
+    want, _ = signal.sosfilt(sos, x, axis=0, zi=zi0)
+    np.testing.assert_allclose(f.process(x), want, rtol=1e-12, atol=1e-12)

@@ -4,7 +4,7 @@
 
     SingleTact -> sanitize -> Butterworth low-pass -> alpha-beta -> (ST [N], dST [N/s]) -+
                                                                                         +-> PCHIP -> 5 kHz
-    PVDF -> sanitize -> low-pass -> mains notches -> STFT gate (OLA) -> (PVDF [V],      |
+    PVDF -> sanitize -> low-pass + mains notches -> STFT gate (OLA) -> (PVDF [V],      |
                                                            dPVDF = backward diff [V/s]) -+
 
 :class:`Preprocessor` is a sans-I/O state machine: ``process(...)`` takes whatever raw samples
@@ -111,8 +111,10 @@ class Preprocessor:
         self.st_rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
         # PVDF branch (2 kHz)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
-        self.pv_lp = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels, dt)
-        self.pv_notch = mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels, dt)
+        # low-pass and mains notch comb as one SOS cascade
+        self.pv_filter = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels, dt).then(
+            mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels, dt)
+        )
         n = frame_length(params.window_ms, PVDF_FS_HZ)
         gate = StftGate(n, n_taxels, dtype=dt)
         if params.gate is not None:
@@ -136,8 +138,8 @@ class Preprocessor:
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Every numeric state variable of the stages (for stability checks and monitoring)."""
         out = {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_ab_v": self.st_ab.v}
-        for name, f in (("st_lp", self.st_lp), ("pv_lp", self.pv_lp), ("pv_notch", self.pv_notch)):
-            if f is not None and f.zi is not None:
+        for name, f in (("st_lp", self.st_lp), ("pv_filter", self.pv_filter)):
+            if f.zi is not None:
                 out[name] = f.zi
         if self.st_ab.x is not None:
             out["st_ab_x"] = self.st_ab.x
@@ -157,10 +159,7 @@ class Preprocessor:
             self._st_branch(self.st_in.slot_time(np.arange(first, first + x.shape[0])), x)
         if pvdf_t is not None and len(pvdf_t):
             _, x = self.pv_in.push(pvdf_t, pvdf)
-            x = self.pv_lp.process(x)
-            if self.pv_notch is not None:
-                x = self.pv_notch.process(x)
-            self._pv_branch(self.pv_gate.process(x))
+            self._pv_branch(self.pv_gate.process(self.pv_filter.process(x)))
         return self._pop()
 
     def finish(self) -> Channels:
