@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,3 +29,12 @@ class RawChunk:
     def empty(cls, n_taxels: int = 1) -> "RawChunk":
         z = np.zeros(0)
         return cls(z, np.zeros((0, n_taxels)), z.copy(), np.zeros((0, n_taxels)))
+
+    def taxel(self, i: int) -> "RawChunk":
+        """The streams of taxel ``i`` as 1-D arrays (``st`` (n,) N, ``pvdf`` (m,) V)."""
+        return RawChunk(self.st_t, self.st[:, i], self.pvdf_t, self.pvdf[:, i])
+
+    @staticmethod
+    def concat(chunks: Sequence["RawChunk"]) -> "RawChunk":
+        """Join consecutive chunks of one source into one."""
+        return RawChunk(*(np.concatenate([getattr(c, f) for c in chunks]) for f in ("st_t", "st", "pvdf_t", "pvdf")))
