@@ -3,8 +3,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchreal.encoding.encoder import Encoder, channel_currents, encode_population, rectify
-from touchreal.encoding.lif import REFRACTORY_SAMPLES, LifPopulation, saturate
+from touchreal.encoding.encoder import Encoder, channel_currents, encode_population, input_current, rectify
+from touchreal.encoding.lif import REFRACTORY_SAMPLES, LifPopulation
 from touchreal.params import ClassParams, default_params
 from touchreal.preprocess.pipeline import Channels
 from touchreal.settings import CLASSES
@@ -82,11 +82,17 @@ def test_lif_constant_current_rate_matches_closed_form():
     assert np.all(np.diff(k) == period)
 
 
-def test_saturation_bounds_current():
-    x = np.array([[-1e12, -1.0, 0.0, 1.0, 1e12]]).T
-    y = saturate(x, np.array([5.0]))
-    assert np.all(np.abs(y) < 5.0) and y[2, 0] == 0
-    np.testing.assert_array_equal(saturate(x, np.array([0.0])), x)
+def test_input_current_matches_rectified_weights_and_saturates():
+    rng = np.random.default_rng(5)
+    ch = rng.normal(0, 3, (50, 3, 4))
+    w = rng.normal(0, 1, (8, 2))
+    raw = (rectify(ch) @ w).reshape(50, 6)
+    np.testing.assert_allclose(input_current(ch, w, np.zeros(2)), raw, rtol=1e-12)
+    sat = input_current(ch, w, np.array([5.0, 0.0]))
+    np.testing.assert_allclose(sat[:, 0::2], 5.0 * raw[:, 0::2] / (5.0 + np.abs(raw[:, 0::2])), rtol=1e-12)
+    np.testing.assert_allclose(sat[:, 1::2], raw[:, 1::2], rtol=1e-12)
+    huge = input_current(np.full((1, 1, 4), 1e300), np.ones((8, 1)), np.array([5.0]))
+    assert np.isfinite(huge).all() and abs(huge[0, 0]) <= 5.0
 
 
 def test_bad_parameters_rejected():

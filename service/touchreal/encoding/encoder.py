@@ -19,11 +19,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 from ..params import ClassParams, EncoderParams
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
-from .lif import LifPopulation, saturate
+from .lif import LifPopulation
 
 
 @lru_cache(maxsize=1)
@@ -38,6 +39,38 @@ def rectify(channels: np.ndarray) -> np.ndarray:
     pos = np.maximum(channels, 0.0)
     neg = np.maximum(-channels, 0.0)
     return np.stack((pos, neg), axis=-1).reshape(*channels.shape[:-1], 8)
+
+
+@numba.njit(cache=True, nogil=True)
+def _current(channels, w, i_sat, out):  # pragma: no cover - compiled
+    """out[k, x * C + c] = sat_c(sum_j w[2j, c] max(ch[k, x, j], 0) + w[2j+1, c] max(-ch[k, x, j], 0))."""
+    n_t, n_x, n_ch = channels.shape
+    n_c = w.shape[1]
+    for k in range(n_t):
+        for x in range(n_x):
+            for c in range(n_c):
+                acc = 0.0
+                for j in range(n_ch):
+                    v = channels[k, x, j]
+                    if v > 0.0:
+                        acc += w[2 * j, c] * v
+                    elif v < 0.0:
+                        acc -= w[2 * j + 1, c] * v
+                s = i_sat[c]
+                if s > 0.0:
+                    acc = s * acc / (s + abs(acc))
+                out[k, x * n_c + c] = acc
+
+
+def input_current(channels: np.ndarray, w: np.ndarray, i_sat: np.ndarray) -> np.ndarray:
+    """(T, X, 4) channels, (8, C) weights, (C,) saturation -> (T, X * C) saturated input current.
+
+    ``I_sat * I / (I_sat + |I|)`` where ``I_sat > 0`` (TouchSim's saturation); input must be finite.
+    """
+    channels = np.ascontiguousarray(channels, dtype=np.float64)
+    out = np.empty((channels.shape[0], channels.shape[1] * w.shape[1]))
+    _current(channels, np.ascontiguousarray(w, dtype=np.float64), np.ascontiguousarray(i_sat, dtype=np.float64), out)
+    return out
 
 
 def _columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -62,7 +95,7 @@ def encode_population(channels: np.ndarray, t0_s: float, params: Sequence[ClassP
     Returns one array of spike times (s, recording clock, delay included) per parameter set.
     """
     w, i_sat, tau, ih, delay = _columns(params)
-    current = saturate(rectify(np.asarray(channels, dtype=np.float64)) @ w, i_sat)
+    current = input_current(np.asarray(channels)[:, None, :], w, i_sat)
     k, n = LifPopulation(tau, ih).step(current)
     times = t0_s + (k + 1) / OUT_FS_HZ
     return [times[n == j] + delay[j] for j in range(len(params))]
@@ -111,7 +144,6 @@ class Encoder:
         # neuron j = taxel * n_classes + class
         n_cls = len(self.classes)
         self.lif = LifPopulation(np.tile(tau, n_taxels), np.tile(ih, (n_taxels, 1)))
-        self._i_sat_n = np.tile(self.i_sat, n_taxels)
         self._delay_n = np.tile(self.delay, n_taxels)
         self._taxel_n = np.repeat(np.arange(n_taxels), n_cls)
         self._cls_n = np.tile(self.class_index, n_taxels)
@@ -121,9 +153,7 @@ class Encoder:
 
     def currents(self, data: np.ndarray) -> np.ndarray:
         """(T, n_taxels, 4) channels -> (T, n_taxels * n_classes) saturated input current."""
-        t = data.shape[0]
-        current = rectify(np.asarray(data, dtype=np.float64)) @ self.w  # (T, taxels, classes)
-        return saturate(current.reshape(t, -1), self._i_sat_n)
+        return input_current(data, self.w, self.i_sat)
 
     def process(self, channels, k0: int | None = None) -> SpikeEvents:
         data = channels.data if k0 is None else channels

@@ -104,19 +104,3 @@ class LifPopulation:
         n = _lif_run(current, self.tau, self.ih, s.v, s.counter, out_t, out_n)
         return out_t[:n], out_n[:n]
 
-
-def saturate(current: np.ndarray, i_sat: np.ndarray) -> np.ndarray:
-    """TouchSim's input saturation ``I_sat * I / (I_sat + |I|)``, applied where ``I_sat > 0``.
-
-    ``i_sat`` broadcasts against the last axis of ``current``; neurons with ``I_sat <= 0`` pass
-    unchanged. Non-finite results (only possible for non-finite input) become 0.
-    """
-    i_sat = np.asarray(i_sat, dtype=np.float64)
-    active = i_sat > 0
-    if not np.any(active):
-        return current
-    safe = np.where(active, i_sat, 1.0)
-    sat = safe * current / (safe + np.abs(current))
-    out = np.where(active, sat, current)
-    out[~np.isfinite(out)] = 0.0
-    return out
