@@ -73,7 +73,8 @@ def input_current(channels: np.ndarray, w: np.ndarray, i_sat: np.ndarray) -> np.
     return out
 
 
-def _columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(8, M) weights, (M,) i_sat, (M,) tau in samples, (M, 190) post-spike current, (M,) delay in s."""
     w = np.array([p.weights for p in params], dtype=np.float64).T  # (8, M)
     i_sat = np.array([p.i_sat for p in params])
     tau = np.array([p.tau_samples for p in params])
@@ -94,11 +95,13 @@ def encode_population(channels: np.ndarray, t0_s: float, params: Sequence[ClassP
 
     Returns one array of spike times (s, recording clock, delay included) per parameter set.
     """
-    w, i_sat, tau, ih, delay = _columns(params)
+    w, i_sat, tau, ih, delay = class_columns(params)
     current = input_current(np.asarray(channels)[:, None, :], w, i_sat)
     k, n = LifPopulation(tau, ih).step(current)
-    times = t0_s + (k + 1) / OUT_FS_HZ
-    return [times[n == j] + delay[j] for j in range(len(params))]
+    order = np.argsort(n, kind="stable")  # group by neuron, keeping time order
+    bounds = np.searchsorted(n[order], np.arange(len(params) + 1))
+    times = t0_s + (k[order] + 1) / OUT_FS_HZ
+    return [times[bounds[j] : bounds[j + 1]] + delay[j] for j in range(len(params))]
 
 
 @dataclass
@@ -139,7 +142,7 @@ class Encoder:
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in classes)
         self.class_index = np.array([CLASSES.index(c) for c in self.classes])
-        w, self.i_sat, tau, ih, self.delay = _columns([params.classes[c] for c in self.classes])
+        w, self.i_sat, tau, ih, self.delay = class_columns([params.classes[c] for c in self.classes])
         self.w = w  # (8, n_classes)
         # neuron j = taxel * n_classes + class
         n_cls = len(self.classes)

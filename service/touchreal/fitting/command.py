@@ -1,0 +1,65 @@
+"""``touchreal fit DATASET_DIR --out PARAMS.json``: fit the encoder to a dataset's TouchSim references."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..settings import CLASSES, DEFAULT_WINDOW_MS
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "fit",
+        help="fit SA1/RA/PC encoder parameters to a dataset's TouchSim reference spike trains",
+        description="Per afferent class, CMA-ES on the paper's objective (eqs. 1-10) over the ramp and sine "
+        "training trials (split by repeat; the rest is held out for `touchreal evaluate`). Calibrates the PVDF "
+        "gate on the contact-free baselines. See docs/fitting.md.",
+    )
+    p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="dataset folder (manifest.json + trials/)")
+    p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json", help="parameter file to write")
+    p.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to fit (default: all)")
+    p.add_argument("--window-ms", type=float, default=DEFAULT_WINDOW_MS, help="causal PVDF window (ms, default 128)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
+    p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
+    p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
+    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; default 1)")
+    p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
+    p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
+    p.add_argument("--max-ramp-conditions", type=int, default=None, help="fit on a seeded subsample of ramp conditions")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    p.add_argument("--init", type=Path, default=None, metavar="PARAMS.json",
+                   help="start from this parameter file (its preprocessing settings and classes; unfitted classes are kept)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..params import EncoderParams
+    from .fit import FitConfig, fit_dataset
+
+    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    kw = {"classes": classes, "window_ms": args.window_ms, "seed": args.seed, "progress": not args.quiet}
+    for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
+                       ("sine_weight", "sine_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+        v = getattr(args, name)
+        if v is not None:
+            kw[attr] = v
+    cfg = FitConfig(**kw)
+    init = EncoderParams.load(args.init) if args.init else None
+    if args.out.parent and not args.out.parent.exists():
+        raise ValueError(f"output folder {args.out.parent} does not exist")
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr)
+
+    res = fit_dataset(args.dataset, cfg, init=init, log=log)
+    res.params.save(args.out)
+    print(f"fitted {', '.join(res.classes)} on {res.n_train} training trials in {res.seconds:.0f} s -> {args.out}")
+    for c, f in res.classes.items():
+        tr = f.train.total if f.train else float("nan")
+        va = f.validation.total if f.validation else float("nan")
+        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va:.4f} "
+              f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
+    return 0

@@ -1,0 +1,177 @@
+"""The paper's fitting objective (eqs. 1-10) for one afferent class.
+
+``L = D_basic + L_rel + L_empty + L_MGD``:
+
+* ``D_kernel^r`` (eq. 5-6): mean over all (predicted, reference) pairs of condition r of
+  ``1 - C / (sqrt(A_pred A_ref) + eps)``, exponential kernel of time constant ``tau``;
+  ``D_basic`` is its mean over conditions.
+* ``L_rel`` (eqs. 7, 9): mean over conditions of ``|N_T - N_S| / (N_T + eps)``, N = mean spike
+  count of the reference (T) and predicted (S) trains of the condition.
+* ``L_empty`` (eqs. 8, 9): ``lambda_e * L_relative`` where ``N_T >= thres_1`` and ``N_S <= thres_2``.
+* ``L_MGD`` (eq. 10): mean ``D_kernel^r`` of the m worst conditions.
+
+Two conventions the paper leaves open (documented in docs/fitting.md):
+
+* a pair of two empty trains is identical and has distance 0 (the literal eq. 4 gives 1 for any
+  pair with an empty train, which would make every silent condition a permanent "worst" one);
+* where ``N_T = 0`` the relative count loss is the absolute count ``N_S`` (the literal eq. 7
+  would divide by 1e-12).
+
+Spike times handed to this module must already be aligned to a common clock per condition (the
+fitter uses time since the trial's commanded onset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numba
+import numpy as np
+
+from ..analysis.spiketrains import SIM_EPS, _auto_sums_flat, _kernel_sum_sorted, pack
+
+
+@dataclass(frozen=True)
+class ObjectiveConfig:
+    """Constants of the objective; the defaults are the paper's (kernel tau is ours)."""
+
+    kernel_tau_s: float = 0.010  #: kernel time constant of eqs. 2-3 (paper: not given)
+    lambda_e: float = 5.0
+    thres_1: float = 1.0
+    thres_2: float = 0.8
+    m_worst: int = 3
+    eps: float = SIM_EPS
+    empty_pair_distance: float = 0.0  #: D_kernel of (empty, empty)
+
+
+@dataclass
+class ReferenceSet:
+    """Reference trains of one class, grouped by condition (condition c owns refs
+    ``cond_off[c]:cond_off[c+1]``), with their auto-kernels precomputed for ``tau``."""
+
+    names: list[str]
+    flat: np.ndarray  # (total spikes,) float64, sorted within each train
+    off: np.ndarray  # (n_refs + 1,) int64
+    cond_off: np.ndarray  # (n_conditions + 1,) int64
+    auto: np.ndarray  # (n_refs,) A(S_gnd)
+    n_t: np.ndarray  # (n_conditions,) mean reference spike count N_T
+    weights: np.ndarray  # (n_conditions,) condition weights (1 = the paper's plain mean)
+    tau_s: float
+
+    @classmethod
+    def build(
+        cls,
+        groups: Sequence[Sequence[np.ndarray]],
+        tau_s: float,
+        names: Sequence[str] | None = None,
+        weights: Sequence[float] | None = None,
+    ) -> "ReferenceSet":
+        """``groups[c]`` = the reference trains of condition c (each condition needs >= 1)."""
+        if any(len(g) == 0 for g in groups):
+            raise ValueError("every condition needs at least one reference train")
+        trains = [t for g in groups for t in g]
+        flat, off = pack(trains)
+        cond_off = np.zeros(len(groups) + 1, dtype=np.int64)
+        cond_off[1:] = np.cumsum([len(g) for g in groups])
+        auto = np.zeros(len(trains))
+        _auto_sums_flat(flat, off, 1.0 / tau_s, auto)
+        counts = np.diff(off).astype(np.float64)
+        n_t = np.array([counts[cond_off[c] : cond_off[c + 1]].mean() for c in range(len(groups))])
+        w = np.ones(len(groups)) if weights is None else np.asarray(weights, np.float64)
+        if w.shape != (len(groups),) or np.any(w < 0) or w.sum() <= 0:
+            raise ValueError("weights must be one non-negative value per condition, not all zero")
+        return cls(
+            names=list(names) if names is not None else [str(i) for i in range(len(groups))],
+            flat=flat,
+            off=off,
+            cond_off=cond_off,
+            auto=auto,
+            n_t=n_t,
+            weights=w,
+            tau_s=float(tau_s),
+        )
+
+    @property
+    def n_conditions(self) -> int:
+        return self.cond_off.size - 1
+
+
+@dataclass
+class LossTerms:
+    total: float
+    d_basic: float
+    l_rel: float
+    l_empty: float
+    l_mgd: float
+    d_kernel: np.ndarray = field(repr=False)  # (n_conditions,) D_kernel^r
+    n_s: np.ndarray = field(repr=False)  # (n_conditions,) mean predicted count
+    n_t: np.ndarray = field(repr=False)  # (n_conditions,) mean reference count
+
+    def as_dict(self) -> dict[str, float]:
+        return {"total": self.total, "d_basic": self.d_basic, "l_rel": self.l_rel, "l_empty": self.l_empty, "l_mgd": self.l_mgd}
+
+
+@numba.njit(cache=True, nogil=True)
+def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, inv_tau, eps, empty_pair, dsum, npairs, pcount, npred):  # pragma: no cover - compiled
+    """Accumulate, per condition, the sum of pair distances, the pair count, the predicted
+    spike-count sum and the number of predicted trains."""
+    for p in range(poff.shape[0] - 1):
+        c = pcond[p]
+        x = pflat[poff[p] : poff[p + 1]]
+        nx = x.shape[0]
+        ax = _kernel_sum_sorted(x, x, inv_tau)
+        pcount[c] += nx
+        npred[c] += 1
+        for k in range(cond_off[c], cond_off[c + 1]):
+            ny = roff[k + 1] - roff[k]
+            if nx == 0 and ny == 0:
+                d = empty_pair
+            elif nx == 0 or ny == 0:
+                d = 1.0
+            else:
+                cxy = _kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau)
+                d = 1.0 - cxy / (np.sqrt(ax * rauto[k]) + eps)
+            dsum[c] += d
+            npairs[c] += 1
+
+
+def terms_from_stats(d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, weights: np.ndarray, cfg: ObjectiveConfig) -> LossTerms:
+    """Assemble eq. (1) from per-condition D_kernel^r, N_S and N_T."""
+    w = weights / weights.sum()
+    d_basic = float(np.dot(w, d_kernel))
+    denom = np.where(n_t > 0, n_t + cfg.eps, 1.0)
+    rel = np.abs(n_t - n_s) / denom
+    empty = np.where((n_t >= cfg.thres_1) & (n_s <= cfg.thres_2), cfg.lambda_e * rel, 0.0)
+    l_rel = float(np.dot(w, rel))
+    l_empty = float(np.dot(w, empty))
+    m = min(cfg.m_worst, d_kernel.size)
+    l_mgd = float(np.mean(np.sort(d_kernel)[-m:])) if m > 0 else 0.0
+    total = d_basic + l_rel + l_empty + l_mgd
+    return LossTerms(total, d_basic, l_rel, l_empty, l_mgd, d_kernel, n_s, n_t)
+
+
+def evaluate_loss(
+    pred_trains: Sequence[np.ndarray], pred_cond: Sequence[int], refs: ReferenceSet, cfg: ObjectiveConfig = ObjectiveConfig()
+) -> LossTerms:
+    """Loss of predicted trains ``pred_trains[i]`` (condition ``pred_cond[i]``) against ``refs``.
+
+    Conditions without any predicted train are an error (every condition must be predicted).
+    """
+    if abs(cfg.kernel_tau_s - refs.tau_s) > 1e-15:
+        raise ValueError("reference auto-kernels were computed for a different tau")
+    pflat, poff = pack(pred_trains)
+    pcond = np.asarray(pred_cond, dtype=np.int64)
+    if pcond.shape != (len(pred_trains),):
+        raise ValueError("one condition index per predicted train")
+    n_c = refs.n_conditions
+    if pcond.size and (pcond.min() < 0 or pcond.max() >= n_c):
+        raise ValueError("condition index out of range")
+    dsum = np.zeros(n_c)
+    npairs = np.zeros(n_c)
+    pcount = np.zeros(n_c)
+    npred = np.zeros(n_c)
+    _condition_stats(pflat, poff, pcond, refs.flat, refs.off, refs.auto, refs.cond_off, 1.0 / refs.tau_s, cfg.eps, cfg.empty_pair_distance, dsum, npairs, pcount, npred)
+    if np.any(npred == 0):
+        raise ValueError(f"conditions without predicted trains: {[refs.names[i] for i in np.flatnonzero(npred == 0)][:5]}")
+    return terms_from_stats(dsum / npairs, pcount / npred, refs.n_t, refs.weights, cfg)

@@ -1,0 +1,149 @@
+"""The search space of the fit: a normalised parameter vector <-> :class:`ClassParams`.
+
+Coordinates (13), chosen so that one CMA-ES step size means about the same everywhere:
+
+====  =============  ==========================================================================
+ idx  name           mapping
+====  =============  ==========================================================================
+ 0-7  w1..w8         ``w = x / (scale_ch * tau0_samples)``: x = 1 drives the LIF to its threshold
+                     (steady state ``V = I tau``) when the channel sits at its typical magnitude
+                     ``scale_ch`` (99th percentile of |channel| over the training trials)
+   8  log_tau        ``tau_ms = tau0_ms * exp(x)``
+ 9-10 ih1, ih2       ``ih = x * ih_scale`` (TouchSim's class-median basis weights as the unit)
+  11  delay          ``delay_ms = 20 x``
+  12  log_isat       ``i_sat = exp(x)`` (LIF units; threshold = 1)
+====  =============  ==========================================================================
+
+``tau0_ms`` and ``ih_scale`` come from TouchSim's own class parameters
+(``data/touchsim_constants.json``: tau column 9 in samples, ih columns 10-11), which also give the
+starting point of tau and ih.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..params import ClassParams
+from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
+
+NAMES = ("w1", "w2", "w3", "w4", "w5", "w6", "w7", "w8", "log_tau", "ih1", "ih2", "delay", "log_isat")
+N_DIM = len(NAMES)
+DELAY_UNIT_MS = 20.0
+_SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
+
+#: Starting directions of the eight weights per class (normalised units), from the functional roles
+#: of the paper's section 2.4: SA1 <- force (+ its rise), RA <- force changes and PVDF transients,
+#: PC <- PVDF and its derivative. The first is the default; the fitter also tries the others.
+INITIAL_WEIGHTS = {
+    "SA1": ((1.0, 0.0, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.3, 0.0, 0.2, 0.2, 0.0, 0.0)),
+    "RA": ((0.0, 0.0, 0.6, 0.6, 0.0, 0.0, 0.3, 0.3), (0.0, 0.0, 0.6, 0.6, 0.5, 0.5, 0.0, 0.0)),
+    "PC": ((0.0, 0.0, 0.1, 0.1, 0.3, 0.3, 0.5, 0.5), (0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0)),
+}
+
+
+@lru_cache(maxsize=1)
+def touchsim_class_defaults() -> dict[str, dict[str, float]]:
+    """Median TouchSim tau (ms), ih weights and delay (ms) per class."""
+    d = json.loads((PACKAGE_DATA / "touchsim_constants.json").read_text())
+    cols = d["columns"]
+    i_tau, i_h1, i_h2, i_del = cols.index("tau"), cols.index("ih_weight_1"), cols.index("ih_weight_2"), cols.index("delay_ms")
+    out = {}
+    for cls in CLASSES:
+        m = np.asarray(d["models"][cls], dtype=np.float64)
+        out[cls] = {
+            "tau_ms": float(np.median(m[:, i_tau])) / _SAMPLES_PER_MS,
+            "ih1": float(np.median(m[:, i_h1])),
+            "ih2": float(np.median(m[:, i_h2])),
+            "delay_ms": float(np.median(m[:, i_del])),
+        }
+    return out
+
+
+@dataclass(frozen=True)
+class ParamSpace:
+    """Mapping between the normalised vector and :class:`ClassParams` for one class."""
+
+    cls: str
+    channel_scale: tuple[float, float, float, float]  # typical |ST|, |dST|, |PVDF|, |dPVDF|
+    tau0_ms: float
+    ih_scale: tuple[float, float]
+
+    @classmethod
+    def for_class(cls, name: str, channel_scale) -> "ParamSpace":
+        if name not in CLASSES:
+            raise ValueError(f"unknown class {name!r}")
+        sc = np.asarray(channel_scale, np.float64)
+        if sc.shape != (4,) or not np.all(np.isfinite(sc)) or np.any(sc <= 0):
+            raise ValueError("channel_scale must be four positive numbers")
+        ts = touchsim_class_defaults()[name]
+        ih_scale = (max(abs(ts["ih1"]), 0.05), max(abs(ts["ih2"]), 0.005))
+        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale)
+
+    # -- bounds -------------------------------------------------------------------------------
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.full(N_DIM, -30.0)
+        hi = np.full(N_DIM, 30.0)
+        lo[8], hi[8] = np.log(0.2 / self.tau0_ms), np.log(2000.0 / self.tau0_ms)
+        lo[9:11], hi[9:11] = -20.0, 2.0
+        lo[11], hi[11] = -100.0 / DELAY_UNIT_MS, 500.0 / DELAY_UNIT_MS
+        lo[12], hi[12] = -8.0, 8.0
+        return lo, hi
+
+    def stds(self) -> np.ndarray:
+        """Per-coordinate initial CMA-ES standard deviations (relative to sigma0 = 1)."""
+        s = np.full(N_DIM, 0.5)
+        s[12] = 1.0
+        return s
+
+    def clip(self, x: np.ndarray) -> np.ndarray:
+        lo, hi = self.bounds()
+        return np.clip(np.asarray(x, np.float64), lo, hi)
+
+    # -- mapping ------------------------------------------------------------------------------
+
+    def _wscale(self) -> np.ndarray:
+        tau0_samples = self.tau0_ms * _SAMPLES_PER_MS
+        return 1.0 / (np.repeat(np.asarray(self.channel_scale), 2) * tau0_samples)
+
+    def decode(self, x: np.ndarray) -> ClassParams:
+        x = self.clip(x)
+        return ClassParams(
+            weights=[float(v) for v in x[:8] * self._wscale()],
+            tau_ms=float(np.clip(self.tau0_ms * np.exp(x[8]), 0.2, 2000.0)),
+            ih=[float(x[9] * self.ih_scale[0]), float(x[10] * self.ih_scale[1])],
+            delay_ms=float(np.clip(x[11] * DELAY_UNIT_MS, -100.0, 500.0)),
+            i_sat=float(np.clip(np.exp(x[12]), 0.0, 1e6)),
+        )
+
+    def encode(self, p: ClassParams) -> np.ndarray:
+        x = np.empty(N_DIM)
+        x[:8] = np.asarray(p.weights) / self._wscale()
+        x[8] = np.log(p.tau_ms / self.tau0_ms)
+        x[9] = p.ih[0] / self.ih_scale[0]
+        x[10] = p.ih[1] / self.ih_scale[1]
+        x[11] = p.delay_ms / DELAY_UNIT_MS
+        x[12] = np.log(p.i_sat) if p.i_sat > 0 else 8.0  # 0 (no saturation) ~ the largest i_sat
+        return x
+
+    def initial(self, delay_ms: float = 0.0, variant: int = 0) -> np.ndarray:
+        """Start: a weight direction of the class, TouchSim's tau and ih, mild saturation."""
+        x = np.zeros(N_DIM)
+        x[:8] = INITIAL_WEIGHTS[self.cls][variant]
+        x[8] = 0.0
+        ts = touchsim_class_defaults()[self.cls]
+        x[9] = ts["ih1"] / self.ih_scale[0]
+        x[10] = ts["ih2"] / self.ih_scale[1]
+        x[11] = delay_ms / DELAY_UNIT_MS
+        x[12] = 3.0
+        return self.clip(x)
+
+    def with_gain(self, x: np.ndarray, gain: float) -> np.ndarray:
+        """Scale the eight weights by ``gain`` (used by the initial gain search)."""
+        y = np.array(x, np.float64)
+        y[:8] *= gain
+        return self.clip(y)

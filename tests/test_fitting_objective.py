@@ -1,0 +1,87 @@
+"""The fitting objective (eqs. 1-10) on hand-computed cases."""
+
+import numpy as np
+import pytest
+
+from touchreal.analysis.spiketrains import kernel_distance
+from touchreal.fitting.objective import ObjectiveConfig, ReferenceSet, evaluate_loss, terms_from_stats
+
+TAU = 0.01
+CFG = ObjectiveConfig(kernel_tau_s=TAU)
+
+
+def test_d_basic_is_the_mean_over_all_pairs_then_conditions():
+    refs_c0 = [np.array([0.10, 0.20]), np.array([0.105])]
+    refs_c1 = [np.array([0.5])]
+    refs = ReferenceSet.build([refs_c0, refs_c1], TAU)
+    preds = [np.array([0.1, 0.2]), np.array([0.12]), np.array([0.51, 0.6])]
+    cond = [0, 0, 1]
+    L = evaluate_loss(preds, cond, refs, CFG)
+    d0 = np.mean([kernel_distance(p, r, TAU) for p in preds[:2] for r in refs_c0])
+    d1 = kernel_distance(preds[2], refs_c1[0], TAU)
+    np.testing.assert_allclose(L.d_kernel, [d0, d1], rtol=1e-12)
+    assert L.d_basic == pytest.approx((d0 + d1) / 2)
+    # N_T: c0 = (2 + 1) / 2 = 1.5, c1 = 1;  N_S: c0 = (2 + 1) / 2 = 1.5, c1 = 2
+    np.testing.assert_allclose(L.n_t, [1.5, 1.0])
+    np.testing.assert_allclose(L.n_s, [1.5, 2.0])
+    assert L.l_rel == pytest.approx((0.0 + 1.0) / 2)
+    assert L.l_empty == 0.0
+    assert L.l_mgd == pytest.approx((d0 + d1) / 2)  # m = 3 > 2 conditions: mean of all
+    assert L.total == pytest.approx(L.d_basic + L.l_rel + L.l_empty + L.l_mgd)
+
+
+def test_identical_trains_give_zero_distance():
+    tr = [np.array([0.1, 0.3, 0.31]), np.array([0.7])]
+    refs = ReferenceSet.build([[tr[0]], [tr[1]]], TAU)
+    L = evaluate_loss(tr, [0, 1], refs, CFG)
+    assert L.total == pytest.approx(0.0, abs=1e-9)
+
+
+def test_empty_penalty_and_relative_count_loss():
+    # eq. 7-8: N_T = 4 >= thres_1, N_S = 0 <= thres_2 -> L_empty = 5 * |4 - 0| / 4 = 5
+    refs = ReferenceSet.build([[np.array([0.1, 0.2, 0.3, 0.4])]], TAU)
+    L = evaluate_loss([np.zeros(0)], [0], refs, CFG)
+    assert L.l_rel == pytest.approx(1.0)
+    assert L.l_empty == pytest.approx(5.0)
+    assert L.d_basic == 1.0 and L.l_mgd == 1.0
+    assert L.total == pytest.approx(8.0)
+    # N_S = 1 > thres_2: no empty penalty, relative loss 3/4
+    L = evaluate_loss([np.array([0.1])], [0], refs, CFG)
+    assert L.l_empty == 0.0 and L.l_rel == pytest.approx(0.75)
+    # N_T = 0: relative loss is the absolute count (documented convention), empty-empty pairs are 0
+    refs0 = ReferenceSet.build([[np.zeros(0), np.zeros(0)]], TAU)
+    assert evaluate_loss([np.array([0.1, 0.2])], [0], refs0, CFG).l_rel == pytest.approx(2.0)
+    L = evaluate_loss([np.zeros(0)], [0], refs0, CFG)
+    assert L.total == 0.0
+    L1 = evaluate_loss([np.zeros(0)], [0], refs0, ObjectiveConfig(kernel_tau_s=TAU, empty_pair_distance=1.0))
+    assert L1.d_basic == 1.0
+
+
+def test_mgd_takes_the_mean_of_the_m_worst_conditions():
+    d = np.array([0.1, 0.9, 0.5, 0.7, 0.2])
+    n = np.ones(5)
+    t = terms_from_stats(d, n, n, np.ones(5), CFG)
+    assert t.l_mgd == pytest.approx((0.9 + 0.7 + 0.5) / 3)
+    assert t.d_basic == pytest.approx(d.mean())
+    t2 = terms_from_stats(d, n, n, np.ones(5), ObjectiveConfig(m_worst=1))
+    assert t2.l_mgd == pytest.approx(0.9)
+
+
+def test_condition_weights_change_only_the_means():
+    d = np.array([0.2, 0.8])
+    n_t = np.array([2.0, 4.0])
+    n_s = np.array([2.0, 2.0])
+    t = terms_from_stats(d, n_s, n_t, np.array([1.0, 3.0]), CFG)
+    assert t.d_basic == pytest.approx((0.2 + 3 * 0.8) / 4)
+    assert t.l_rel == pytest.approx((0 + 3 * 0.5) / 4)
+    assert t.l_mgd == pytest.approx(0.5)  # unweighted worst-m mean
+
+
+def test_errors():
+    refs = ReferenceSet.build([[np.array([0.1])], [np.array([0.2])]], TAU)
+    with pytest.raises(ValueError, match="without predicted"):
+        evaluate_loss([np.array([0.1])], [0], refs, CFG)
+    with pytest.raises(ValueError, match="different tau"):
+        evaluate_loss([np.array([0.1])] * 2, [0, 1], refs, ObjectiveConfig(kernel_tau_s=0.02))
+    with pytest.raises(ValueError):
+        ReferenceSet.build([[]], TAU)
