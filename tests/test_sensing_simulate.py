@@ -137,3 +137,13 @@ def test_manifest_entries_have_rig_v1_fields_and_names(small_dataset):
         same = next(r for r in rig["trials"] if r["protocol"] == e["protocol"])
         assert set(e["params"]) == set(same["params"])
         assert set(e["events"]) == set(same["events"])
+
+
+def test_cli_trial_counts_per_protocol(tmp_path, capsys):
+    args = ["simulate", "ramp", "sine", "--trials", "ramp=3,sine=2", "--seed", "1", "--quiet", "--no-reference"]
+    assert cli_main(args + ["--out", str(tmp_path / "d")]) == 0
+    assert Dataset.open(tmp_path / "d").manifest["counts"] == {"ramp": 3, "sine": 2}
+    assert cli_main(["simulate", "ramp", "--trials", "sine=2", "--out", str(tmp_path / "e")]) == 2
+    assert "not being simulated" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main(["simulate", "ramp", "--trials", "ramp=0", "--out", str(tmp_path / "f")])

@@ -217,7 +217,7 @@ def simulate_trial(
 def simulate_dataset(
     protocols: str | Iterable[str],
     out: str | Path,
-    trials: int = 4,
+    trials: int | dict[str, int] = 4,
     seed: int | None = 0,
     *,
     reference: bool = True,
@@ -226,6 +226,9 @@ def simulate_dataset(
     progress=None,
 ) -> Dataset:
     """Write a dataset of ``trials`` trials per recording protocol to the folder ``out``.
+
+    ``trials`` is one count for every protocol or a count per protocol name (a CLI group name such
+    as ``spatial`` applies to its members).
 
     ``protocols``: one name or several, recording protocols (``ramp``, ``sine``, ``texture``,
     ``spatial_ramp``, ``spatial_sine``) or the CLI group ``spatial`` (both spatial protocols).
@@ -237,11 +240,15 @@ def simulate_dataset(
                 raise ValueError(f"unknown protocol {p!r}")
             if q not in protos:
                 protos.append(q)
+    per_protocol = {}
+    for p in [protocols] if isinstance(protocols, str) else protocols:
+        for q in PROTOCOL_GROUPS.get(p, (p,)):
+            per_protocol[q] = trials.get(q, trials.get(p, 0)) if isinstance(trials, dict) else trials
     root = np.random.SeedSequence(seed)
     entries, recorded = [], {}
     for proto, pss in zip(protos, root.spawn(len(protos))):
         pick_ss, trial_ss = pss.spawn(2)
-        picked = pick_trials(conditions(proto, skin), trials, np.random.default_rng(pick_ss))
+        picked = pick_trials(conditions(proto, skin), per_protocol[proto], np.random.default_rng(pick_ss))
         for (cond, rep), tss in zip(picked, trial_ss.spawn(len(picked))):
             tid = f"{proto}_{len(entries):04d}"
             entry, trial = simulate_trial(cond, rep, tid, tss, reference=reference, skin=skin, robot=robot)
@@ -253,7 +260,7 @@ def simulate_dataset(
     manifest = {
         "name": Path(out).name,
         "description": "Simulated e-skin recordings (touchreal.sensing: robot dynamics + SingleTact/PVDF physics), "
-        f"{trials} trials per protocol, seed {seed}. Not rig data.",
+        f"trials per protocol {per_protocol}, seed {seed}. Not rig data.",
         "channels": _CHANNELS,
         "clock": "one recording clock for all channels, t = 0 at recording start; st and pvdf sample times are given explicitly",
         "protocols": {k: v for k, v in PROTOCOL_DESIGN.items() if k in protos or k in ("offsets", "spatial_offsets")},
