@@ -35,8 +35,8 @@ def test_encoder_matches_population_api_and_delay_shifts():
     for c, train in zip(CLASSES, pop):
         np.testing.assert_allclose(ev.train(c), train)
         assert train.size > 0
-    shifted = p.classes["SA1"].model_copy(update={"delay_ms": 7.5})
-    np.testing.assert_allclose(encode_population(ch[:, 0], 0.2, [shifted])[0], pop[0] + 0.0075)
+    shifted = p.classes["SA1"].model_copy(update={"delay_ms": p.classes["SA1"].delay_ms + 7.5})
+    np.testing.assert_allclose(encode_population(ch[:, 0], 0.2, [shifted])[0], pop[0] + 0.0075, rtol=0, atol=1e-12)
 
 
 def test_taxels_are_independent_and_classes_subset():
