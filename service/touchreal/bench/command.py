@@ -12,12 +12,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark and print figures")
     targets = p.add_subparsers(dest="target", required=True, metavar="TARGET")
     for name in TARGETS:
-        try:
-            module = importlib.import_module(f"touchreal.bench.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"touchreal.bench.{name}":
-                continue
-            raise
+        module = importlib.import_module(f"touchreal.bench.{name}")
         tp = targets.add_parser(name, help=(module.__doc__ or name).splitlines()[0])
         module.add_arguments(tp)
         tp.set_defaults(func=module.run)
