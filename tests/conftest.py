@@ -34,3 +34,14 @@ def rig(shared: Path):
     if not (root / "manifest.json").is_file():
         pytest.skip(f"rig-v1 dataset not found at {root}")
     return Dataset.open(root)
+
+
+@pytest.fixture(scope="session")
+def conformance(shared: Path):
+    """(folder, stimulus entries) of TouchSim's conformance data; skips when it is missing."""
+    import json
+
+    root = shared / "touchsim" / "conformance"
+    if not (root / "manifest.json").is_file():
+        pytest.skip(f"TouchSim conformance data not found at {root}")
+    return root, json.loads((root / "manifest.json").read_text())["stimuli"]

@@ -35,6 +35,7 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
     for name in EXPECTED_FILES - {"report.md", "metrics.json"}:
         assert (out / name).stat().st_size > 1000
     disk = json.loads((out / "metrics.json").read_text())
+    assert set(m) == set(disk) and m["targets"].keys() == disk["targets"].keys()  # returned = written
     assert disk["classes"] == list(CLASSES)
     assert "all" in disk["evaluated_on"]  # defaults were not fitted on this dataset: every trial is held out
     for c in CLASSES:

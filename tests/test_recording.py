@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from touchreal.recording import Dataset, RecordingError, ReferenceTrains, Trial, load_trial, save_trial, write_dataset
+from touchreal.recording import Dataset, RecordingError, ReferenceTrains, load_trial, save_trial, write_dataset
 
 from helpers import synthetic_trial
 

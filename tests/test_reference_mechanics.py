@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
@@ -110,11 +109,6 @@ def test_propagate_delays_and_scales_an_impulse():
 # ---- against TouchSim's own mechanical components ------------------------------------------
 
 
-def _stimuli(shared):
-    root = shared / "touchsim" / "conformance"
-    man = json.loads((root / "manifest.json").read_text())
-    return root, man["stimuli"]
-
 
 @pytest.mark.shared
 def test_packaged_constants_equal_shared_constants(shared):
@@ -127,8 +121,8 @@ def test_packaged_constants_equal_shared_constants(shared):
 
 
 @pytest.mark.shared
-def test_static_and_dynamic_match_touchsim(shared):
-    root, stimuli = _stimuli(shared)
+def test_static_and_dynamic_match_touchsim(conformance):
+    root, stimuli = conformance
     c = load_constants()
     worst_s = worst_d = 0.0
     for s in stimuli:

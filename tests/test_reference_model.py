@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
@@ -145,15 +144,10 @@ def test_rest_gives_no_noiseless_spikes_and_bad_input_is_rejected():
 # ---- against TouchSim's conformance data ------------------------------------------------------
 
 
-def _conformance(shared):
-    root = shared / "touchsim" / "conformance"
-    man = json.loads((root / "manifest.json").read_text())
-    return root, man["stimuli"]
-
 
 @pytest.mark.shared
-def test_noiseless_spikes_match_touchsim_spike_for_spike(shared):
-    root, stimuli = _conformance(shared)
+def test_noiseless_spikes_match_touchsim_spike_for_spike(conformance):
+    root, stimuli = conformance
     model = ReferenceModel(pin_radius_mm=0.5)
     n_total = n_within = 0
     for s in stimuli:
@@ -196,9 +190,9 @@ def _vr_pairs(trains: list[np.ndarray], n_samples: int, tau: float = 1e-3) -> np
 
 
 @pytest.mark.shared
-def test_noisy_statistics_match_touchsim(shared):
+def test_noisy_statistics_match_touchsim(conformance):
     """Mean spike counts within 5 % and the same spread of van Rossum distances between repeats."""
-    root, stimuli = _conformance(shared)
+    root, stimuli = conformance
     model = ReferenceModel()
     repeats = 20
     pooled = {c: np.zeros(2) for c in ("SA1", "RA", "PC")}

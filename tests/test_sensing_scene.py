@@ -7,7 +7,6 @@ import pytest
 
 from touchreal.sensing.eskin import FS_HZ
 from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.raw import RawChunk
 from touchreal.sensing.scene import RealTimePacer, Scene, SceneEvent, SceneSource, default_scene, taxel_grid
 from touchreal.sensing.stimuli import RampHold, RobotParams, SineBurst, TextureSlide
 

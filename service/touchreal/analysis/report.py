@@ -313,7 +313,7 @@ def spatial_metrics(trials: Sequence[EvalTrial], classes: Sequence[str]) -> dict
                 cond[f"ai2_{s}"] = an.ai2
                 cond[f"axis_{s}"] = an.axis_deg
                 ang, prof, pstd = sp.angular_profile(r[ok], th[ok], v[ok])
-                cond[f"angles"] = ang.tolist()
+                cond["angles"] = ang.tolist()
                 cond[f"profile_{s}"] = prof.tolist()
                 cond[f"profile_{s}_std"] = pstd.tolist()
             res["conditions"].append(cond)
