@@ -193,4 +193,10 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     q = EncoderParams.load(out)
     assert q.classes["SA1"] == p.classes["SA1"] and q.classes["PC"] == p.classes["PC"]
     assert json.loads(out.read_text())["provenance"]["fitted_classes"] == ["RA"]
+    assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 1.0
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3"]) == 0
+    assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 3.0
+    with pytest.raises(ValueError):
+        F.FitConfig(count_weight=-1.0)
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "XX"]) == 2

@@ -77,6 +77,18 @@ def test_condition_weights_change_only_the_means():
     assert t.l_mgd == pytest.approx(0.5)  # unweighted worst-m mean
 
 
+def test_count_weight_scales_only_the_relative_count_term():
+    d = np.array([0.2, 0.8])
+    n_t = np.array([2.0, 4.0])
+    n_s = np.array([2.0, 2.0])
+    base = terms_from_stats(d, n_s, n_t, np.ones(2), CFG)
+    assert ObjectiveConfig().count_weight == 1.0  # the paper's eq. 1 by default
+    t = terms_from_stats(d, n_s, n_t, np.ones(2), ObjectiveConfig(kernel_tau_s=TAU, count_weight=3.0))
+    assert t.l_rel == pytest.approx(base.l_rel)  # reported unweighted
+    assert t.d_basic == base.d_basic and t.l_empty == base.l_empty and t.l_mgd == base.l_mgd
+    assert t.total == pytest.approx(base.total + 2.0 * base.l_rel)
+
+
 def test_errors():
     refs = ReferenceSet.build([[np.array([0.1])], [np.array([0.2])]], TAU)
     with pytest.raises(ValueError, match="without predicted"):

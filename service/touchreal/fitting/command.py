@@ -27,6 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; default 1)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
+    p.add_argument("--count-weight", type=float, default=None,
+                   help="multiplier of the relative spike-count loss L_rel in the objective (default 1 = the paper's eq. 1)")
     p.add_argument("--max-ramp-conditions", type=int, default=None, help="fit on a seeded subsample of ramp conditions")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--init", type=Path, default=None, metavar="PARAMS.json",
@@ -42,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
     kw = {"classes": classes, "window_ms": args.window_ms, "seed": args.seed, "progress": not args.quiet}
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
-                       ("sine_weight", "sine_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v

@@ -88,6 +88,7 @@ class FitConfig:
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
+    count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
@@ -101,7 +102,11 @@ class FitConfig:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:
             raise ValueError("kernel_ms must be > 0")
-        self.objective = ObjectiveConfig(**{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0})
+        if not np.isfinite(self.count_weight) or self.count_weight < 0:
+            raise ValueError("count_weight must be >= 0")
+        self.objective = ObjectiveConfig(
+            **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
+        )
 
 
 # ------------------------------------------------------------------------- cached trial data
@@ -510,6 +515,7 @@ def fit_dataset(
             "thres_2": cfg.objective.thres_2,
             "m_worst": cfg.objective.m_worst,
             "sine_weight": cfg.sine_weight,
+            "count_weight": cfg.count_weight,
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
         "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts},

@@ -1,6 +1,8 @@
 """The paper's fitting objective (eqs. 1-10) for one afferent class.
 
-``L = D_basic + L_rel + L_empty + L_MGD``:
+``L = D_basic + L_rel + L_empty + L_MGD`` (with ``ObjectiveConfig.count_weight`` != 1, the
+non-paper option ``L = D_basic + count_weight * L_rel + L_empty + L_MGD``; ``LossTerms.l_rel``
+stays the unweighted mean relative count error):
 
 * ``D_kernel^r`` (eq. 5-6): mean over all (predicted, reference) pairs of condition r of
   ``1 - C / (sqrt(A_pred A_ref) + eps)``, exponential kernel of time constant ``tau``;
@@ -43,6 +45,7 @@ class ObjectiveConfig:
     m_worst: int = 3
     eps: float = SIM_EPS
     empty_pair_distance: float = 0.0  #: D_kernel of (empty, empty)
+    count_weight: float = 1.0  #: multiplier of L_rel in the total (paper: 1; ``--count-weight``)
 
 
 @dataclass
@@ -147,7 +150,7 @@ def terms_from_stats(d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, wei
     l_empty = float(np.dot(w, empty))
     m = min(cfg.m_worst, d_kernel.size)
     l_mgd = float(np.mean(np.sort(d_kernel)[-m:])) if m > 0 else 0.0
-    total = d_basic + l_rel + l_empty + l_mgd
+    total = d_basic + cfg.count_weight * l_rel + l_empty + l_mgd
     return LossTerms(total, d_basic, l_rel, l_empty, l_mgd, d_kernel, n_s, n_t)
 
 
