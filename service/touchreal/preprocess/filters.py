@@ -33,11 +33,11 @@ class SosFilter:
     Coefficients come from scipy (``butter``, ``iirnotch``, normalised to a0 = 1); the per-chunk
     recursion is scipy's ``sosfilt`` written as a numba kernel, because scipy's per-call overhead
     exceeded the rest of a 32 ms update for one taxel (tests check equality with ``sosfilt``).
-    The state starts in steady state for the first sample's value, so a constant offset (e.g. a
-    preload force) causes no start-up transient.
+    The state starts in steady state for ``initial`` (per taxel) or, by default, for the first
+    sample's value, so a constant offset (e.g. a preload force) causes no start-up transient.
     """
 
-    def __init__(self, sos: np.ndarray, n_taxels: int = 1, dtype: type = np.float64):
+    def __init__(self, sos: np.ndarray, n_taxels: int = 1, dtype: type = np.float64, initial: np.ndarray | None = None):
         self.dtype = np.dtype(dtype)
         sos = np.atleast_2d(np.asarray(sos, dtype=np.float64))
         sos = sos / sos[:, 3:4]  # a0 = 1
@@ -45,6 +45,8 @@ class SosFilter:
         self.n_taxels = n_taxels
         self._zi_unit = signal.sosfilt_zi(self.sos).astype(self.dtype)  # (n_sections, 2)
         self.zi: np.ndarray | None = None
+        if initial is not None:  # steady state at a known level instead of the first sample
+            self.zi = np.ascontiguousarray(self._zi_unit[:, :, None] * np.broadcast_to(initial, (n_taxels,))[None, None, :])
 
     def process(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=self.dtype)

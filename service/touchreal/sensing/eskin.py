@@ -38,6 +38,7 @@ import numba
 import numpy as np
 from scipy import signal
 
+from ..preprocess.filters import SosFilter
 from ..settings import PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N, ST_RESOLUTION_N
 from .raw import RawChunk
 
@@ -412,10 +413,10 @@ class ESkin:
         s0 = self._film(initial_depth_mm + self._zero[None, :], z0[None, :], g_pv)[0]
         self._z = z0.copy()
         self._zi_coup = np.zeros(2)
-        self._zi_st = signal.sosfilt_zi(self._st_sos)[:, :, None] * fe0[None, None, :]
+        self._st_filter = SosFilter(self._st_sos, n_tax, initial=fe0)
         self._st_delay = np.tile(fe0, (self._st_delay_n, 1))
         self._spread = np.tile(s0, (2, 1))
-        self._zi_pv = signal.sosfilt_zi(self._pv_sos)[:, :, None] * s0[None, None, :]
+        self._pv_filter = SosFilter(self._pv_sos, n_tax, initial=s0)
         self._zi_ou_st = self._ou_st[2] * inst.normal(0.0, p.st_wander_n, (1, n_tax))
         self._zi_ou_pv = self._ou_pv[2] * inst.normal(0.0, p.pv_wander_v, (1, n_tax))
         self._zi_ou_fl = self._ou_fl[2] * inst.normal(0.0, p.pv_flicker_v, (1, n_tax))
@@ -506,7 +507,7 @@ class ESkin:
         # SingleTact: contact force, viscoelastic relaxation, sensor low-pass and latency
         stiff = self._stiff[None, :] * np.where(c.comb, p.comb_stiffness_factor, 1.0)[:, None]
         fe = g_st * stiff * z_st ** p.exponent
-        f, self._zi_st = signal.sosfilt(self._st_sos, fe, axis=0, zi=self._zi_st)
+        f = self._st_filter.process(fe)
         if self._st_delay_n:
             f = np.concatenate([self._st_delay, f])
             self._st_delay = f[-self._st_delay_n :]
@@ -518,7 +519,7 @@ class ESkin:
         # PVDF: film strain, spreading, electrical high-passes, anti-alias
         s = self._film(p_pv, z, g_pv)
         s = _spreading_lowpass(np.ascontiguousarray(s), a_sp, self._spread)
-        v, self._zi_pv = signal.sosfilt(self._pv_sos, s, axis=0, zi=self._zi_pv)
+        v = self._pv_filter.process(s)
 
         # mains (common source, per-taxel pickup, more while the grounded probe touches), noise, ADC
         t = self.t0_s + k / FS_HZ
