@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import signal
 
-from touchreal.encoding.encoder import Encoder, channel_currents, encode_population, input_current, rectify
+from touchreal.encoding.encoder import Encoder, InputStage, channel_currents, encode_population, input_current, rectify
 from touchreal.encoding.lif import REFRACTORY_SAMPLES, LifPopulation
 from touchreal.params import ClassParams, default_params
 from touchreal.preprocess.pipeline import Channels
@@ -82,17 +83,57 @@ def test_lif_constant_current_rate_matches_closed_form():
     assert np.all(np.diff(k) == period)
 
 
+def _cp(w, **kw):
+    return ClassParams(**{"weights": list(w), "i_sat": 0.0, "tau_ms": 10.0, "ih": [0.0, 0.0], "delay_ms": 0.0, **kw})
+
+
 def test_input_current_matches_rectified_weights_and_saturates():
     rng = np.random.default_rng(5)
     ch = rng.normal(0, 3, (50, 3, 4))
-    w = rng.normal(0, 1, (8, 2))
-    raw = (rectify(ch) @ w).reshape(50, 6)
-    np.testing.assert_allclose(input_current(ch, w, np.zeros(2)), raw, rtol=1e-12)
-    sat = input_current(ch, w, np.array([5.0, 0.0]))
-    np.testing.assert_allclose(sat[:, 0::2], 5.0 * raw[:, 0::2] / (5.0 + np.abs(raw[:, 0::2])), rtol=1e-12)
-    np.testing.assert_allclose(sat[:, 1::2], raw[:, 1::2], rtol=1e-12)
-    huge = input_current(np.full((1, 1, 4), 1e300), np.ones((8, 1)), np.array([5.0]))
+    w = rng.normal(0, 1, 8)
+    raw = rectify(ch) @ w  # (50, 3)
+    np.testing.assert_allclose(input_current(ch, _cp(w)), raw, rtol=1e-12)
+    sat = input_current(ch, _cp(w, i_sat=5.0))
+    np.testing.assert_allclose(sat, 5.0 * raw / (5.0 + np.abs(raw)), rtol=1e-12)
+    huge = input_current(np.full((1, 1, 4), 1e300), _cp(np.ones(8), i_sat=5.0))
     assert np.isfinite(huge).all() and abs(huge[0, 0]) <= 5.0
+
+
+def test_class_lowpass_is_a_butterworth_before_rectification():
+    ch = _channels(t=3000, taxels=2)
+    w = np.array([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01])
+    cur = input_current(ch, _cp(w, lowpass_hz=120.0))
+    sos = signal.butter(3, 120.0, fs=5000.0, output="sos")
+    zi = signal.sosfilt_zi(sos)[:, :, None, None] * ch[0][None, None]  # steady state at the first sample
+    filt, _ = signal.sosfilt(sos, ch, axis=0, zi=zi)
+    np.testing.assert_allclose(cur, rectify(filt) @ w, rtol=1e-9, atol=1e-12)
+    # 3rd order at 120 Hz: the 150 Hz PVDF component is attenuated to |H(150 Hz)| ~ 0.46
+    plain = input_current(ch, _cp([0, 0, 0, 0, 1, 1, 0, 0]))
+    lp = input_current(ch, _cp([0, 0, 0, 0, 1, 1, 0, 0], lowpass_hz=120.0))
+    assert 0.4 < lp[1000:].max() / plain[1000:].max() < 0.55
+
+
+def test_negative_lead_delays_positive_parts_only():
+    rng = np.random.default_rng(2)
+    ch = rng.normal(0, 1, (400, 2, 4))
+    w = rng.uniform(0.1, 1, 8)
+    cur = input_current(ch, _cp(w, negative_lead_ms=2.0))  # 10 samples
+    pos = np.maximum(ch, 0) @ w[0::2]
+    neg = np.maximum(-ch, 0) @ w[1::2]
+    delayed = np.concatenate([np.repeat(pos[:1], 10, axis=0), pos[:-10]])  # history = first sample
+    np.testing.assert_allclose(cur, delayed + neg, rtol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(cuts=st.lists(st.integers(1, 599), max_size=6), lead=st.floats(0.0, 20.0))
+def test_class_input_chunk_invariance(cuts, lead):
+    ch = _channels(t=600, taxels=3, seed=4)
+    p = _cp([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01], i_sat=3.0, lowpass_hz=90.0, negative_lead_ms=lead)
+    whole = input_current(ch, p)
+    inp = InputStage([p] * 3, [0, 1, 2])
+    edges = sorted({0, 600, *cuts})
+    parts = np.concatenate([inp.process(ch[a:b]) for a, b in zip(edges, edges[1:])])
+    np.testing.assert_array_equal(parts, whole)
 
 
 def test_bad_parameters_rejected():

@@ -56,17 +56,22 @@ def test_split_by_repeat_is_disjoint_balanced_and_seeded():
 # ----------------------------------------------------------------------------------- space
 
 
+@pytest.mark.parametrize("input_stage", [False, True])
 @pytest.mark.parametrize("cls", CLASSES)
-def test_space_round_trip_and_bounds(cls):
-    space = ParamSpace.for_class(cls, [8.0, 60.0, 0.2, 200.0])
+def test_space_round_trip_and_bounds(cls, input_stage):
+    space = ParamSpace.for_class(cls, [8.0, 60.0, 0.2, 200.0], input_stage=input_stage)
     rng = np.random.default_rng(0)
     lo, hi = space.bounds()
-    assert lo.shape == hi.shape == (N_DIM,) and np.all(lo < hi)
+    assert lo.shape == hi.shape == (N_DIM + 2 * input_stage,) and np.all(lo < hi)
     for v in range(2):
         x0 = space.initial(-60.0, v)
         assert np.all((x0 >= lo) & (x0 <= hi))
         p = space.decode(x0)
         assert p.delay_ms == pytest.approx(-60.0)
+        if input_stage:  # TouchSim's class median cutoff (10 x column 0), no lead
+            assert 80.0 < p.lowpass_hz < 350.0 and p.negative_lead_ms == 0.0
+        else:
+            assert p.lowpass_hz is None and p.negative_lead_ms == 0.0
     for _ in range(20):
         x = rng.uniform(lo, hi)
         p = space.decode(x)  # always a valid ClassParams

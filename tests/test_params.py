@@ -25,7 +25,9 @@ def _raw():
         (lambda d: d["classes"]["RA"].update(tau_ms=-1), "classes.RA.tau_ms"),
         (lambda d: d["classes"].update(SA2=d["classes"]["SA1"]), "unknown classes"),
         (lambda d: d["classes"]["PC"].update(colour="red"), "classes.PC.colour"),
-        (lambda d: d.update(version=2), "version"),
+        (lambda d: d.update(version=3), "version"),
+        (lambda d: d["classes"]["RA"].update(lowpass_hz=1.0), "classes.RA.lowpass_hz"),
+        (lambda d: d.update(version=1) or d["classes"]["RA"].update(lowpass_hz=100.0), "need schema version 2"),
         (lambda d: d["preprocess"].update(window_ms=1000), "preprocess.window_ms"),
         (lambda d: d["preprocess"].update(notch_harmonics=[0, 1]), "preprocess.notch_harmonics"),
         (lambda d: d.update(classes={}), "at least one class"),
@@ -58,3 +60,14 @@ def test_gate_calibration_must_be_consistent():
     d["preprocess"]["gate"] = {"freqs_hz": [0, 10, 5], "noise_asd": [1, 1, 1]}
     with pytest.raises(ParamsError, match="strictly increasing"):
         EncoderParams.parse(d)
+
+
+def test_version_1_files_still_load_without_the_new_input_stage():
+    d = _raw()
+    d["version"] = 1
+    for c in d["classes"].values():
+        c.pop("lowpass_hz", None)
+        c.pop("negative_lead_ms", None)
+    p = EncoderParams.parse(d)
+    assert p.version == 1
+    assert all(c.lowpass_hz is None and c.negative_lead_ms == 0.0 for c in p.classes.values())

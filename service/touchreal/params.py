@@ -17,7 +17,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DATA
 
 SCHEMA_NAME = "touchreal.params"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Versions this code reads: 1 lacks ``ClassParams.lowpass_hz`` and ``negative_lead_ms`` (read as
+#: no class low-pass and no lead).
+READABLE_VERSIONS = (1, 2)
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
 WEIGHT_NAMES = ("ST+", "ST-", "dST+", "dST-", "PVDF+", "PVDF-", "dPVDF+", "dPVDF-")
@@ -40,7 +43,21 @@ class ClassParams(_Strict):
     i_sat: float = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
     tau_ms: float = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
     ih: list[float] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
-    delay_ms: float = Field(ge=-100.0, le=500.0, description="output delay added to spike times (ms)")
+    delay_ms: float = Field(ge=-250.0, le=500.0, description="output delay added to spike times (ms)")
+    lowpass_hz: float | None = Field(
+        default=None,
+        ge=5.0,
+        le=2000.0,
+        description="cutoff (Hz) of the class's causal 3rd-order Butterworth input low-pass on all four "
+        "channels before rectification (TouchSim's per-model input filter); None = no filter",
+    )
+    negative_lead_ms: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=100.0,
+        description="lead (ms) of the negative-part inputs max(-x, 0) over the positive parts: the positive "
+        "parts are delayed by it before summation (compensates a sensor whose unloading lags its loading)",
+    )
 
     @field_validator("weights", "ih")
     @classmethod
@@ -99,7 +116,7 @@ class EncoderParams(_Strict):
     """A complete, versioned TouchReal parameter set."""
 
     schema_name: Literal["touchreal.params"] = Field(default=SCHEMA_NAME, alias="schema")
-    version: Literal[1] = SCHEMA_VERSION
+    version: Literal[1, 2] = SCHEMA_VERSION
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
     provenance: dict[str, str | float | int | list | dict] = Field(default_factory=dict)
@@ -115,6 +132,12 @@ class EncoderParams(_Strict):
         if not v:
             raise ValueError("at least one class is required")
         return {c: v[c] for c in CLASSES if c in v}
+
+    @model_validator(mode="after")
+    def _version_features(self) -> "EncoderParams":
+        if self.version < 2 and any(c.lowpass_hz is not None or c.negative_lead_ms for c in self.classes.values()):
+            raise ValueError("classes.*.lowpass_hz and negative_lead_ms need schema version 2")
+        return self
 
     def to_json(self) -> str:
         return self.model_dump_json(by_alias=True, indent=1)

@@ -35,8 +35,8 @@ class StreamEncoder:
         return self.pre.latency_s
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """All state: preprocessing stages plus the membrane potentials."""
-        return {**self.pre.state_arrays(), "lif_v": self.enc.lif.state.v}
+        """All state: preprocessing stages, class low-passes and membrane potentials."""
+        return {**self.pre.state_arrays(), **self.enc.state_arrays()}
 
     def state_report(self) -> tuple[bool, float, int]:
         """(all finite, largest magnitude, total bytes) over :meth:`state_arrays`."""

@@ -2,11 +2,12 @@
 
 For afferent class a and channels x_c (ST, dST, PVDF, dPVDF), the input current is
 
-    I_a = sum_c  w_a[2c] * max(x_c, 0) + w_a[2c+1] * max(-x_c, 0)           (w1..w8)
+    x_c <- LP_a(x_c)                                 (optional per-class 3rd-order Butterworth)
+    I_a[k] = sum_c  w_a[2c] * max(x_c[k - L_a], 0) + w_a[2c+1] * max(-x_c[k], 0)       (w1..w8)
     I_a <- I_sat * I_a / (I_sat + |I_a|)                                       (when I_sat > 0)
 
-which drives the LIF of :mod:`touchreal.encoding.lif` with the class's tau and post-spike current.
-A spike at grid sample k is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
+with L_a the class's negative-part lead (``negative_lead_ms``, 0 by default). I_a drives the LIF of
+:mod:`touchreal.encoding.lif` with the class's tau and post-spike current. A spike at grid sample k is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
 
 :class:`Encoder` is stateful and handles N taxels x the selected classes as one neuron population;
 ``encode_population`` runs many parameter sets on one taxel's channels at once (used by fitting).
@@ -21,8 +22,10 @@ from functools import lru_cache
 
 import numba
 import numpy as np
+from scipy import signal
 
 from ..params import ClassParams, EncoderParams
+from ..preprocess.filters import SosFilter
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
 from .lif import LifPopulation
 
@@ -34,6 +37,25 @@ def ih_basis() -> np.ndarray:
     return np.asarray(data["ihbasis"], dtype=np.float64)
 
 
+LOWPASS_ORDER = 3  #: order of the per-class input Butterworth (TouchSim's input filter)
+
+
+@lru_cache(maxsize=1024)
+def _lowpass_design(cutoff_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Class low-pass at ``cutoff_hz`` (Hz) on the 5 kHz grid: (sections, 6) SOS and its unit-step
+    steady state ``sosfilt_zi`` (sections, 2); cached, since the fit rebuilds it per trial."""
+    sos = signal.butter(LOWPASS_ORDER, cutoff_hz, btype="low", fs=OUT_FS_HZ, output="sos")
+    return sos, signal.sosfilt_zi(sos)
+
+
+def lowpass_channels(channels: np.ndarray, cutoff_hz: float | None) -> np.ndarray:
+    """(T, ..., 4) channels through a fresh class low-pass (unchanged for ``None``)."""
+    if cutoff_hz is None:
+        return channels
+    flat = np.asarray(channels, np.float64).reshape(channels.shape[0], -1)
+    return SosFilter(_lowpass_design(float(cutoff_hz))[0], flat.shape[1]).process(flat).reshape(channels.shape)
+
+
 def rectify(channels: np.ndarray) -> np.ndarray:
     """(..., 4) channels -> (..., 8) [max(x,0), max(-x,0)] per channel, in w1..w8 order."""
     pos = np.maximum(channels, 0.0)
@@ -41,51 +63,125 @@ def rectify(channels: np.ndarray) -> np.ndarray:
     return np.stack((pos, neg), axis=-1).reshape(*channels.shape[:-1], 8)
 
 
+LOWPASS_SECTIONS = (LOWPASS_ORDER + 1) // 2
+
+
 @numba.njit(cache=True, nogil=True)
-def _current(channels, w, i_sat, out):  # pragma: no cover - compiled
-    """out[k, x * C + c] = sat_c(sum_j w[2j, c] max(ch[k, x, j], 0) + w[2j+1, c] max(-ch[k, x, j], 0))."""
-    n_t, n_x, n_ch = channels.shape
-    n_c = w.shape[1]
-    for k in range(n_t):
-        for x in range(n_x):
-            for c in range(n_c):
-                acc = 0.0
-                for j in range(n_ch):
-                    v = channels[k, x, j]
-                    if v > 0.0:
-                        acc += w[2 * j, c] * v
-                    elif v < 0.0:
-                        acc -= w[2 * j + 1, c] * v
-                s = i_sat[c]
-                if s > 0.0:
-                    acc = s * acc / (s + abs(acc))
-                out[k, x * n_c + c] = acc
+def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out):  # pragma: no cover - compiled
+    """Input current of N columns (column n reads taxel src[n] of the (T, X, 4) channels).
 
-
-def input_current(channels: np.ndarray, w: np.ndarray, i_sat: np.ndarray) -> np.ndarray:
-    """(T, X, 4) channels, (8, C) weights, (C,) saturation -> (T, X * C) saturated input current.
-
-    ``I_sat * I / (I_sat + |I|)`` where ``I_sat > 0`` (TouchSim's saturation); input must be finite.
+    Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n], the same
+    transposed direct form II recursion as :class:`~touchreal.preprocess.filters.SosFilter`);
+    pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
+    positive part passes through ring[n, :L] (so it is taken from sample k - L); then
+    ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``. State (zi, ring, head) is updated in place.
     """
-    channels = np.ascontiguousarray(channels, dtype=np.float64)
-    out = np.empty((channels.shape[0], channels.shape[1] * w.shape[1]))
-    _current(channels, np.ascontiguousarray(w, dtype=np.float64), np.ascontiguousarray(i_sat, dtype=np.float64), out)
-    return out
+    n_t = channels.shape[0]
+    n_ch = channels.shape[2]
+    n_col = src.shape[0]
+    n_sec = sos.shape[1]
+    for k in range(n_t):
+        for n in range(n_col):
+            pos = 0.0
+            neg = 0.0
+            for j in range(n_ch):
+                v = channels[k, src[n], j]
+                if has_lp[n]:
+                    for s in range(n_sec):
+                        y = sos[n, s, 0] * v + zi[n, s, 0, j]
+                        zi[n, s, 0, j] = sos[n, s, 1] * v - sos[n, s, 4] * y + zi[n, s, 1, j]
+                        zi[n, s, 1, j] = sos[n, s, 2] * v - sos[n, s, 5] * y
+                        v = y
+                if v > 0.0:
+                    pos += w[n, 2 * j] * v
+                elif v < 0.0:
+                    neg -= w[n, 2 * j + 1] * v
+            n_lead = lead[n]
+            if n_lead > 0:
+                h = head[n]
+                old = ring[n, h]
+                ring[n, h] = pos
+                pos = old
+                head[n] = h + 1 if h + 1 < n_lead else 0
+            acc = pos + neg
+            s_max = i_sat[n]
+            if s_max > 0.0:
+                acc = s_max * acc / (s_max + abs(acc))
+            out[k, n] = acc
 
 
-def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(8, M) weights, (M,) i_sat, (M,) tau in samples, (M, 190) post-spike current, (M,) delay in s."""
-    w = np.array([p.weights for p in params], dtype=np.float64).T  # (8, M)
-    i_sat = np.array([p.i_sat for p in params])
-    tau = np.array([p.tau_samples for p in params])
-    ih = np.array([p.ih for p in params]) @ ih_basis()  # (M, 190)
+class InputStage:
+    """Stateful class input stages of N columns: (T, X, 4) channels -> (T, N) input current.
+
+    Column n applies ``params[n]`` to taxel ``taxels[n]``:
+
+    1. optional class low-pass (``lowpass_hz``: 3rd-order Butterworth, steady state at the first sample);
+    2. rectified weights: positive parts ``w[2c] max(x_c, 0)``, negative parts ``w[2c+1] max(-x_c, 0)``;
+    3. optional lead of the negative parts: the positive-part current is delayed by
+       ``negative_lead_ms`` (its history starts at the first sample's value), the negative parts are not;
+    4. TouchSim's saturation ``I_sat I / (I_sat + |I|)`` (when ``I_sat > 0``).
+
+    The encoder uses one column per (taxel, class), the fit one column per candidate. Chunks of any
+    size give the same current as the whole signal.
+    """
+
+    def __init__(self, params: Sequence[ClassParams], taxels: Sequence[int] | np.ndarray):
+        self.src = np.ascontiguousarray(taxels, dtype=np.int64)
+        if self.src.shape != (len(params),):
+            raise ValueError("one taxel index per column is required")
+        n = len(params)
+        self.w = np.array([p.weights for p in params], dtype=np.float64).reshape(n, 8)
+        self.i_sat = np.array([p.i_sat for p in params], dtype=np.float64)
+        self.has_lp = np.array([p.lowpass_hz is not None for p in params], dtype=np.bool_)
+        self.sos = np.zeros((n, LOWPASS_SECTIONS, 6))
+        self._zi_unit = np.zeros((n, LOWPASS_SECTIONS, 2))
+        for j, p in enumerate(params):
+            if p.lowpass_hz is not None:
+                self.sos[j], self._zi_unit[j] = _lowpass_design(float(p.lowpass_hz))
+        self.lead = np.array([int(round(p.negative_lead_ms * OUT_FS_HZ / 1000.0)) for p in params], dtype=np.int64)
+        self.zi: np.ndarray | None = None  # (N, sections, 2, 4)
+        self.ring = np.zeros((n, int(self.lead.max(initial=0))))
+        self.head = np.zeros(n, dtype=np.int64)
+
+    def process(self, channels: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(channels, dtype=np.float64)
+        out = np.empty((x.shape[0], self.src.size))
+        if x.shape[0] == 0:
+            return out
+        if self.zi is None:  # steady state at the first sample (the low-pass has unit DC gain)
+            first = x[0][self.src]  # (N, 4)
+            self.zi = np.ascontiguousarray(self._zi_unit[:, :, :, None] * first[:, None, None, :])
+            self.ring[:] = (np.maximum(first, 0.0) * self.w[:, 0::2]).sum(axis=1)[:, None]
+        _input_stage(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead, self.ring, self.head, out)
+        return out
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        out = {}
+        if self.zi is not None and self.has_lp.any():
+            out["lowpass"] = self.zi[self.has_lp]
+        if self.ring.size:
+            out["lead"] = self.ring
+        return out
+
+
+def input_current(channels: np.ndarray, params: ClassParams) -> np.ndarray:
+    """(T, X, 4) channels -> (T, X) current of one class on every taxel, from a fresh :class:`InputStage`."""
+    n_x = np.shape(channels)[1]
+    return InputStage([params] * n_x, np.arange(n_x)).process(channels)
+
+
+def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M,) tau in samples, (M, 190) post-spike current, (M,) delay in s."""
+    tau = np.array([p.tau_samples for p in params], dtype=np.float64)
+    ih = np.array([p.ih for p in params], dtype=np.float64) @ ih_basis()  # (M, 190)
     delay = np.array([p.delay_ms for p in params]) / 1000.0
-    return w, i_sat, tau, ih, delay
+    return tau, ih, delay
 
 
 def channel_currents(channels: np.ndarray, params: ClassParams) -> np.ndarray:
-    """(T, 4) channels -> (T, 4) weighted pre-saturation current of each channel (eq. 11)."""
-    r = rectify(np.asarray(channels, dtype=np.float64))  # (T, 8)
+    """(T, 4) channels -> (T, 4) weighted pre-saturation current of each channel (eq. 11), after
+    the class low-pass (the lead only shifts the positive parts in time and is left out)."""
+    r = rectify(lowpass_channels(np.asarray(channels, dtype=np.float64), params.lowpass_hz))  # (T, 8)
     w = np.asarray(params.weights)
     return (r * w).reshape(-1, 4, 2).sum(axis=2)
 
@@ -95,8 +191,8 @@ def encode_population(channels: np.ndarray, t0_s: float, params: Sequence[ClassP
 
     Returns one array of spike times (s, recording clock, delay included) per parameter set.
     """
-    w, i_sat, tau, ih, delay = class_columns(params)
-    current = input_current(np.asarray(channels)[:, None, :], w, i_sat)
+    tau, ih, delay = class_columns(params)
+    current = InputStage(params, np.zeros(len(params), np.int64)).process(np.asarray(channels, np.float64)[:, None, :])
     k, n = LifPopulation(tau, ih).step(current)
     order = np.argsort(n, kind="stable")  # group by neuron, keeping time order
     bounds = np.searchsorted(n[order], np.arange(len(params) + 1))
@@ -142,21 +238,28 @@ class Encoder:
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in classes)
         self.class_index = np.array([CLASSES.index(c) for c in self.classes])
-        w, self.i_sat, tau, ih, self.delay = class_columns([params.classes[c] for c in self.classes])
-        self.w = w  # (8, n_classes)
-        # neuron j = taxel * n_classes + class
+        cps = [params.classes[c] for c in self.classes]
+        tau, ih, self.delay = class_columns(cps)
+        # neuron / input column j = taxel * n_classes + class
         n_cls = len(self.classes)
-        self.lif = LifPopulation(np.tile(tau, n_taxels), np.tile(ih, (n_taxels, 1)))
-        self._delay_n = np.tile(self.delay, n_taxels)
+        self._column_params = [cps[c] for _ in range(n_taxels) for c in range(n_cls)]
         self._taxel_n = np.repeat(np.arange(n_taxels), n_cls)
         self._cls_n = np.tile(self.class_index, n_taxels)
+        self._delay_n = np.tile(self.delay, n_taxels)
+        self.inputs = InputStage(self._column_params, self._taxel_n)
+        self.lif = LifPopulation(np.tile(tau, n_taxels), np.tile(ih, (n_taxels, 1)))
 
     def reset(self) -> None:
         self.lif.reset()
+        self.inputs = InputStage(self._column_params, self._taxel_n)
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Membrane potentials and the input stages' states (class low-pass, lead)."""
+        return {"lif_v": self.lif.state.v, **{f"input_{k}": a for k, a in self.inputs.state_arrays().items()}}
 
     def currents(self, data: np.ndarray) -> np.ndarray:
-        """(T, n_taxels, 4) channels -> (T, n_taxels * n_classes) saturated input current."""
-        return input_current(data, self.w, self.i_sat)
+        """(T, n_taxels, 4) channels -> (T, n_taxels * n_classes) input current (advances the states)."""
+        return self.inputs.process(data)
 
     def process(self, channels, k0: int | None = None) -> SpikeEvents:
         data = channels.data if k0 is None else channels

@@ -43,7 +43,7 @@ from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset, Trial
 from ..settings import CLASSES, OUT_FS_HZ
 from .objective import LossTerms, ObjectiveConfig, ReferenceSet, evaluate_loss
-from .space import DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace
+from .space import DELAY_RANGE_MS, DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace
 
 FIT_PROTOCOLS = ("ramp", "sine")
 SPLIT_METHOD = "per-condition seeded shuffle of repeats (crc32(condition), seed); first half trains"
@@ -89,6 +89,7 @@ class FitConfig:
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
     count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
+    input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
@@ -96,6 +97,9 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
+        bad = [c for c in self.input_stage_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"input_stage_classes must be a subset of {list(CLASSES)}, got {list(self.input_stage_classes)}")
         if not 4.0 <= self.window_ms <= 512.0:
             raise ValueError("window_ms must be in [4, 512]")
         if self.popsize < 4 or self.max_generations < 1:
@@ -460,11 +464,11 @@ def fit_dataset(
     timings["preprocess_s"] = time.perf_counter() - t
     scale = channel_scale(train.trials)
     lag_s = estimate_lag_s(train.trials)
-    delay0_ms = float(np.clip(-1000.0 * lag_s, -100.0, 500.0))
+    delay0_ms = float(np.clip(-1000.0 * lag_s, *DELAY_RANGE_MS))
     log(f"preprocessed in {timings['preprocess_s']:.1f} s; channel scale {np.round(scale, 4).tolist()}; sensor lag {1000 * lag_s:.0f} ms")
 
     tau_s = cfg.objective.kernel_tau_s
-    spaces = {c: ParamSpace.for_class(c, scale) for c in cfg.classes}
+    spaces = {c: ParamSpace.for_class(c, scale, input_stage=c in cfg.input_stage_classes) for c in cfg.classes}
     refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight) for c in cfg.classes}
     _STATE.clear()
     _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective)
@@ -516,6 +520,7 @@ def fit_dataset(
             "m_worst": cfg.objective.m_worst,
             "sine_weight": cfg.sine_weight,
             "count_weight": cfg.count_weight,
+            "input_stage_classes": list(cfg.input_stage_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
         "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts},

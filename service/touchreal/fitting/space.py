@@ -1,6 +1,7 @@
 """The search space of the fit: a normalised parameter vector <-> :class:`ClassParams`.
 
-Coordinates (13), chosen so that one CMA-ES step size means about the same everywhere:
+Coordinates (13, or 15 when the class's input stage is fitted too), chosen so that one CMA-ES step
+size means about the same everywhere:
 
 ====  =============  ==========================================================================
  idx  name           mapping
@@ -12,11 +13,13 @@ Coordinates (13), chosen so that one CMA-ES step size means about the same every
  9-10 ih1, ih2       ``ih = x * ih_scale`` (TouchSim's class-median basis weights as the unit)
   11  delay          ``delay_ms = 20 x``
   12  log_isat       ``i_sat = exp(x)`` (LIF units; threshold = 1)
+  13  log_lowpass    ``lowpass_hz = lp0_hz * exp(x)``          (input stage only)
+  14  lead           ``negative_lead_ms = 10 x``               (input stage only)
 ====  =============  ==========================================================================
 
-``tau0_ms`` and ``ih_scale`` come from TouchSim's own class parameters
-(``data/touchsim_constants.json``: tau column 9 in samples, ih columns 10-11), which also give the
-starting point of tau and ih.
+``tau0_ms``, ``ih_scale`` and ``lp0_hz`` come from TouchSim's own class parameters
+(``data/touchsim_constants.json``: tau column 9 in samples, ih columns 10-11, low-pass factor
+column 0 = cutoff / 10 Hz), which also give the starting point of tau, ih and the cutoff.
 """
 
 from __future__ import annotations
@@ -30,9 +33,13 @@ import numpy as np
 from ..params import ClassParams
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
 
-NAMES = ("w1", "w2", "w3", "w4", "w5", "w6", "w7", "w8", "log_tau", "ih1", "ih2", "delay", "log_isat")
-N_DIM = len(NAMES)
+NAMES = ("w1", "w2", "w3", "w4", "w5", "w6", "w7", "w8", "log_tau", "ih1", "ih2", "delay", "log_isat", "log_lowpass", "lead")
+N_DIM = len(NAMES) - 2  #: without the optional input-stage coordinates
+LOWPASS_RANGE_HZ = (20.0, 2000.0)  #: cutoffs the fit may choose
+LEAD_UNIT_MS = 10.0
+LEAD_MAX_MS = 100.0
 DELAY_UNIT_MS = 20.0
+DELAY_RANGE_MS = (-250.0, 500.0)  #: the schema's delay range
 _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
 #: Starting directions of the eight weights per class (normalised units), from the functional roles
@@ -47,10 +54,11 @@ INITIAL_WEIGHTS = {
 
 @lru_cache(maxsize=1)
 def touchsim_class_defaults() -> dict[str, dict[str, float]]:
-    """Median TouchSim tau (ms), ih weights and delay (ms) per class."""
+    """Median TouchSim tau (ms), ih weights, delay (ms) and input low-pass cutoff (Hz) per class."""
     d = json.loads((PACKAGE_DATA / "touchsim_constants.json").read_text())
     cols = d["columns"]
     i_tau, i_h1, i_h2, i_del = cols.index("tau"), cols.index("ih_weight_1"), cols.index("ih_weight_2"), cols.index("delay_ms")
+    i_lp = cols.index("lowpass_cutoff_factor")
     out = {}
     for cls in CLASSES:
         m = np.asarray(d["models"][cls], dtype=np.float64)
@@ -59,6 +67,7 @@ def touchsim_class_defaults() -> dict[str, dict[str, float]]:
             "ih1": float(np.median(m[:, i_h1])),
             "ih2": float(np.median(m[:, i_h2])),
             "delay_ms": float(np.median(m[:, i_del])),
+            "lowpass_hz": 10.0 * float(np.median(m[:, i_lp])),
         }
     return out
 
@@ -71,9 +80,10 @@ class ParamSpace:
     channel_scale: tuple[float, float, float, float]  # typical |ST|, |dST|, |PVDF|, |dPVDF|
     tau0_ms: float
     ih_scale: tuple[float, float]
+    lp0_hz: float | None = None  #: None: the input stage (low-pass, lead) is not fitted (13 coordinates)
 
     @classmethod
-    def for_class(cls, name: str, channel_scale) -> "ParamSpace":
+    def for_class(cls, name: str, channel_scale, input_stage: bool = False) -> "ParamSpace":
         if name not in CLASSES:
             raise ValueError(f"unknown class {name!r}")
         sc = np.asarray(channel_scale, np.float64)
@@ -81,22 +91,29 @@ class ParamSpace:
             raise ValueError("channel_scale must be four positive numbers")
         ts = touchsim_class_defaults()[name]
         ih_scale = (max(abs(ts["ih1"]), 0.05), max(abs(ts["ih2"]), 0.005))
-        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale)
+        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None)
+
+    @property
+    def n_dim(self) -> int:
+        return N_DIM + 2 * (self.lp0_hz is not None)
 
     # -- bounds -------------------------------------------------------------------------------
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.full(N_DIM, -30.0)
-        hi = np.full(N_DIM, 30.0)
+        lo = np.full(self.n_dim, -30.0)
+        hi = np.full(self.n_dim, 30.0)
         lo[8], hi[8] = np.log(0.2 / self.tau0_ms), np.log(2000.0 / self.tau0_ms)
         lo[9:11], hi[9:11] = -20.0, 2.0
-        lo[11], hi[11] = -100.0 / DELAY_UNIT_MS, 500.0 / DELAY_UNIT_MS
+        lo[11], hi[11] = DELAY_RANGE_MS[0] / DELAY_UNIT_MS, DELAY_RANGE_MS[1] / DELAY_UNIT_MS
         lo[12], hi[12] = -8.0, 8.0
+        if self.lp0_hz is not None:
+            lo[13], hi[13] = (np.log(f / self.lp0_hz) for f in LOWPASS_RANGE_HZ)
+            lo[14], hi[14] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
         return lo, hi
 
     def stds(self) -> np.ndarray:
         """Per-coordinate initial CMA-ES standard deviations (relative to sigma0 = 1)."""
-        s = np.full(N_DIM, 0.5)
+        s = np.full(self.n_dim, 0.5)
         s[12] = 1.0
         return s
 
@@ -116,23 +133,28 @@ class ParamSpace:
             weights=[float(v) for v in x[:8] * self._wscale()],
             tau_ms=float(np.clip(self.tau0_ms * np.exp(x[8]), 0.2, 2000.0)),
             ih=[float(x[9] * self.ih_scale[0]), float(x[10] * self.ih_scale[1])],
-            delay_ms=float(np.clip(x[11] * DELAY_UNIT_MS, -100.0, 500.0)),
+            delay_ms=float(np.clip(x[11] * DELAY_UNIT_MS, *DELAY_RANGE_MS)),
             i_sat=float(np.clip(np.exp(x[12]), 0.0, 1e6)),
+            lowpass_hz=None if self.lp0_hz is None else float(np.clip(self.lp0_hz * np.exp(x[13]), *LOWPASS_RANGE_HZ)),
+            negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[14] * LEAD_UNIT_MS, 0.0, LEAD_MAX_MS)),
         )
 
     def encode(self, p: ClassParams) -> np.ndarray:
-        x = np.empty(N_DIM)
+        x = np.empty(self.n_dim)
         x[:8] = np.asarray(p.weights) / self._wscale()
         x[8] = np.log(p.tau_ms / self.tau0_ms)
         x[9] = p.ih[0] / self.ih_scale[0]
         x[10] = p.ih[1] / self.ih_scale[1]
         x[11] = p.delay_ms / DELAY_UNIT_MS
         x[12] = np.log(p.i_sat) if p.i_sat > 0 else 8.0  # 0 (no saturation) ~ the largest i_sat
+        if self.lp0_hz is not None:  # no filter ~ the highest cutoff
+            x[13] = np.log((p.lowpass_hz if p.lowpass_hz is not None else LOWPASS_RANGE_HZ[1]) / self.lp0_hz)
+            x[14] = p.negative_lead_ms / LEAD_UNIT_MS
         return x
 
     def initial(self, delay_ms: float = 0.0, variant: int = 0) -> np.ndarray:
-        """Start: a weight direction of the class, TouchSim's tau and ih, mild saturation."""
-        x = np.zeros(N_DIM)
+        """Start: a weight direction of the class, TouchSim's tau, ih and cutoff, mild saturation."""
+        x = np.zeros(self.n_dim)
         x[:8] = INITIAL_WEIGHTS[self.cls][variant]
         x[8] = 0.0
         ts = touchsim_class_defaults()[self.cls]
