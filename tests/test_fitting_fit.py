@@ -11,7 +11,7 @@ import pytest
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting.objective import evaluate_loss
-from touchreal.fitting.space import N_DIM, ParamSpace
+from touchreal.fitting.space import INITIAL_WEIGHTS, N_DIM, ParamSpace
 from touchreal.params import ClassParams, EncoderParams
 from touchreal.recording import write_dataset
 from touchreal.settings import CLASSES
@@ -179,10 +179,13 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     prov = p.provenance
     assert prov["dataset"] == "rig-v1-tiny" and prov["split_seed"] == 1
     assert res.n_train > 0 and res.n_validation > 0
-    for f in res.classes.values():
+    for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # start grid (2 directions x 81) + 2 generations of 6 + one IPOP restart (1 generation of 12)
-        assert 2 * 81 < f.evaluations <= 2 * 81 + 2 * 6 + 1 * 12
+        # start grid (directions x 81) + 2 generations of 6 + one IPOP restart (1 generation of 12)
+        grid = len(INITIAL_WEIGHTS[c]) * 81
+        assert grid < f.evaluations <= grid + 2 * 6 + 1 * 12
+        # the input stage is fitted for RA and PC only (FitConfig default)
+        assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
         assert f.generations <= 3
     # reproducible
     res2 = F.fit_dataset(ds.root, F.FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))

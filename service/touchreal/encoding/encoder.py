@@ -74,40 +74,46 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
     transposed direct form II recursion as :class:`~touchreal.preprocess.filters.SosFilter`);
     pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
     positive part passes through ring[n, :L] (so it is taken from sample k - L); then
-    ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``. State (zi, ring, head) is updated in place.
+    ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``. Writes ``out[n, k]`` (column-major: one column's
+    state stays local while it runs over the block); state (zi, ring, head) is updated in place.
     """
     n_t = channels.shape[0]
     n_ch = channels.shape[2]
-    n_col = src.shape[0]
     n_sec = sos.shape[1]
-    for k in range(n_t):
-        for n in range(n_col):
+    z = np.empty((n_sec, 2, n_ch))
+    for n in range(src.shape[0]):  # columns are independent: keep one column's state local
+        x = src[n]
+        lp = has_lp[n]
+        z[:] = zi[n]
+        n_lead = lead[n]
+        h = head[n]
+        s_max = i_sat[n]
+        for k in range(n_t):
             pos = 0.0
             neg = 0.0
             for j in range(n_ch):
-                v = channels[k, src[n], j]
-                if has_lp[n]:
+                v = channels[k, x, j]
+                if lp:
                     for s in range(n_sec):
-                        y = sos[n, s, 0] * v + zi[n, s, 0, j]
-                        zi[n, s, 0, j] = sos[n, s, 1] * v - sos[n, s, 4] * y + zi[n, s, 1, j]
-                        zi[n, s, 1, j] = sos[n, s, 2] * v - sos[n, s, 5] * y
+                        y = sos[n, s, 0] * v + z[s, 0, j]
+                        z[s, 0, j] = sos[n, s, 1] * v - sos[n, s, 4] * y + z[s, 1, j]
+                        z[s, 1, j] = sos[n, s, 2] * v - sos[n, s, 5] * y
                         v = y
                 if v > 0.0:
                     pos += w[n, 2 * j] * v
                 elif v < 0.0:
                     neg -= w[n, 2 * j + 1] * v
-            n_lead = lead[n]
             if n_lead > 0:
-                h = head[n]
                 old = ring[n, h]
                 ring[n, h] = pos
                 pos = old
-                head[n] = h + 1 if h + 1 < n_lead else 0
+                h = h + 1 if h + 1 < n_lead else 0
             acc = pos + neg
-            s_max = i_sat[n]
             if s_max > 0.0:
                 acc = s_max * acc / (s_max + abs(acc))
-            out[k, n] = acc
+            out[n, k] = acc
+        zi[n] = z
+        head[n] = h
 
 
 class InputStage:
@@ -145,15 +151,15 @@ class InputStage:
 
     def process(self, channels: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(channels, dtype=np.float64)
-        out = np.empty((x.shape[0], self.src.size))
+        out = np.empty((self.src.size, x.shape[0]))
         if x.shape[0] == 0:
-            return out
+            return out.T
         if self.zi is None:  # steady state at the first sample (the low-pass has unit DC gain)
             first = x[0][self.src]  # (N, 4)
             self.zi = np.ascontiguousarray(self._zi_unit[:, :, :, None] * first[:, None, None, :])
             self.ring[:] = (np.maximum(first, 0.0) * self.w[:, 0::2]).sum(axis=1)[:, None]
         _input_stage(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead, self.ring, self.head, out)
-        return out
+        return out.T  # (T, N) view; the LIF makes it contiguous
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}

@@ -36,7 +36,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..encoding.encoder import encode_population
+from ..encoding.encoder import encode_population, lowpass_channels
 from ..params import ClassParams, EncoderParams, PreprocessParams
 from ..preprocess.gate import calibrate
 from ..preprocess.pipeline import preprocess_trial
@@ -197,9 +197,10 @@ def baseline_segments(
     return out
 
 
-def channel_scale(trials: Sequence[TrialData]) -> np.ndarray:
-    """Typical magnitude of each channel: 99th percentile of |x| over the trials."""
-    allc = np.concatenate([t.channels for t in trials], axis=0)
+def channel_scale(trials: Sequence[TrialData], lowpass_hz: float | None = None) -> np.ndarray:
+    """Typical magnitude of each channel: 99th percentile of |x| over the trials, after a class
+    low-pass at ``lowpass_hz`` when given (it shrinks the fast channels, dPVDF most)."""
+    allc = np.concatenate([lowpass_channels(t.channels, lowpass_hz) for t in trials], axis=0)
     sc = np.percentile(np.abs(allc), 99.0, axis=0)
     return np.where(sc > 0, sc, 1.0)
 
@@ -468,7 +469,10 @@ def fit_dataset(
     log(f"preprocessed in {timings['preprocess_s']:.1f} s; channel scale {np.round(scale, 4).tolist()}; sensor lag {1000 * lag_s:.0f} ms")
 
     tau_s = cfg.objective.kernel_tau_s
-    spaces = {c: ParamSpace.for_class(c, scale, input_stage=c in cfg.input_stage_classes) for c in cfg.classes}
+    spaces = {}
+    for c in cfg.classes:  # weights are normalised by the channel scale the class sees at its start cutoff
+        sp = ParamSpace.for_class(c, scale, input_stage=c in cfg.input_stage_classes)
+        spaces[c] = sp if sp.lp0_hz is None else ParamSpace.for_class(c, channel_scale(train.trials, sp.lp0_hz), True)
     refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight) for c in cfg.classes}
     _STATE.clear()
     _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective)

@@ -44,10 +44,11 @@ _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
 #: Starting directions of the eight weights per class (normalised units), from the functional roles
 #: of the paper's section 2.4: SA1 <- force (+ its rise), RA <- force changes and PVDF transients,
-#: PC <- PVDF and its derivative. The first is the default; the fitter also tries the others.
+#: PC <- PVDF and its derivative; RA's third start leans on dPVDF, which behind the class low-pass
+#: gives a band-pass (TouchSim's RA peaks near 100 Hz). The fitter tries every start.
 INITIAL_WEIGHTS = {
     "SA1": ((1.0, 0.0, 0.3, 0.0, 0.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.3, 0.0, 0.2, 0.2, 0.0, 0.0)),
-    "RA": ((0.0, 0.0, 0.6, 0.6, 0.0, 0.0, 0.3, 0.3), (0.0, 0.0, 0.6, 0.6, 0.5, 0.5, 0.0, 0.0)),
+    "RA": ((0.0, 0.0, 0.6, 0.6, 0.0, 0.0, 0.3, 0.3), (0.0, 0.0, 0.6, 0.6, 0.5, 0.5, 0.0, 0.0), (0.0, 0.0, 0.2, 0.2, 0.0, 0.0, 1.0, 1.0)),
     "PC": ((0.0, 0.0, 0.1, 0.1, 0.3, 0.3, 0.5, 0.5), (0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0)),
 }
 
