@@ -87,6 +87,10 @@ def test_held_out_selection_follows_the_fit_provenance(tiny):
     assert "seed 7" in note
     held_all, _, _ = R.select_held_out(tiny, fitted, "all")
     assert len(held_all) == len(entries)
+    train, _, note = R.select_held_out(tiny, fitted, "train")
+    assert {e["id"] for e in train} == {e["id"] for e in entries} - {e["id"] for e in expected} and "TRAINING" in note
+    with pytest.raises(ValueError, match="split train needs"):
+        R.select_held_out(tiny, p, "train")
 
 
 def test_cli_evaluate(tiny, tmp_path):

@@ -141,3 +141,19 @@ def test_bad_parameters_rejected():
         LifPopulation(np.array([0.5]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="finite"):
         LifPopulation(np.array([5.0]), np.full((1, 3), np.nan))
+
+
+def test_class_lowpass_on_dpvdf_gives_a_band_pass():
+    # equal PVDF amplitude at every frequency (the sine protocol's matched drive): dPVDF grows with f,
+    # the 3rd-order low-pass cuts above its cutoff, so a dPVDF-driven unit is tuned near the cutoff
+    t = np.arange(5000) / 5000.0
+    rates = {}
+    for f in (10.0, 100.0, 400.0):
+        ch = np.zeros((t.size, 4))
+        ch[:, 2] = 0.15 * np.sin(2 * np.pi * f * t)
+        ch[:, 3] = 0.15 * 2 * np.pi * f * np.cos(2 * np.pi * f * t)
+        cp = _cp([0, 0, 0, 0, 0, 0, 0.01, 0.01], tau_ms=6.0, ih=[-2.0, 0.0], lowpass_hz=100.0)
+        rates[f] = encode_population(ch, 0.0, [cp])[0].size
+        flat = encode_population(ch, 0.0, [cp.model_copy(update={"lowpass_hz": None})])[0].size
+        assert flat >= rates[f]  # the filter only removes drive
+    assert rates[100.0] > 2 * rates[10.0] and rates[100.0] > 2 * rates[400.0]

@@ -17,8 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="dataset folder (manifest.json + trials/)")
     p.add_argument("--params", type=Path, default=None, metavar="PARAMS.json", help="parameter file (default: the shipped defaults)")
     p.add_argument("--out", type=Path, required=True, metavar="REPORT_DIR", help="folder for report.md, metrics.json and PNGs")
-    p.add_argument("--split", choices=("auto", "all"), default="auto",
-                   help="auto: the held-out trials recorded by `touchreal fit` (all trials if fitted elsewhere); all: every trial")
+    p.add_argument("--split", choices=("auto", "all", "train"), default="auto",
+                   help="auto: the held-out trials recorded by `touchreal fit` (all trials if fitted elsewhere); all: every trial; "
+                   "train: the fit's training trials (to choose fit settings without looking at held-out trials)")
     p.add_argument("--ramp-condition", default=None, help="ramp condition of Fig. 7")
     p.add_argument("--sweep-ramp-conditions", type=int, default=64,
                    help="ramp conditions in the window sweep (Fig. 12), 0 = all (default 64)")

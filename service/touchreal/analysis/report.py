@@ -64,7 +64,7 @@ class EvalConfig:
     sweep_windows_ms: tuple[float, ...] = SWEEP_WINDOWS_MS
     sweep_max_ramp_conditions: int | None = 64  #: ramp conditions in the window sweep (None = all)
     ramp_condition: str | None = None  #: Fig. 7 condition (default: FIG7_PREFERRED or the first)
-    split: str = "auto"  #: auto | all (held-out = every trial)
+    split: str = "auto"  #: auto | all (every trial) | train (the fit's training half)
     seed: int = 0  #: subsampling of the window sweep
     with_sweep: bool = True
     with_spatial: bool = True
@@ -387,17 +387,25 @@ def time_course_data(cond: str, held: Sequence[EvalTrial], ds: Dataset, classes:
 
 
 def select_held_out(ds: Dataset, params: EncoderParams, mode: str = "auto") -> tuple[list[dict[str, Any]], list[dict[str, Any]], str]:
-    """(held-out ramp+sine entries, all ramp+sine entries, description)."""
+    """(evaluated ramp+sine entries, all ramp+sine entries, description).
+
+    ``auto``: the fit's held-out trials (all trials for parameters fitted elsewhere); ``all``: every
+    trial; ``train``: the fit's training half, for choosing fit settings without looking at the
+    held-out trials."""
     from ..fitting.fit import FIT_PROTOCOLS, params_split_seed, split_repeats
 
+    if mode not in ("auto", "all", "train"):
+        raise ValueError("split must be 'auto', 'all' or 'train'")
     entries = [e for e in ds.entries() if e["protocol"] in FIT_PROTOCOLS and e.get("reference")]
-    seed = params_split_seed(params, ds) if mode == "auto" else None
-    if mode not in ("auto", "all"):
-        raise ValueError("split must be 'auto' or 'all'")
+    seed = params_split_seed(params, ds) if mode != "all" else None
     if seed is None:
+        if mode == "train":
+            raise ValueError("--split train needs parameters fitted on this dataset by `touchreal fit` (the split seed is in their provenance)")
         why = "requested" if mode == "all" else "the parameters were not fitted on this dataset by `touchreal fit`"
         return entries, entries, f"all {len(entries)} ramp/sine trials ({why})"
-    _, held = split_repeats(entries, seed)
+    train, held = split_repeats(entries, seed)
+    if mode == "train":
+        return train, entries, f"{len(train)} TRAINING ramp/sine trials of {len(entries)} (split seed {seed}; not a held-out result)"
     return held, entries, f"{len(held)} held-out ramp/sine trials of {len(entries)} (split seed {seed}, as recorded by the fit)"
 
 
