@@ -157,3 +157,23 @@ def test_class_lowpass_on_dpvdf_gives_a_band_pass():
         flat = encode_population(ch, 0.0, [cp.model_copy(update={"lowpass_hz": None})])[0].size
         assert flat >= rates[f]  # the filter only removes drive
     assert rates[100.0] > 2 * rates[10.0] and rates[100.0] > 2 * rates[400.0]
+
+
+def test_encoder_with_input_stage_is_chunk_invariant_and_reports_its_state():
+    p = default_params()
+    classes = dict(p.classes)
+    classes["RA"] = classes["RA"].model_copy(update={"lowpass_hz": 120.0, "negative_lead_ms": 6.0})
+    classes["PC"] = classes["PC"].model_copy(update={"lowpass_hz": 400.0})
+    p = p.model_copy(update={"classes": classes})
+    ch = _channels(t=3000, taxels=3, seed=2)
+    whole = Encoder(p, n_taxels=3).process(Channels(0, ch))
+    enc = Encoder(p, n_taxels=3)
+    parts = [enc.process(Channels(a, ch[a:b])) for a, b in ((0, 7), (7, 1000), (1000, 1001), (1001, 3000))]
+    got = type(whole).concatenate(parts)
+    for c in CLASSES:
+        for x in range(3):
+            np.testing.assert_array_equal(got.train(c, x), whole.train(c, x))
+    state = enc.state_arrays()
+    assert state["input_lowpass"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
+    assert state["input_lead"].shape == (9, 30)  # 6 ms = 30 samples, one row per column
+    assert all(np.isfinite(a).all() for a in state.values())
