@@ -162,8 +162,9 @@ def test_class_lowpass_on_dpvdf_gives_a_band_pass():
 def test_encoder_with_input_stage_is_chunk_invariant_and_reports_its_state():
     p = default_params()
     classes = dict(p.classes)
+    classes["SA1"] = classes["SA1"].model_copy(update={"lowpass_hz": None, "negative_lead_ms": 0.0})
     classes["RA"] = classes["RA"].model_copy(update={"lowpass_hz": 120.0, "negative_lead_ms": 6.0})
-    classes["PC"] = classes["PC"].model_copy(update={"lowpass_hz": 400.0})
+    classes["PC"] = classes["PC"].model_copy(update={"lowpass_hz": 400.0, "negative_lead_ms": 0.0})
     p = p.model_copy(update={"classes": classes})
     ch = _channels(t=3000, taxels=3, seed=2)
     whole = Encoder(p, n_taxels=3).process(Channels(0, ch))
