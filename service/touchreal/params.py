@@ -17,10 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DATA
 
 SCHEMA_NAME = "touchreal.params"
+#: Written version. Version 1 files (no ``ClassParams.lowpass_hz`` / ``negative_lead_ms``) are still
+#: read, as no class low-pass and no lead.
 SCHEMA_VERSION = 2
-#: Versions this code reads: 1 lacks ``ClassParams.lowpass_hz`` and ``negative_lead_ms`` (read as
-#: no class low-pass and no lead).
-READABLE_VERSIONS = (1, 2)
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
 WEIGHT_NAMES = ("ST+", "ST-", "dST+", "dST-", "PVDF+", "PVDF-", "dPVDF+", "dPVDF-")

@@ -7,7 +7,8 @@ For afferent class a and channels x_c (ST, dST, PVDF, dPVDF), the input current 
     I_a <- I_sat * I_a / (I_sat + |I_a|)                                       (when I_sat > 0)
 
 with L_a the class's negative-part lead (``negative_lead_ms``, 0 by default). I_a drives the LIF of
-:mod:`touchreal.encoding.lif` with the class's tau and post-spike current. A spike at grid sample k is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
+:mod:`touchreal.encoding.lif` with the class's tau and post-spike current. A spike at grid sample k
+is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
 
 :class:`Encoder` is stateful and handles N taxels x the selected classes as one neuron population;
 ``encode_population`` runs many parameter sets on one taxel's channels at once (used by fitting).
@@ -38,6 +39,7 @@ def ih_basis() -> np.ndarray:
 
 
 LOWPASS_ORDER = 3  #: order of the per-class input Butterworth (TouchSim's input filter)
+LOWPASS_SECTIONS = (LOWPASS_ORDER + 1) // 2
 
 
 @lru_cache(maxsize=1024)
@@ -61,9 +63,6 @@ def rectify(channels: np.ndarray) -> np.ndarray:
     pos = np.maximum(channels, 0.0)
     neg = np.maximum(-channels, 0.0)
     return np.stack((pos, neg), axis=-1).reshape(*channels.shape[:-1], 8)
-
-
-LOWPASS_SECTIONS = (LOWPASS_ORDER + 1) // 2
 
 
 @numba.njit(cache=True, nogil=True)
