@@ -26,7 +26,7 @@ import numpy as np
 from scipy import signal
 
 from ..params import ClassParams, EncoderParams
-from ..preprocess.filters import SosFilter
+from ..preprocess.filters import SosFilter, sos_step
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
 from .lif import LifPopulation
 
@@ -69,8 +69,8 @@ def rectify(channels: np.ndarray) -> np.ndarray:
 def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out):  # pragma: no cover - compiled
     """Input current of N columns (column n reads taxel src[n] of the (T, X, 4) channels).
 
-    Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n], the same
-    transposed direct form II recursion as :class:`~touchreal.preprocess.filters.SosFilter`);
+    Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n], stepped by
+    :func:`~touchreal.preprocess.filters.sos_step` like every :class:`SosFilter`);
     pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
     positive part passes through ring[n, :L] (so it is taken from sample k - L); then
     ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``. Writes ``out[n, k]`` (column-major: one column's
@@ -83,6 +83,7 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
     for n in range(src.shape[0]):  # columns are independent: keep one column's state local
         x = src[n]
         lp = has_lp[n]
+        col_sos = sos[n]
         z[:] = zi[n]
         n_lead = lead[n]
         h = head[n]
@@ -93,11 +94,7 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
             for j in range(n_ch):
                 v = channels[k, x, j]
                 if lp:
-                    for s in range(n_sec):
-                        y = sos[n, s, 0] * v + z[s, 0, j]
-                        z[s, 0, j] = sos[n, s, 1] * v - sos[n, s, 4] * y + z[s, 1, j]
-                        z[s, 1, j] = sos[n, s, 2] * v - sos[n, s, 5] * y
-                        v = y
+                    v = sos_step(col_sos, v, z, j)
                 if v > 0.0:
                     pos += w[n, 2 * j] * v
                 elif v < 0.0:

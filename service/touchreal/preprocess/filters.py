@@ -11,20 +11,26 @@ import numpy as np
 from scipy import signal
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def sos_step(sos, v, zi, j):  # pragma: no cover - compiled
+    """One sample ``v`` of column ``j`` through the cascade ``sos`` (sections, 6), a0 = 1: transposed
+    direct form II per section (scipy's sosfilt recursion), state ``zi[s, 0|1, j]`` updated in place.
+    Shared by the filter stages and the encoder's fused input kernel."""
+    for s in range(sos.shape[0]):
+        y = sos[s, 0] * v + zi[s, 0, j]
+        zi[s, 0, j] = sos[s, 1] * v - sos[s, 4] * y + zi[s, 1, j]
+        zi[s, 1, j] = sos[s, 2] * v - sos[s, 5] * y
+        v = y
+    return v
+
+
 @numba.njit(cache=True, nogil=True)
 def _sos_run(sos, x, zi, out):  # pragma: no cover - compiled
-    """Transposed direct form II per section (scipy's sosfilt recursion, a0 = 1), state in place."""
+    """Every sample of every column through the cascade, state in place."""
     n, m = x.shape
-    n_sec = sos.shape[0]
     for i in range(n):
         for j in range(m):
-            v = x[i, j]
-            for s in range(n_sec):
-                y = sos[s, 0] * v + zi[s, 0, j]
-                zi[s, 0, j] = sos[s, 1] * v - sos[s, 4] * y + zi[s, 1, j]
-                zi[s, 1, j] = sos[s, 2] * v - sos[s, 5] * y
-                v = y
-            out[i, j] = v
+            out[i, j] = sos_step(sos, x[i, j], zi, j)
 
 
 class SosFilter:
