@@ -43,7 +43,7 @@ from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset, Trial
 from ..settings import CLASSES, OUT_FS_HZ
 from .objective import LossTerms, ObjectiveConfig, ReferenceSet, evaluate_loss
-from .space import DELAY_RANGE_MS, DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace
+from .space import DELAY_RANGE_MS, DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace, touchsim_class_defaults
 
 FIT_PROTOCOLS = ("ramp", "sine")
 SPLIT_METHOD = "per-condition seeded shuffle of repeats (crc32(condition), seed); first half trains"
@@ -470,9 +470,9 @@ def fit_dataset(
 
     tau_s = cfg.objective.kernel_tau_s
     spaces = {}
-    for c in cfg.classes:  # weights are normalised by the channel scale the class sees at its start cutoff
-        sp = ParamSpace.for_class(c, scale, input_stage=c in cfg.input_stage_classes)
-        spaces[c] = sp if sp.lp0_hz is None else ParamSpace.for_class(c, channel_scale(train.trials, sp.lp0_hz), True)
+    for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
+        lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
+        spaces[c] = ParamSpace.for_class(c, scale if lp0 is None else channel_scale(train.trials, lp0), lp0 is not None)
     refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight) for c in cfg.classes}
     _STATE.clear()
     _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective)
