@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
-from touchreal.encoding.encoder import Encoder, InputStage, channel_currents, encode_population, input_current, rectify
+from touchreal.encoding.encoder import Encoder, InputStage, channel_currents, encode_population, rectify
 from touchreal.encoding.lif import REFRACTORY_SAMPLES, LifPopulation
 from touchreal.params import ClassParams, default_params
 from touchreal.preprocess.pipeline import Channels
@@ -81,6 +81,12 @@ def test_lif_constant_current_rate_matches_closed_form():
     k, _ = lif.step(np.full((5000, 1), i))
     period = int(np.ceil(np.log(1 - 1 / (i * tau)) / np.log(1 - 1 / tau)))
     assert np.all(np.diff(k) == period)
+
+
+def input_current(channels, params):
+    """(T, X, 4) -> (T, X) current of one class on every taxel, from a fresh input stage."""
+    n_x = channels.shape[1]
+    return InputStage([params] * n_x, np.arange(n_x)).process(channels)
 
 
 def _cp(w, **kw):

@@ -166,12 +166,6 @@ class InputStage:
         return out
 
 
-def input_current(channels: np.ndarray, params: ClassParams) -> np.ndarray:
-    """(T, X, 4) channels -> (T, X) current of one class on every taxel, from a fresh :class:`InputStage`."""
-    n_x = np.shape(channels)[1]
-    return InputStage([params] * n_x, np.arange(n_x)).process(channels)
-
-
 def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(M,) tau in samples, (M, 190) post-spike current, (M,) delay in s."""
     tau = np.array([p.tau_samples for p in params], dtype=np.float64)

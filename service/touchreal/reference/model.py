@@ -39,7 +39,7 @@ MAX_BLOCK_ELEMENTS = 8_000_000
 def _block_current(base, src, noise_sd, i_sat, z, out):  # pragma: no cover - compiled
     """out[k, j] = sat_j(base[k, src[j]] + noise_sd[j] * z[k, j]); z may be empty (noiseless).
 
-    Saturation as :func:`touchreal.encoding.encoder.input_current`: ``I_sat I / (I_sat + |I|)`` where
+    Saturation as :class:`touchreal.encoding.encoder.InputStage`: ``I_sat I / (I_sat + |I|)`` where
     ``I_sat > 0``, non-finite results set to 0.
     """
     n_t, n_c = out.shape
