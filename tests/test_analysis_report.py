@@ -50,6 +50,17 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
         assert fr[c]["n_obs"]["TouchReal"] == 5 * 4
     assert set(disk["spatial"]) == set(CLASSES)
     assert len(disk["window_sweep"]["vr"]["PC"]) == 2
+    per_cond = {}
+    for e in tiny.entries("ramp"):
+        per_cond[e["condition"]] = per_cond.get(e["condition"], 0) + 1
+    for c in CLASSES:  # turning-point windows partition each ramp trial: the spikes add up to the whole-trial counts
+        ramp_rows = [r for r in disk["mapping_per_condition"][c] if r["protocol"] == "ramp"]
+        tp_rows = disk["turning_points"][c]
+        assert sum(r["n_trials"] for r in tp_rows if r["event"] == "onset") == sum(per_cond.values())
+        for key in ("tr", "ts"):
+            total = sum(r[f"n_{key}"] * per_cond[r["condition"]] for r in ramp_rows)
+            assert sum(r[f"{key}_spikes"] * r["n_trials"] for r in tp_rows) == pytest.approx(total)
+    assert "turning points" in (out / "report.md").read_text()
     assert {"vr_ratio_SA1", "count_error_PC", "RA_band_pass_peak_100Hz", "PC_rising", "anova_source_RA"} <= set(disk["targets"])
     md = (out / "report.md").read_text()
     assert "simulated rig recordings" in md and "intra" in md and "Table 2" in md

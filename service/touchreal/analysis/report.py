@@ -45,6 +45,7 @@ from ..settings import CHANNELS, CLASSES, OUT_FS_HZ
 from . import spatial as sp
 from . import spiketrains as stn
 from . import stats
+from . import turning_points as tp
 
 VR_TAU_S = 0.001
 SWEEP_WINDOWS_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)
@@ -470,6 +471,11 @@ def evaluate(dataset_dir: str | Path, params: EncoderParams, out_dir: str | Path
         figs["fig7"] = fg.fig7_time_courses(out / "fig7_time_courses.png", time_course_data(cond, held, ds, classes)).name
         metrics["fig7_condition"] = cond
 
+    # spikes at the ramp's turning points (where the count error comes from)
+    ramp_held = [t for t in held if t.entry["protocol"] == "ramp"]
+    if ramp_held:
+        metrics["turning_points"] = tp.turning_point_table(ramp_held, classes)
+
     # Fig. 9, Tables 2-3
     sine = [t for t in held if t.entry["protocol"] == "sine"]
     fr_classes = [c for c in ("RA", "PC") if c in classes]
@@ -654,6 +660,19 @@ def render_markdown(m: dict[str, Any]) -> str:
     L += ["", "Box plots show one value per condition (the condition's mean pair distance).", ""]
     if "fig7" in m["figures"]:
         L += ["## Ramp time courses (Fig. 7)", "", f"Condition `{m.get('fig7_condition')}`.", "", f"![Fig. 7]({m['figures']['fig7']})", ""]
+    tps = m.get("turning_points")
+    if tps:
+        L += ["## Spikes at the ramp's turning points", "",
+              "Each spike belongs to the nearest commanded turning point (onset, hold start, release start, release end; "
+              "`peak` = hold start and release start of ramps without a hold). Spikes per train (TouchSim) or trial (TouchReal), "
+              "mean |TR - TS| per trial, and TR's first spike minus TS's median first spike (median [quartiles], trials where both fired).", "",
+              "| class | turning point | speed [mm/s] | trials | TS spikes | TR spikes | mean abs(TR - TS) | offset [ms] |", "|---|---|---|---|---|---|---|---|"]
+        for c in classes:
+            for r in tps.get(c, []):
+                q = r["offset_ms_quartiles"]
+                off = f"{q[1]:+.1f} [{q[0]:+.1f}, {q[2]:+.1f}]" if q else "-"
+                L.append(f"| {c} | {r['event']} | {r['speed_mm_s']:g} | {r['n_trials']} | {_f(r['ts_spikes'], 2)} | {_f(r['tr_spikes'], 2)} | {_f(r['count_error'], 2)} | {off} |")
+        L += [""]
     L += ["## Effective channel contribution (Table 1, eq. 11)", "", "| class | " + " | ".join(CHANNELS) + " |", "|---|" + "---|" * len(CHANNELS)]
     for c in classes:
         L.append(f"| {c} | " + " | ".join(f"{m['channel_contribution_pct'][c][ch]:.2f} %" for ch in CHANNELS) + " |")

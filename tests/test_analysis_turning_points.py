@@ -1,0 +1,73 @@
+"""Turning-point table of ramp responses: windows, counts, offsets (synthetic trains, no data needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchreal.analysis import turning_points as tp
+from touchreal.analysis.report import EvalTrial
+
+
+def ramp_entry(v_up: float, v_down: float, hold_s: float, depth_mm: float = 1.0, onset_s: float = 0.3) -> dict:
+    hold_start = onset_s + depth_mm / v_up
+    release = hold_start + hold_s
+    return {
+        "protocol": "ramp",
+        "params": {"v_up_mm_s": v_up, "v_down_mm_s": v_down, "hold_s": hold_s, "depth_mm": depth_mm},
+        "onset_s": onset_s,
+        "events": {"hold_start_s": hold_start, "release_start_s": release},
+        "stim_end_s": release + depth_mm / v_down,
+    }
+
+
+def test_turning_points_with_and_without_hold():
+    e = ramp_entry(40.0, 8.0, 0.6)
+    names = [n for n, _, _ in tp.turning_points(e)]
+    assert names == ["onset", "hold", "release", "end"]
+    t = [t for _, t, _ in tp.turning_points(e)]
+    assert t == pytest.approx([0.0, 0.025, 0.625, 0.75])
+    assert [s for _, _, s in tp.turning_points(e)] == [40.0, 40.0, 8.0, 8.0]
+    e0 = ramp_entry(95.0, 65.0, 0.0)
+    assert [n for n, _, _ in tp.turning_points(e0)] == ["onset", "peak", "end"]
+
+
+def test_split_assigns_each_spike_to_the_nearest_turning_point():
+    times = [0.0, 0.1, 1.0]
+    spikes = np.array([-0.5, 0.01, 0.049, 0.051, 0.2, 0.549, 0.551, 3.0])
+    parts = tp.split_at_turning_points(spikes, times)
+    assert [p.tolist() for p in parts] == [[-0.5, 0.01, 0.049], [0.051, 0.2, 0.549], [0.551, 3.0]]
+    assert sum(p.size for p in parts) == spikes.size
+
+
+def test_table_counts_errors_and_offsets():
+    e = ramp_entry(40.0, 40.0, 1.0)  # turning points at 0, 25, 1025, 1050 ms
+    ts = [np.array([0.0002, 0.0262, 1.0252, 1.0512]), np.array([0.0004, 1.0254])]  # hold/end missing in one train
+    tr = np.array([-0.001, 0.003, 0.024, 0.030, 1.040])  # 2 at onset, 2 at hold, 0 at release, 1 at end
+    table = tp.turning_point_table([EvalTrial(e, 0.3, {"PC": tr}, {"PC": ts})], ["PC"])
+    rows = {r["event"]: r for r in table["PC"]}
+    assert [r["event"] for r in table["PC"]] == ["onset", "hold", "release", "end"]
+    assert rows["onset"]["ts_spikes"] == 1.0 and rows["onset"]["tr_spikes"] == 2.0 and rows["onset"]["count_error"] == 1.0
+    assert rows["hold"]["ts_spikes"] == 0.5 and rows["hold"]["count_error"] == 1.5
+    assert rows["release"]["tr_spikes"] == 0.0 and rows["release"]["offset_ms_quartiles"] is None
+    # end: TR 1040 ms against the only TouchSim first spike at 1051.2 ms
+    assert rows["end"]["offset_ms_quartiles"][1] == pytest.approx(-11.2)
+    assert rows["onset"]["offset_ms_quartiles"][1] == pytest.approx(-1.3)  # -1 ms against the median 0.3 ms
+    assert rows["onset"]["ts_latency_ms"] == pytest.approx(0.3) and rows["hold"]["tr_latency_ms"] == pytest.approx(-1.0)
+    # every spike is counted exactly once
+    assert sum(r["tr_spikes"] for r in table["PC"]) == tr.size
+    pooled = tp.summarize_by_event(table["PC"])
+    assert [p["event"] for p in pooled] == ["onset", "hold", "release", "end"]
+
+
+def test_rows_group_by_speed_and_skip_non_ramp_or_unreferenced_trials():
+    a = EvalTrial(ramp_entry(8.0, 95.0, 0.0), 0.3, {"RA": np.array([0.0])}, {"RA": [np.array([0.001])]})
+    b = EvalTrial(ramp_entry(95.0, 95.0, 0.0), 0.3, {"RA": np.array([0.0, 0.02])}, {"RA": [np.array([0.0])]})
+    sine = EvalTrial({"protocol": "sine"}, 0.3, {"RA": np.array([0.1])}, {"RA": [np.array([0.1])]})
+    bare = EvalTrial(ramp_entry(8.0, 8.0, 0.0), 0.3, {"RA": np.array([0.1])})
+    rows = tp.turning_point_table([a, b, sine, bare], ["RA"])["RA"]
+    assert [(r["event"], r["speed_mm_s"], r["n_trials"]) for r in rows] == [
+        ("onset", 8.0, 1), ("onset", 95.0, 1), ("peak", 8.0, 1), ("peak", 95.0, 1), ("end", 95.0, 2)
+    ]
+    pooled = tp.summarize_by_event(rows)
+    assert pooled[0]["n_trials"] == 2 and pooled[0]["tr_spikes"] == pytest.approx(1.0)
