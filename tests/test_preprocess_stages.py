@@ -9,7 +9,7 @@ from scipy import signal
 from scipy.interpolate import PchipInterpolator
 
 from touchreal.params import GateCalibration, PreprocessParams
-from touchreal.preprocess.filters import AlphaBeta, SosFilter, butter_lowpass, mains_notches
+from touchreal.preprocess.filters import AlphaBeta, SosFilter, butter_lowpass, mains_notches, periodic_history
 from touchreal.preprocess.gate import calibrate, detect_harmonics, gate_thresholds
 from touchreal.preprocess.resample import CausalPchip
 from touchreal.preprocess.sanitize import Sanitizer
@@ -64,6 +64,39 @@ def test_notch_bank_removes_only_selected_harmonics():
     p100, p150 = p[np.argmin(abs(f - 100))], p[np.argmin(abs(f - 150))]
     assert p150 < 1e-4 * p100  # 150 Hz notched by > 40 dB, 100 Hz kept
     assert mains_notches(50.0, [30], 30.0, FS) is None  # 1500 Hz is above Nyquist
+
+
+def _hum(k: np.ndarray) -> np.ndarray:
+    """A constant plus 50/150/250 Hz hum at 2 kHz, two taxels with different phases: (len(k), 2)."""
+    t = np.asarray(k, np.float64)[:, None] / FS
+    return 0.01 + 0.010 * np.sin(2 * np.pi * 50 * t + [0.3, 2.0]) + 0.005 * np.sin(2 * np.pi * 150 * t + [1.0, -1.0]) + 0.002 * np.cos(2 * np.pi * 250 * t)
+
+
+def test_periodic_history_extrapolates_a_constant_plus_hum_into_the_past():
+    past = periodic_history(_hum(np.arange(200)), FS, [50.0, 150.0, 250.0, 350.0], 1500)
+    np.testing.assert_allclose(past, _hum(np.arange(-1500, 0)), atol=1e-9)
+    # frequencies at or above Nyquist are ignored; a block too short for the sinusoids gives its mean
+    np.testing.assert_allclose(periodic_history(_hum(np.arange(200)), FS, [50.0, 150.0, 250.0, 1000.0, 3000.0], 10)[:, 0], _hum(np.arange(-10, 0))[:, 0], atol=1e-9)
+    short = np.array([[1.0], [3.0], [2.0]])
+    np.testing.assert_allclose(periodic_history(short, FS, [50.0, 150.0], 4), 2.0)
+    with pytest.raises(ValueError):
+        periodic_history(np.zeros((0, 1)), FS, [50.0], 4)
+
+
+def test_notches_primed_with_the_hum_start_without_ringing():
+    bank = lambda: butter_lowpass(800.0, FS, 4, 2).then(mains_notches(50.0, [1, 3, 5], 30.0, FS, 2))  # noqa: E731
+    x = _hum(np.arange(1000))
+    cold = bank().process(x)  # steady state for the first sample only: the notches ring for ~0.2 s
+    primed = bank()
+    primed.prime(periodic_history(x[:200], FS, [50.0, 150.0, 250.0], 2000))
+    warm = primed.process(x)
+    assert np.abs(cold[:100] - 0.01).max() > 5e-3  # the old start: half the hum passes
+    # primed: only the constant passes from sample 0, up to the ringing left after the 1 s history
+    # (exp(-1 s / 0.19 s) = 0.5 % of the 10 mV at 50 Hz)
+    np.testing.assert_allclose(warm, 0.01, atol=1e-4)
+    # priming with the exact past equals having filtered that past
+    longer = bank().process(_hum(np.arange(-2000, 1000)))[2000:]
+    np.testing.assert_allclose(warm, longer, atol=1e-12)
 
 
 def test_alpha_beta_tracks_a_ramp_and_rejects_unstable_gains():

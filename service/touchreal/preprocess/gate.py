@@ -16,7 +16,7 @@ import numpy as np
 from scipy import signal
 
 from ..params import GateCalibration, PreprocessParams
-from .filters import butter_lowpass, mains_notches
+from .filters import HUM_PRIME_S, butter_lowpass, mains_frequencies, mains_notches, prime_with_hum
 
 _PVDF_LP_ORDER = 4
 _WELCH_SEG = 256
@@ -40,15 +40,19 @@ def _welch(segments: Sequence[np.ndarray], fs_hz: float) -> tuple[np.ndarray, np
 
 
 def _filtered(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float, notch: bool) -> list[np.ndarray]:
+    """Each segment through the pipeline's PVDF filters (with the notches or not), primed as the
+    pipeline primes them at stream start."""
     out = []
+    n_prime = int(round(HUM_PRIME_S * fs_hz))
+    hum = mains_frequencies(params.mains_hz, params.notch_harmonics, fs_hz) if notch else []
     for seg in segments:
         x = np.asarray(seg, dtype=np.float64)[:, None]
-        x = butter_lowpass(params.pvdf_lowpass_hz, fs_hz, _PVDF_LP_ORDER).process(x)
+        filt = butter_lowpass(params.pvdf_lowpass_hz, fs_hz, _PVDF_LP_ORDER)
         if notch:
-            bank = mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz)
-            if bank is not None:
-                x = bank.process(x)
-        out.append(x[:, 0])
+            filt = filt.then(mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz))
+        if x.shape[0]:
+            prime_with_hum(filt, x[:n_prime], fs_hz, hum)
+        out.append(filt.process(x)[:, 0])
     return out
 
 

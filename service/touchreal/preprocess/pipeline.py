@@ -22,7 +22,7 @@ import numpy as np
 from ..params import PreprocessParams
 from ..recording import Trial
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N
-from .filters import AlphaBeta, butter_lowpass, mains_notches
+from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, mains_notches, prime_with_hum
 from .gate import gate_thresholds
 from .resample import CausalPchip
 from .sanitize import Sanitizer
@@ -115,6 +115,8 @@ class Preprocessor:
         self.pv_filter = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels, dt).then(
             mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels, dt)
         )
+        self.hum_hz = mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ)
+        self.pv_held: list[np.ndarray] | None = []  # raw PVDF of the stream start, until the filter is primed
         n = frame_length(params.window_ms, PVDF_FS_HZ)
         gate = StftGate(n, n_taxels, dtype=dt)
         if params.gate is not None:
@@ -150,6 +152,8 @@ class Preprocessor:
             out[f"align_{b}"] = held
         if self.pv_prev is not None:
             out["pv_prev"] = self.pv_prev
+        if self.pv_held:
+            out["pv_held"] = np.concatenate(self.pv_held)
         return out
 
     def process(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> Channels:
@@ -159,7 +163,7 @@ class Preprocessor:
             self._st_branch(self.st_in.slot_time(np.arange(first, first + x.shape[0])), x)
         if pvdf_t is not None and len(pvdf_t):
             _, x = self.pv_in.push(pvdf_t, pvdf)
-            self._pv_branch(self.pv_gate.process(self.pv_filter.process(x)))
+            self._pv_filter(x)
         return self._pop()
 
     def finish(self) -> Channels:
@@ -170,6 +174,7 @@ class Preprocessor:
             float(self.st_in.slot_time(self.st_in.next_slot - 1)),
             float(self.pv_in.slot_time(self.pv_in.next_slot - 1)),
         )
+        self._pv_filter(np.zeros((0, self.n_taxels)), final=True)
         self._pv_branch(self.pv_gate.process(np.zeros((self.pv_gate.n, self.n_taxels))))
         self.align.add(0, *self._split(self.st_rs.finish(until)))
         self.align.add(1, *self._split(self.pv_rs.finish(until)))
@@ -179,6 +184,23 @@ class Preprocessor:
     def _st_branch(self, t: np.ndarray, x: np.ndarray) -> None:
         force, rate = self.st_ab.process(self.st_lp.process(x))
         self.align.add(0, *self._split(self.st_rs.process(t, np.concatenate((force, rate), axis=1))))
+
+    def _pv_filter(self, x: np.ndarray, final: bool = False) -> None:
+        """Low-pass + notches, then the gate. The first :data:`HUM_PRIME_S` of the stream are held
+        and the filter is primed with the hum fitted to them (no notch ringing at stream start); the
+        gate's first frame needs at least as long, so with windows >= 100 ms no output is later."""
+        if self.pv_held is not None:
+            self.pv_held.append(x)
+            n_prime = int(round(HUM_PRIME_S * PVDF_FS_HZ))
+            held = np.concatenate(self.pv_held)
+            if held.shape[0] < n_prime and not final:
+                return
+            self.pv_held = None
+            if held.shape[0] == 0:
+                return
+            prime_with_hum(self.pv_filter, held[:n_prime], PVDF_FS_HZ, self.hum_hz)
+            x = held
+        self._pv_branch(self.pv_gate.process(self.pv_filter.process(x)))
 
     def _pv_branch(self, y: np.ndarray) -> None:
         if y.shape[0] == 0:
