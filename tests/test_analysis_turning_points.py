@@ -56,8 +56,6 @@ def test_table_counts_errors_and_offsets():
     assert rows["onset"]["ts_latency_ms"] == pytest.approx(0.3) and rows["hold"]["tr_latency_ms"] == pytest.approx(-1.0)
     # every spike is counted exactly once
     assert sum(r["tr_spikes"] for r in table["PC"]) == tr.size
-    pooled = tp.summarize_by_event(table["PC"])
-    assert [p["event"] for p in pooled] == ["onset", "hold", "release", "end"]
 
 
 def test_rows_group_by_speed_and_skip_non_ramp_or_unreferenced_trials():
@@ -69,5 +67,4 @@ def test_rows_group_by_speed_and_skip_non_ramp_or_unreferenced_trials():
     assert [(r["event"], r["speed_mm_s"], r["n_trials"]) for r in rows] == [
         ("onset", 8.0, 1), ("onset", 95.0, 1), ("peak", 8.0, 1), ("peak", 95.0, 1), ("end", 95.0, 2)
     ]
-    pooled = tp.summarize_by_event(rows)
-    assert pooled[0]["n_trials"] == 2 and pooled[0]["tr_spikes"] == pytest.approx(1.0)
+    assert rows[0]["tr_spikes"] == 1.0 and rows[1]["tr_spikes"] == 1.0  # b's second spike (20 ms) is nearer its end (21 ms)

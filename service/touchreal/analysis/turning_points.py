@@ -98,22 +98,3 @@ def turning_point_table(trials: Sequence[Any], classes: Sequence[str]) -> dict[s
             )
         out[cls] = rows
     return out
-
-
-def summarize_by_event(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Rows of :func:`turning_point_table` pooled over speeds (trial-weighted means; offset
-    quartiles are not poolable and are left out)."""
-    out = []
-    for name in EVENTS:
-        sel = [r for r in rows if r["event"] == name]
-        if not sel:
-            continue
-        w = np.array([r["n_trials"] for r in sel], np.float64)
-        out.append(
-            {
-                "event": name,
-                "n_trials": int(w.sum()),
-                **{k: float(np.average([r[k] for r in sel], weights=w)) for k in ("ts_spikes", "tr_spikes", "count_error")},
-            }
-        )
-    return out

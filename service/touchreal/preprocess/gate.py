@@ -16,7 +16,7 @@ import numpy as np
 from scipy import signal
 
 from ..params import GateCalibration, PreprocessParams
-from .filters import HUM_PRIME_S, butter_lowpass, mains_frequencies, mains_notches, prime_with_hum
+from .filters import HUM_PRIME_S, SosFilter, butter_lowpass, mains_frequencies, mains_notches, prime_with_hum
 
 _PVDF_LP_ORDER = 4
 _WELCH_SEG = 256
@@ -39,6 +39,14 @@ def _welch(segments: Sequence[np.ndarray], fs_hz: float) -> tuple[np.ndarray, np
     return freqs, total / weight
 
 
+def pvdf_filter(params: PreprocessParams, fs_hz: float, n_taxels: int = 1, dtype: type = np.float64, notch: bool = True) -> SosFilter:
+    """The PVDF cascade: Butterworth low-pass, then (with ``notch``) the mains notch comb."""
+    filt = butter_lowpass(params.pvdf_lowpass_hz, fs_hz, _PVDF_LP_ORDER, n_taxels, dtype)
+    if not notch:
+        return filt
+    return filt.then(mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz, n_taxels, dtype))
+
+
 def _filtered(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float, notch: bool) -> list[np.ndarray]:
     """Each segment through the pipeline's PVDF filters (with the notches or not), primed as the
     pipeline primes them at stream start."""
@@ -47,9 +55,7 @@ def _filtered(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: f
     hum = mains_frequencies(params.mains_hz, params.notch_harmonics, fs_hz) if notch else []
     for seg in segments:
         x = np.asarray(seg, dtype=np.float64)[:, None]
-        filt = butter_lowpass(params.pvdf_lowpass_hz, fs_hz, _PVDF_LP_ORDER)
-        if notch:
-            filt = filt.then(mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz))
+        filt = pvdf_filter(params, fs_hz, notch=notch)
         if x.shape[0]:
             prime_with_hum(filt, x[:n_prime], fs_hz, hum)
         out.append(filt.process(x)[:, 0])

@@ -22,14 +22,13 @@ import numpy as np
 from ..params import PreprocessParams
 from ..recording import Trial
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N
-from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, mains_notches, prime_with_hum
-from .gate import gate_thresholds
+from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, prime_with_hum
+from .gate import gate_thresholds, pvdf_filter
 from .resample import CausalPchip
 from .sanitize import Sanitizer
 from .stft_gate import StftGate, frame_length
 
 _ST_LP_ORDER = 2
-_PVDF_LP_ORDER = 4
 
 
 @dataclass
@@ -111,10 +110,7 @@ class Preprocessor:
         self.st_rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
         # PVDF branch (2 kHz)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
-        # low-pass and mains notch comb as one SOS cascade
-        self.pv_filter = butter_lowpass(params.pvdf_lowpass_hz, PVDF_FS_HZ, _PVDF_LP_ORDER, n_taxels, dt).then(
-            mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, PVDF_FS_HZ, n_taxels, dt)
-        )
+        self.pv_filter = pvdf_filter(params, PVDF_FS_HZ, n_taxels, dt)  # low-pass + mains notch comb, one cascade
         self.hum_hz = mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ)
         self.pv_held: list[np.ndarray] | None = []  # raw PVDF of the stream start, until the filter is primed
         n = frame_length(params.window_ms, PVDF_FS_HZ)
