@@ -8,11 +8,12 @@ import json
 import numpy as np
 import pytest
 
+from touchreal.analysis.turning_points import turning_points
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting.objective import evaluate_loss
 from touchreal.fitting.space import INITIAL_WEIGHTS, N_DIM, ParamSpace
-from touchreal.params import ClassParams, EncoderParams
+from touchreal.params import ClassParams, EncoderParams, PreprocessParams
 from touchreal.recording import write_dataset
 from touchreal.settings import CLASSES
 
@@ -205,6 +206,33 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3"]) == 0
     assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 3.0
+    assert json.loads(out.read_text())["provenance"]["objective"]["segmented_count_classes"] == ["PC"]  # the default
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--segmented-count-classes", "none"]) == 0
+    assert json.loads(out.read_text())["provenance"]["objective"]["segmented_count_classes"] == []
     with pytest.raises(ValueError):
         F.FitConfig(count_weight=-1.0)
+    with pytest.raises(ValueError, match="segmented_count_classes"):
+        F.FitConfig(segmented_count_classes=("PC", "SA2"))
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "XX"]) == 2
+
+
+@pytest.mark.shared
+def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
+    ds = tiny_rig_subset(rig, tmp_path / "tiny")
+    entries = [e for e in ds.entries() if e["protocol"] in ("ramp", "sine")]
+    tset = F.build_trial_set(ds, entries, PreprocessParams(), ["PC"])
+    for e, t in zip(entries, tset.trials):
+        if e["protocol"] == "ramp":
+            tps = [x for _, x, _ in turning_points(e)]
+            assert len(tps) in (3, 4)
+            np.testing.assert_allclose(t.window_edges_s, [(a + b) / 2 for a, b in zip(tps[:-1], tps[1:])])
+        else:
+            assert t.window_edges_s.size == 0
+    whole = tset.reference_set("PC", 0.01, 80)
+    seg = tset.reference_set("PC", 0.01, 80, segmented_count=True)
+    assert whole.n_t_seg.size == whole.n_conditions
+    n_seg = np.diff(seg.edge_off) + 1
+    assert set(n_seg.tolist()) <= {1, 3, 4} and (n_seg > 1).any()
+    # the segments of a condition add up to its whole-trial reference count
+    np.testing.assert_allclose(np.bincount(np.repeat(np.arange(seg.n_conditions), n_seg), seg.n_t_seg), whole.n_t)

@@ -97,3 +97,43 @@ def test_errors():
         evaluate_loss([np.array([0.1])] * 2, [0, 1], refs, ObjectiveConfig(kernel_tau_s=0.02))
     with pytest.raises(ValueError):
         ReferenceSet.build([[]], TAU)
+
+
+def test_segmented_count_loss_stops_misses_and_extras_cancelling():
+    # reference: one spike in each half; prediction: two spikes in the first half, none in the second
+    refs_whole = ReferenceSet.build([[np.array([0.1, 0.9])]], TAU)
+    refs_seg = ReferenceSet.build([[np.array([0.1, 0.9])]], TAU, segment_edges=[np.array([0.5])])
+    pred = [np.array([0.1, 0.2])]
+    assert evaluate_loss(pred, [0], refs_whole, CFG).l_rel == 0.0  # eq. 7: the counts agree
+    seg = evaluate_loss(pred, [0], refs_seg, CFG)
+    assert seg.l_rel == pytest.approx((abs(2 - 1) + abs(0 - 1)) / 2)
+    assert seg.d_basic == evaluate_loss(pred, [0], refs_whole, CFG).d_basic  # only the count term changes
+    # a spike on an edge counts in the later segment; segments are averaged over the trains first
+    refs = ReferenceSet.build([[np.array([0.5]), np.array([0.1, 0.2])]], TAU, segment_edges=[np.array([0.5])])
+    np.testing.assert_allclose(refs.n_t_seg, [1.0, 0.5])
+    L = evaluate_loss([np.array([0.5]), np.array([0.1])], [0, 0], refs, CFG)
+    assert L.l_rel == pytest.approx((abs(0.5 - 1.0) + abs(0.5 - 0.5)) / 1.5)
+
+
+def test_segmented_count_loss_per_condition_and_one_segment_is_the_paper():
+    rng = np.random.default_rng(3)
+    groups = [[np.sort(rng.uniform(0, 1, rng.integers(0, 6))) for _ in range(4)] for _ in range(5)]
+    preds = [np.sort(rng.uniform(0, 1, rng.integers(0, 6))) for _ in range(10)]
+    cond = np.repeat(np.arange(5), 2)
+    edges = [np.array([0.3, 0.6]), None, np.zeros(0), np.array([0.5]), np.array([0.1, 0.2, 0.9])]
+    whole = evaluate_loss(preds, cond, ReferenceSet.build(groups, TAU), CFG)
+    seg = evaluate_loss(preds, cond, ReferenceSet.build(groups, TAU, segment_edges=edges), CFG)
+    expect = []
+    for c in range(5):
+        e = np.zeros(0) if edges[c] is None else edges[c]
+        ref = np.mean([np.histogram(t, np.r_[-np.inf, e, np.inf])[0] for t in groups[c]], axis=0)
+        pr = np.mean([np.histogram(p, np.r_[-np.inf, e, np.inf])[0] for p, k in zip(preds, cond) if k == c], axis=0)
+        n_t = ref.sum()
+        expect.append(np.abs(pr - ref).sum() / n_t if n_t > 0 else pr.sum())
+    assert seg.l_rel == pytest.approx(np.mean(expect), rel=1e-9)
+    assert seg.l_rel >= whole.l_rel - 1e-12
+    np.testing.assert_array_equal(seg.n_s, whole.n_s)
+    with pytest.raises(ValueError, match="increasing"):
+        ReferenceSet.build([[np.array([0.1])]], TAU, segment_edges=[np.array([0.5, 0.2])])
+    with pytest.raises(ValueError, match="one entry"):
+        ReferenceSet.build([[np.array([0.1])]], TAU, segment_edges=[])

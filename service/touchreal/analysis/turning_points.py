@@ -41,12 +41,18 @@ def turning_points(entry: dict[str, Any]) -> list[tuple[str, float, float]]:
     return [("onset", 0.0, up), ("peak", hold, up), ("end", end, down)]
 
 
+def window_edges(times: Sequence[float]) -> np.ndarray:
+    """Inner edges (s) of the nearest-turning-point windows: the midpoints between consecutive
+    turning points (``len(times) - 1`` values; a spike on an edge belongs to the later window)."""
+    t = np.asarray(times, np.float64)
+    return 0.5 * (t[1:] + t[:-1])
+
+
 def split_at_turning_points(spikes: np.ndarray, times: Sequence[float]) -> list[np.ndarray]:
     """Sorted spike times (s) -> one array per turning point (nearest-turning-point windows)."""
-    t = np.asarray(times, np.float64)
-    edges = np.concatenate(([-np.inf], 0.5 * (t[1:] + t[:-1]), [np.inf]))
+    edges = np.concatenate(([-np.inf], window_edges(times), [np.inf]))
     idx = np.searchsorted(np.asarray(spikes, np.float64), edges)
-    return [spikes[idx[i] : idx[i + 1]] for i in range(t.size)]
+    return [spikes[idx[i] : idx[i + 1]] for i in range(edges.size - 1)]
 
 
 def _quartiles(v: list[float]) -> list[float] | None:

@@ -29,6 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
                    help="multiplier of the relative spike-count loss L_rel in the objective (default 1 = the paper's eq. 1)")
+    p.add_argument("--segmented-count-classes", default=None,
+                   help="comma-separated classes whose ramp count loss is taken per turning-point window, or 'none' for "
+                   "the paper's whole-trial count (default: PC)")
     p.add_argument("--input-stage-classes", default=None,
                    help="classes whose input stage (low-pass cutoff, negative-part lead) is fitted, comma-separated or 'none' (default RA,PC)")
     p.add_argument("--max-ramp-conditions", type=int, default=None, help="fit on a seeded subsample of ramp conditions")
@@ -50,8 +53,10 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v
-    if args.input_stage_classes is not None:
-        kw["input_stage_classes"] = tuple(c.strip() for c in args.input_stage_classes.split(",") if c.strip() and c.strip().lower() != "none")
+    for name in ("input_stage_classes", "segmented_count_classes"):
+        v = getattr(args, name)
+        if v is not None:  # a comma-separated list of classes, or "none"
+            kw[name] = tuple(c.strip() for c in v.split(",") if c.strip() and c.strip().lower() != "none")
     cfg = FitConfig(**kw)
     init = EncoderParams.load(args.init) if args.init else None
     if args.out.parent and not args.out.parent.exists():

@@ -15,7 +15,9 @@ Steps of :func:`fit_dataset`:
    per trial (:func:`encode_population`: the candidates are the neurons of one LIF population),
    split across worker processes (fork; the channel cache is inherited, not copied).
    The start is TouchSim's tau/ih, the class's weight direction and a small grid over the overall
-   gain and the delay.
+   gain and the delay. For the classes of ``segmented_count_classes`` (default PC) the relative
+   count loss of a ramp condition is taken per turning-point window (onset, hold, release, release
+   end), so the fit cannot trade a missed spike at one turning point for an extra one at another.
 5. Score the best candidate on the training and held-out trials; write everything into
    :class:`EncoderParams` with provenance.
 
@@ -36,6 +38,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..analysis.turning_points import turning_points, window_edges
 from ..encoding.encoder import encode_population, lowpass_channels
 from ..params import ClassParams, EncoderParams, PreprocessParams
 from ..preprocess.gate import calibrate
@@ -89,6 +92,7 @@ class FitConfig:
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
     count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
+    segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window (paper eq. 7: none)
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
@@ -108,6 +112,9 @@ class FitConfig:
             raise ValueError("kernel_ms must be > 0")
         if not np.isfinite(self.count_weight) or self.count_weight < 0:
             raise ValueError("count_weight must be >= 0")
+        bad = [c for c in self.segmented_count_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"segmented_count_classes must be a subset of {list(CLASSES)}, got {list(self.segmented_count_classes)}")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
@@ -118,7 +125,8 @@ class FitConfig:
 
 @dataclass
 class TrialData:
-    """One preprocessed trial: ``channels`` (T, 4) start at grid index ``k0``."""
+    """One preprocessed trial: ``channels`` (T, 4) start at grid index ``k0``; ``window_edges_s``:
+    inner edges (s after the commanded onset) of a ramp's turning-point windows (empty otherwise)."""
 
     id: str
     condition: str
@@ -128,6 +136,7 @@ class TrialData:
     channels: np.ndarray
     reference: dict[str, list[np.ndarray]]  # class -> trains (onset-aligned), repeat-major
     ref_models: dict[str, int] = field(default_factory=dict)  # class -> models per repeat
+    window_edges_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -136,9 +145,11 @@ class TrialSet:
     conditions: list[str]  # condition names, index = condition id
     cond_index: np.ndarray  # (n_trials,) condition id of each trial
 
-    def reference_set(self, cls: str, tau_s: float, max_refs: int, sine_weight: float = 1.0) -> ReferenceSet:
+    def reference_set(self, cls: str, tau_s: float, max_refs: int, sine_weight: float = 1.0, segmented_count: bool = False) -> ReferenceSet:
         """Reference trains of ``cls`` per condition. At most ``max_refs`` per condition: every
-        trial keeps its first r repeats (all models of each), r >= 1 chosen to fit the cap."""
+        trial keeps its first r repeats (all models of each), r >= 1 chosen to fit the cap. With
+        ``segmented_count`` a ramp condition's count loss is split at its trials' turning-point
+        windows (the commanded turning points are the same for every repeat)."""
         members: list[list[TrialData]] = [[] for _ in self.conditions]
         for tr, c in zip(self.trials, self.cond_index):
             members[c].append(tr)
@@ -151,7 +162,8 @@ class TrialSet:
             keep = max(1, max_refs // (len(trs) * n_models))
             groups.append([t for tr in trs for t in tr.reference[cls][: keep * tr.ref_models[cls]]])
         weights = [sine_weight if members[c][0].protocol == "sine" else 1.0 for c in range(len(self.conditions))]
-        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights)
+        edges = [m[0].window_edges_s for m in members] if segmented_count else None
+        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights, segment_edges=edges)
 
 
 def _trial_data(entry: dict[str, Any], trial: Trial, pre: PreprocessParams, classes: Sequence[str]) -> TrialData:
@@ -164,7 +176,8 @@ def _trial_data(entry: dict[str, Any], trial: Trial, pre: PreprocessParams, clas
             r = trial.reference[cls]
             ref[cls] = [np.sort(np.asarray(t, np.float64)) - onset for t in r.trains()]
             models[cls] = r.n_models
-    return TrialData(entry["id"], entry["condition"], entry["protocol"], onset, int(ch.k0), np.ascontiguousarray(ch.data[:, 0, :]), ref, models)
+    edges = window_edges([t for _, t, _ in turning_points(entry)]) if entry["protocol"] == "ramp" else np.zeros(0)
+    return TrialData(entry["id"], entry["condition"], entry["protocol"], onset, int(ch.k0), np.ascontiguousarray(ch.data[:, 0, :]), ref, models, edges)
 
 
 def build_trial_set(
@@ -473,7 +486,7 @@ def fit_dataset(
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, scale if lp0 is None else channel_scale(train.trials, lp0), lp0 is not None)
-    refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight) for c in cfg.classes}
+    refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
     _STATE.clear()
     _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective)
     _warm_up()
@@ -497,7 +510,7 @@ def fit_dataset(
     for cls, f in fits.items():
         f.train = evaluate_loss(simulate(train.trials, [f.params])[0], train.cond_index, refs[cls], cfg.objective)
         if val is not None:
-            vref = val.reference_set(cls, tau_s, cfg.max_refs_per_condition, cfg.sine_weight)
+            vref = val.reference_set(cls, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, cls in cfg.segmented_count_classes)
             f.validation = evaluate_loss(simulate(val.trials, [f.params])[0], val.cond_index, vref, cfg.objective)
     timings["score_s"] = time.perf_counter() - t
     seconds = time.perf_counter() - t_all
@@ -524,6 +537,7 @@ def fit_dataset(
             "m_worst": cfg.objective.m_worst,
             "sine_weight": cfg.sine_weight,
             "count_weight": cfg.count_weight,
+            "segmented_count_classes": list(cfg.segmented_count_classes),
             "input_stage_classes": list(cfg.input_stage_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },

@@ -8,7 +8,11 @@ stays the unweighted mean relative count error):
   ``1 - C / (sqrt(A_pred A_ref) + eps)``, exponential kernel of time constant ``tau``;
   ``D_basic`` is its mean over conditions.
 * ``L_rel`` (eqs. 7, 9): mean over conditions of ``|N_T - N_S| / (N_T + eps)``, N = mean spike
-  count of the reference (T) and predicted (S) trains of the condition.
+  count of the reference (T) and predicted (S) trains of the condition. A condition may be split
+  into time segments (the fitter uses a ramp's turning-point windows for the classes of its
+  ``segmented_count_classes``, :mod:`touchreal.analysis.turning_points`); then ``|N_T - N_S|`` becomes
+  ``sum_k |N_T,k - N_S,k|`` over its segments, so a missed spike in one segment is no longer
+  cancelled by an extra one in another. One segment (the default) is the paper's eq. 7.
 * ``L_empty`` (eqs. 8, 9): ``lambda_e * L_relative`` where ``N_T >= thres_1`` and ``N_S <= thres_2``.
 * ``L_MGD`` (eq. 10): mean ``D_kernel^r`` of the m worst conditions.
 
@@ -61,6 +65,9 @@ class ReferenceSet:
     n_t: np.ndarray  # (n_conditions,) mean reference spike count N_T
     weights: np.ndarray  # (n_conditions,) condition weights (1 = the paper's plain mean)
     tau_s: float
+    edges: np.ndarray  # (total inner edges,) s; condition c's are edges[edge_off[c]:edge_off[c+1]]
+    edge_off: np.ndarray  # (n_conditions + 1,) int64; condition c has edge_off[c+1] - edge_off[c] + 1 segments
+    n_t_seg: np.ndarray  # (total segments,) mean reference count per segment; condition c's start at edge_off[c] + c
 
     @classmethod
     def build(
@@ -69,10 +76,18 @@ class ReferenceSet:
         tau_s: float,
         names: Sequence[str] | None = None,
         weights: Sequence[float] | None = None,
+        segment_edges: Sequence[np.ndarray | None] | None = None,
     ) -> "ReferenceSet":
-        """``groups[c]`` = the reference trains of condition c (each condition needs >= 1)."""
+        """``groups[c]`` = the reference trains of condition c (each condition needs >= 1);
+        ``segment_edges[c]`` = increasing inner edges (s) that split condition c into segments for
+        the count loss (None or empty: one segment)."""
         if any(len(g) == 0 for g in groups):
             raise ValueError("every condition needs at least one reference train")
+        if segment_edges is not None and len(segment_edges) != len(groups):
+            raise ValueError("segment_edges needs one entry (or None) per condition")
+        cuts = [np.zeros(0) if segment_edges is None or segment_edges[c] is None else np.asarray(segment_edges[c], np.float64) for c in range(len(groups))]
+        if any(e.ndim != 1 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0) for e in cuts):
+            raise ValueError("segment edges must be finite and strictly increasing")
         trains = [t for g in groups for t in g]
         flat, off = pack(trains)
         cond_off = np.zeros(len(groups) + 1, dtype=np.int64)
@@ -81,6 +96,9 @@ class ReferenceSet:
         _auto_sums_flat(flat, off, 1.0 / tau_s, auto)
         counts = np.diff(off).astype(np.float64)
         n_t = np.array([counts[cond_off[c] : cond_off[c + 1]].mean() for c in range(len(groups))])
+        edge_off = np.zeros(len(groups) + 1, dtype=np.int64)
+        edge_off[1:] = np.cumsum([e.size for e in cuts])
+        n_t_seg = np.concatenate([np.mean([segment_counts(np.asarray(t, np.float64), e) for t in g], axis=0) for g, e in zip(groups, cuts)])
         w = np.ones(len(groups)) if weights is None else np.asarray(weights, np.float64)
         if w.shape != (len(groups),) or np.any(w < 0) or w.sum() <= 0:
             raise ValueError("weights must be one non-negative value per condition, not all zero")
@@ -93,6 +111,9 @@ class ReferenceSet:
             n_t=n_t,
             weights=w,
             tau_s=float(tau_s),
+            edges=np.concatenate(cuts),
+            edge_off=edge_off,
+            n_t_seg=n_t_seg,
         )
 
     @property
@@ -115,10 +136,16 @@ class LossTerms:
         return {"total": self.total, "d_basic": self.d_basic, "l_rel": self.l_rel, "l_empty": self.l_empty, "l_mgd": self.l_mgd}
 
 
+def segment_counts(train: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Spikes of a sorted train in each of the ``edges.size + 1`` segments (a spike on an edge
+    counts in the later segment)."""
+    return np.diff(np.concatenate(([0], np.searchsorted(train, edges), [train.size]))).astype(np.float64)
+
+
 @numba.njit(cache=True, nogil=True)
-def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, inv_tau, eps, empty_pair, dsum, npairs, pcount, npred):  # pragma: no cover - compiled
+def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, edge_off, inv_tau, eps, empty_pair, dsum, npairs, pcount, pseg, npred):  # pragma: no cover - compiled
     """Accumulate, per condition, the sum of pair distances, the pair count, the predicted
-    spike-count sum and the number of predicted trains."""
+    spike-count sum (also per segment) and the number of predicted trains."""
     for p in range(poff.shape[0] - 1):
         c = pcond[p]
         x = pflat[poff[p] : poff[p + 1]]
@@ -126,6 +153,13 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, inv_tau, 
         ax = _kernel_sum_sorted(x, x, inv_tau)
         pcount[c] += nx
         npred[c] += 1
+        s0 = edge_off[c] + c
+        prev = 0
+        for j in range(edge_off[c + 1] - edge_off[c]):
+            k = np.searchsorted(x, edges[edge_off[c] + j])
+            pseg[s0 + j] += k - prev
+            prev = k
+        pseg[s0 + edge_off[c + 1] - edge_off[c]] += nx - prev
         for k in range(cond_off[c], cond_off[c + 1]):
             ny = roff[k + 1] - roff[k]
             if nx == 0 and ny == 0:
@@ -139,12 +173,15 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, inv_tau, 
             npairs[c] += 1
 
 
-def terms_from_stats(d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, weights: np.ndarray, cfg: ObjectiveConfig) -> LossTerms:
-    """Assemble eq. (1) from per-condition D_kernel^r, N_S and N_T."""
+def terms_from_stats(
+    d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, weights: np.ndarray, cfg: ObjectiveConfig, count_diff: np.ndarray | None = None
+) -> LossTerms:
+    """Assemble eq. (1) from per-condition D_kernel^r, N_S and N_T; ``count_diff`` = the
+    per-condition count mismatch summed over segments (default ``|N_T - N_S|``, one segment)."""
     w = weights / weights.sum()
     d_basic = float(np.dot(w, d_kernel))
     denom = np.where(n_t > 0, n_t + cfg.eps, 1.0)
-    rel = np.abs(n_t - n_s) / denom
+    rel = (np.abs(n_t - n_s) if count_diff is None else count_diff) / denom
     empty = np.where((n_t >= cfg.thres_1) & (n_s <= cfg.thres_2), cfg.lambda_e * rel, 0.0)
     l_rel = float(np.dot(w, rel))
     l_empty = float(np.dot(w, empty))
@@ -173,8 +210,15 @@ def evaluate_loss(
     dsum = np.zeros(n_c)
     npairs = np.zeros(n_c)
     pcount = np.zeros(n_c)
+    pseg = np.zeros(refs.n_t_seg.size)
     npred = np.zeros(n_c)
-    _condition_stats(pflat, poff, pcond, refs.flat, refs.off, refs.auto, refs.cond_off, 1.0 / refs.tau_s, cfg.eps, cfg.empty_pair_distance, dsum, npairs, pcount, npred)
+    _condition_stats(
+        pflat, poff, pcond, refs.flat, refs.off, refs.auto, refs.cond_off, refs.edges, refs.edge_off,
+        1.0 / refs.tau_s, cfg.eps, cfg.empty_pair_distance, dsum, npairs, pcount, pseg, npred,
+    )
     if np.any(npred == 0):
         raise ValueError(f"conditions without predicted trains: {[refs.names[i] for i in np.flatnonzero(npred == 0)][:5]}")
-    return terms_from_stats(dsum / npairs, pcount / npred, refs.n_t, refs.weights, cfg)
+    n_seg = np.diff(refs.edge_off) + 1
+    seg_cond = np.repeat(np.arange(n_c), n_seg)
+    count_diff = np.bincount(seg_cond, np.abs(pseg / npred[seg_cond] - refs.n_t_seg), minlength=n_c)
+    return terms_from_stats(dsum / npairs, pcount / npred, refs.n_t, refs.weights, cfg, count_diff)
