@@ -109,10 +109,10 @@ def test_segmented_count_loss_stops_misses_and_extras_cancelling():
     assert seg.l_rel == pytest.approx((abs(2 - 1) + abs(0 - 1)) / 2)
     assert seg.d_basic == evaluate_loss(pred, [0], refs_whole, CFG).d_basic  # only the count term changes
     # a spike on an edge counts in the later segment; segments are averaged over the trains first
-    refs = ReferenceSet.build([[np.array([0.5]), np.array([0.1, 0.2])]], TAU, segment_edges=[np.array([0.5])])
-    np.testing.assert_allclose(refs.n_t_seg, [1.0, 0.5])
+    refs = ReferenceSet.build([[np.array([0.5]), np.array([0.7, 0.2])]], TAU, segment_edges=[np.array([0.5])])  # unsorted is fine
+    np.testing.assert_allclose(refs.n_t_seg, [0.5, 1.0])
     L = evaluate_loss([np.array([0.5]), np.array([0.1])], [0, 0], refs, CFG)
-    assert L.l_rel == pytest.approx((abs(0.5 - 1.0) + abs(0.5 - 0.5)) / 1.5)
+    assert L.l_rel == pytest.approx((abs(0.5 - 0.5) + abs(0.5 - 1.0)) / 1.5)
 
 
 def test_segmented_count_loss_per_condition_and_one_segment_is_the_paper():

@@ -98,7 +98,9 @@ class ReferenceSet:
         n_t = np.array([counts[cond_off[c] : cond_off[c + 1]].mean() for c in range(len(groups))])
         edge_off = np.zeros(len(groups) + 1, dtype=np.int64)
         edge_off[1:] = np.cumsum([e.size for e in cuts])
-        n_t_seg = np.concatenate([np.mean([segment_counts(np.asarray(t, np.float64), e) for t in g], axis=0) for g, e in zip(groups, cuts)])
+        n_t_seg = np.concatenate(
+            [np.mean([segment_counts(flat[off[k] : off[k + 1]], cuts[c]) for k in range(cond_off[c], cond_off[c + 1])], axis=0) for c in range(len(groups))]
+        )
         w = np.ones(len(groups)) if weights is None else np.asarray(weights, np.float64)
         if w.shape != (len(groups),) or np.any(w < 0) or w.sum() <= 0:
             raise ValueError("weights must be one non-negative value per condition, not all zero")
