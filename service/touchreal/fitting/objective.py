@@ -68,6 +68,7 @@ class ReferenceSet:
     edges: np.ndarray  # (total inner edges,) s; condition c's are edges[edge_off[c]:edge_off[c+1]]
     edge_off: np.ndarray  # (n_conditions + 1,) int64; condition c has edge_off[c+1] - edge_off[c] + 1 segments
     n_t_seg: np.ndarray  # (total segments,) mean reference count per segment; condition c's start at edge_off[c] + c
+    seg_cond: np.ndarray  # (total segments,) int64 condition of each segment
 
     @classmethod
     def build(
@@ -116,6 +117,7 @@ class ReferenceSet:
             edges=np.concatenate(cuts),
             edge_off=edge_off,
             n_t_seg=n_t_seg,
+            seg_cond=np.repeat(np.arange(len(groups)), np.diff(edge_off) + 1),
         )
 
     @property
@@ -220,7 +222,5 @@ def evaluate_loss(
     )
     if np.any(npred == 0):
         raise ValueError(f"conditions without predicted trains: {[refs.names[i] for i in np.flatnonzero(npred == 0)][:5]}")
-    n_seg = np.diff(refs.edge_off) + 1
-    seg_cond = np.repeat(np.arange(n_c), n_seg)
-    count_diff = np.bincount(seg_cond, np.abs(pseg / npred[seg_cond] - refs.n_t_seg), minlength=n_c)
+    count_diff = np.bincount(refs.seg_cond, np.abs(pseg / npred[refs.seg_cond] - refs.n_t_seg), minlength=n_c)
     return terms_from_stats(dsum / npairs, pcount / npred, refs.n_t, refs.weights, cfg, count_diff)
