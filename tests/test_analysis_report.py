@@ -61,6 +61,13 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
             total = sum(r[f"n_{key}"] * per_cond[r["condition"]] for r in ramp_rows)
             assert sum(r[f"{key}_spikes"] * r["n_trials"] for r in tp_rows) == pytest.approx(total)
     assert "turning points" in (out / "report.md").read_text()
+    assert set(disk["missing_spike_bound"]) == set(R.BOUND_CLASSES)
+    for c in R.BOUND_CLASSES:  # the missing-spike bound: one row per jitter; filling can only add spikes
+        rows = disk["missing_spike_bound"][c]
+        assert [r["jitter_ms"] for r in rows] == list(R.BOUND_JITTERS_MS)
+        assert len({r["added_per_ramp_trial"] for r in rows}) == 1 and rows[0]["added_per_ramp_trial"] >= 0
+        assert len({r["count_error"] for r in rows}) == 1  # jitter moves spikes, not counts
+    assert "Missing-spike bound" in (out / "report.md").read_text()
     assert {"vr_ratio_SA1", "count_error_PC", "RA_band_pass_peak_100Hz", "PC_rising", "anova_source_RA"} <= set(disk["targets"])
     md = (out / "report.md").read_text()
     assert "simulated rig recordings" in md and "intra" in md and "Table 2" in md

@@ -68,3 +68,58 @@ def test_rows_group_by_speed_and_skip_non_ramp_or_unreferenced_trials():
         ("onset", 8.0, 1), ("onset", 95.0, 1), ("peak", 8.0, 1), ("peak", 95.0, 1), ("end", 95.0, 2)
     ]
     assert rows[0]["tr_spikes"] == 1.0 and rows[1]["tr_spikes"] == 1.0  # b's second spike (20 ms) is nearer its end (21 ms)
+
+
+def test_fill_missing_spikes_adds_touchsims_median_kth_spike_where_touchreal_has_fewer():
+    times = [0.0, 0.1, 1.0]
+    ts = [  # window 0: mean 1.75 -> 2 spikes; window 1: 1 spike; window 2: mean 0.75 -> 1 spike
+        np.array([0.002, 0.010, 0.101, 1.005]),
+        np.array([0.003, 0.102, 1.006]),
+        np.array([0.001, 0.012, 0.103, 1.007]),
+        np.array([0.002, 0.011, 0.104]),
+    ]
+    mine = np.array([0.0025, 0.09, 0.11])  # one spike short in window 0, one extra in window 1, none in window 2
+    out = tp.fill_missing_spikes(mine, ts, times)
+    # second spike of window 0 at the median of TouchSim's second spikes; window 2's at the median of
+    # the three first spikes; window 1 (more spikes than TouchSim) untouched
+    assert out.tolist() == pytest.approx([0.0025, 0.011, 0.09, 0.11, 1.006])
+    assert tp.fill_missing_spikes(out, ts, times).tolist() == out.tolist()  # nothing left to add
+    assert tp.fill_missing_spikes(np.zeros(0), [np.zeros(0)] * 3, times).size == 0
+
+
+def test_fill_missing_spikes_jitter_is_gaussian_with_the_given_sd_and_keeps_existing_spikes():
+    rng = np.random.default_rng(1)
+    times = list(np.arange(400) * 0.5)
+    ts = [np.asarray(times) + 0.004] * 4  # one TouchSim spike 4 ms after every turning point
+    mine = np.asarray(times[::2]) + 0.004  # TouchReal has every other one
+    out = tp.fill_missing_spikes(mine, ts, times, jitter_s=0.002, rng=rng)
+    assert out.size == len(times) and np.isin(mine, out).all()
+    added = np.setdiff1d(out, mine)
+    dev = added - (np.asarray(times[1::2]) + 0.004)
+    assert abs(dev.mean()) < 0.0005 and dev.std() == pytest.approx(0.002, rel=0.15)
+
+
+def _trial(cond: str, tr: np.ndarray, ts: list[np.ndarray]) -> EvalTrial:
+    e = ramp_entry(40.0, 40.0, 0.5)
+    e["condition"] = cond
+    return EvalTrial(e, e["onset_s"], {"PC": tr}, {"PC": ts})
+
+
+def test_missing_spike_bound_with_exact_times_removes_the_count_error_and_jitter_costs_vr():
+    from touchreal.analysis.report import mapping_metrics, missing_spike_bound
+
+    e = ramp_entry(40.0, 40.0, 0.5)
+    tps = [t for _, t, _ in tp.turning_points(e)]
+    rng = np.random.default_rng(0)
+    trials = []
+    for c in range(6):  # TouchSim: one spike 3 ms after each turning point (+-0.2 ms); TouchReal misses the last two
+        ts = [np.asarray(tps) + 0.003 + rng.normal(0, 0.0002, len(tps)) for _ in range(4)]
+        trials.append(_trial(f"c{c}", np.asarray(tps[:2]) + 0.003, ts))
+    fitted = mapping_metrics(trials, trials, ["PC"], 0.001)["PC"]["summary"]["all"]
+    assert fitted["count_error_mean"] == pytest.approx(0.5)
+    rows = missing_spike_bound(trials, ["PC"], 0.001, (0.0, 2.0))["PC"]
+    assert [r["jitter_ms"] for r in rows] == [0.0, 2.0]
+    assert all(r["added_per_ramp_trial"] == 2.0 and r["count_error"] == pytest.approx(0.0) for r in rows)
+    assert rows[0]["ratio_inter_intra"] < fitted["ratio_inter_intra"]  # exact spikes reduce the distance
+    assert rows[1]["ratio_inter_intra"] > rows[0]["ratio_inter_intra"] + 0.1  # 2 ms jitter costs most of that back
+    assert [t.tr["PC"].size for t in trials] == [2] * 6  # the trials themselves are not modified

@@ -49,6 +49,10 @@ from . import turning_points as tp
 
 VR_TAU_S = 0.001
 SWEEP_WINDOWS_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)
+BOUND_JITTERS_MS = (0.0, 1.0, 2.0, 5.0)  #: jitters of the missing-spike bound
+#: Classes of the missing-spike bound: PC, whose TouchSim trains hold about one spike per turning
+#: point (SA1 and RA fire many, so their count errors come from rates, not from missed events).
+BOUND_CLASSES = ("PC",)
 AREA_THRESHOLD = 2.0
 SWEEP_THRESHOLDS = np.arange(1, 21)
 TARGETS = {
@@ -63,6 +67,7 @@ FIG7_PREFERRED = "ramp_d1.0_vu40_vd95_h1.8"
 class EvalConfig:
     vr_tau_s: float = VR_TAU_S
     sweep_windows_ms: tuple[float, ...] = SWEEP_WINDOWS_MS
+    bound_jitters_ms: tuple[float, ...] = BOUND_JITTERS_MS  #: () skips the missing-spike bound
     sweep_max_ramp_conditions: int | None = 64  #: ramp conditions in the window sweep (None = all)
     ramp_condition: str | None = None  #: Fig. 7 condition (default: FIG7_PREFERRED or the first)
     split: str = "auto"  #: auto | all (every trial) | train (the fit's training half)
@@ -129,8 +134,13 @@ def _by_condition(trials: Sequence[EvalTrial]) -> dict[str, list[EvalTrial]]:
 # ------------------------------------------------------------------------ mapping (Fig. 8)
 
 
-def mapping_metrics(held: Sequence[EvalTrial], all_trials: Sequence[EvalTrial], classes: Sequence[str], tau_s: float) -> dict[str, Any]:
-    """Per class: per-condition mean VR distances and spike counts, and their summaries."""
+def mapping_metrics(
+    held: Sequence[EvalTrial], all_trials: Sequence[EvalTrial], classes: Sequence[str], tau_s: float, ts_ts_cache: dict[tuple[str, str], float] | None = None
+) -> dict[str, Any]:
+    """Per class: per-condition mean VR distances and spike counts, and their summaries.
+
+    ``ts_ts_cache`` ((class, condition) -> mean TS-TS distance) is filled and reused by calls on
+    the same held-out trials, whose TouchSim trains do not change."""
     held_c = _by_condition(held)
     all_c = _by_condition(all_trials)
     out: dict[str, Any] = {}
@@ -141,7 +151,14 @@ def mapping_metrics(held: Sequence[EvalTrial], all_trials: Sequence[EvalTrial], 
             if not ts:
                 continue
             tr = [t.tr[cls] for t in trs]
-            d_tsts = stn.pairwise_upper(stn.vr_distance_matrix(ts, tau_s, presorted=True))
+            key = (cls, cond)
+            if ts_ts_cache is None or key not in ts_ts_cache:
+                d_tsts = stn.pairwise_upper(stn.vr_distance_matrix(ts, tau_s, presorted=True))
+                ts_ts = float(d_tsts.mean()) if d_tsts.size else np.nan
+                if ts_ts_cache is not None:
+                    ts_ts_cache[key] = ts_ts
+            else:
+                ts_ts = ts_ts_cache[key]
             d_tstr = stn.vr_distances_between(tr, ts, tau_s)
             tr_all = [t.tr[cls] for t in all_c.get(cond, trs)]
             d_trtr = stn.pairwise_upper(stn.vr_distance_matrix(tr_all, tau_s)) if len(tr_all) > 1 else np.zeros(0)
@@ -149,7 +166,7 @@ def mapping_metrics(held: Sequence[EvalTrial], all_trials: Sequence[EvalTrial], 
                 {
                     "condition": cond,
                     "protocol": trs[0].entry["protocol"],
-                    "ts_ts": float(d_tsts.mean()) if d_tsts.size else np.nan,
+                    "ts_ts": ts_ts,
                     "ts_tr": float(d_tstr.mean()),
                     "tr_tr": float(d_trtr.mean()) if d_trtr.size else np.nan,
                     "n_ts": float(np.mean([t.size for t in ts])),
@@ -195,6 +212,41 @@ def summarize_mapping(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------- Table 1 (eq. 11)
+
+
+def missing_spike_bound(
+    held: Sequence[EvalTrial], classes: Sequence[str], tau_s: float, jitters_ms: Sequence[float] = BOUND_JITTERS_MS, seed: int = 0
+) -> dict[str, list[dict[str, float]]]:
+    """What the held-out VR ratio and count error would be if TouchReal also fired the spikes it
+    misses at the ramps' turning points (:func:`~touchreal.analysis.turning_points.fill_missing_spikes`:
+    at TouchSim's own median times, plus Gaussian jitter of each sd in ``jitters_ms``); sine trials
+    and the spikes already fired are unchanged. Per class, one row per jitter: the jitter (ms),
+    ``ratio_inter_intra``, ``count_error`` and ``added_per_ramp_trial``. It bounds what adding
+    spikes can do: an encoder can place them no closer to TouchSim's than the sensor's own timing
+    of the turning points allows."""
+    out: dict[str, list[dict[str, float]]] = {}
+    for cls in classes:
+        ramps = [t for t in held if t.entry["protocol"] == "ramp" and t.ts.get(cls)]
+        if not ramps:
+            continue
+        ramp_ids = {id(t) for t in ramps}
+        cache: dict[tuple[str, str], float] = {}
+        rows = []
+        for j, jit in enumerate(jitters_ms):
+            rng = np.random.default_rng([seed, j])
+            filled, added = [], 0
+            for t in held:
+                if id(t) in ramp_ids:
+                    times = [x for _, x, _ in tp.turning_points(t.entry)]
+                    new = tp.fill_missing_spikes(t.tr[cls], t.ts[cls], times, jit / 1000.0, rng)
+                    added += new.size - t.tr[cls].size
+                    t = EvalTrial(t.entry, t.onset, {cls: new}, {cls: t.ts[cls]})
+                filled.append(t)
+            summ = mapping_metrics(filled, filled, [cls], tau_s, cache)[cls]["summary"]["all"]
+            rows.append({"jitter_ms": float(jit), "ratio_inter_intra": float(summ["ratio_inter_intra"]),
+                         "count_error": float(summ["count_error_mean"]), "added_per_ramp_trial": added / len(ramps)})
+        out[cls] = rows
+    return out
 
 
 def channel_contributions(trials: Sequence[EvalTrial], params: EncoderParams, classes: Sequence[str]) -> dict[str, dict[str, float]]:
@@ -475,6 +527,9 @@ def evaluate(dataset_dir: str | Path, params: EncoderParams, out_dir: str | Path
     ramp_held = [t for t in held if t.entry["protocol"] == "ramp"]
     if ramp_held:
         metrics["turning_points"] = tp.turning_point_table(ramp_held, classes)
+        if cfg.bound_jitters_ms:
+            bound_classes = [c for c in BOUND_CLASSES if c in classes]
+            metrics["missing_spike_bound"] = missing_spike_bound(held, bound_classes, cfg.vr_tau_s, cfg.bound_jitters_ms, cfg.seed)
 
     # Fig. 9, Tables 2-3
     sine = [t for t in held if t.entry["protocol"] == "sine"]
@@ -672,6 +727,22 @@ def render_markdown(m: dict[str, Any]) -> str:
                 q = r["offset_ms_quartiles"]
                 off = f"{q[1]:+.1f} [{q[0]:+.1f}, {q[2]:+.1f}]" if q else "-"
                 L.append(f"| {c} | {r['event']} | {r['speed_mm_s']:g} | {r['n_trials']} | {_f(r['ts_spikes'], 2)} | {_f(r['tr_spikes'], 2)} | {_f(r['count_error'], 2)} | {off} |")
+        L += [""]
+    bound = m.get("missing_spike_bound")
+    if bound:
+        jit = [r["jitter_ms"] for r in next(iter(bound.values()))]
+        L += ["### Missing-spike bound", "",
+              "The held-out VR ratio and count error if TouchReal also fired every spike it misses at the turning points "
+              "(up to TouchSim's rounded mean count per window), placed at TouchSim's own median spike times plus Gaussian "
+              "jitter of the given sd; sines and the spikes already fired are unchanged. An encoder can place such spikes "
+              "no closer to TouchSim's than the sensor's own timing of the turning points allows (see the offsets above).", "",
+              "| class | as fitted: VR ratio / count error | " + " | ".join(f"filled, jitter {j:g} ms" for j in jit) + " | added spikes per ramp trial |",
+              "|---|---|" + "---|" * len(jit) + "---|"]
+        for c, rows in bound.items():
+            a = m["mapping"][c]["all"]
+            L.append(f"| {c} | {_f(a['ratio_inter_intra'])} / {_f(100 * a['count_error_mean'], 1)} % | "
+                     + " | ".join(f"{_f(r['ratio_inter_intra'])} / {_f(100 * r['count_error'], 1)} %" for r in rows)
+                     + f" | {_f(rows[0]['added_per_ramp_trial'], 2)} |")
         L += [""]
     L += ["## Effective channel contribution (Table 1, eq. 11)", "", "| class | " + " | ".join(CHANNELS) + " |", "|---|" + "---|" * len(CHANNELS)]
     for c in classes:

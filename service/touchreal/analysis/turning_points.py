@@ -55,6 +55,30 @@ def split_at_turning_points(spikes: np.ndarray, times: Sequence[float]) -> list[
     return [spikes[idx[i] : idx[i + 1]] for i in range(edges.size - 1)]
 
 
+def fill_missing_spikes(
+    spikes: np.ndarray, ts_trains: Sequence[np.ndarray], times: Sequence[float], jitter_s: float = 0.0, rng: np.random.Generator | None = None
+) -> np.ndarray:
+    """A TouchReal train (s) with the spikes it misses at the turning points added (the oracle of the
+    report's missing-spike bound).
+
+    In every nearest-turning-point window where the train has ``m`` spikes and TouchSim's trains have
+    ``n = round(mean count) > m``, spikes number ``k = m .. n-1`` are added, each at the median over
+    the TouchSim trains that have a k-th spike in the window of that spike's time, plus Gaussian
+    jitter of standard deviation ``jitter_s`` (s). Spikes already there are kept unchanged; windows
+    with ``m >= n`` are left alone. Returns a new sorted array."""
+    mine = split_at_turning_points(np.sort(np.asarray(spikes, np.float64)), times)
+    refs = [split_at_turning_points(np.sort(np.asarray(s, np.float64)), times) for s in ts_trains]
+    add: list[float] = []
+    for i, part in enumerate(mine):
+        want = int(np.round(np.mean([r[i].size for r in refs]))) if refs else 0
+        for k in range(part.size, want):
+            add.append(float(np.median([r[i][k] for r in refs if r[i].size > k])))
+    extra = np.asarray(add, np.float64)
+    if jitter_s > 0 and extra.size:
+        extra = extra + (rng if rng is not None else np.random.default_rng()).normal(0.0, jitter_s, extra.size)
+    return np.sort(np.concatenate((np.asarray(spikes, np.float64), extra)))
+
+
 def _quartiles(v: list[float]) -> list[float] | None:
     return np.percentile(v, [25, 50, 75]).tolist() if v else None
 
