@@ -63,10 +63,14 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
     assert "turning points" in (out / "report.md").read_text()
     assert set(disk["missing_spike_bound"]) == set(R.BOUND_CLASSES)
     for c in R.BOUND_CLASSES:  # the missing-spike bound: one row per jitter; filling can only add spikes
-        rows = disk["missing_spike_bound"][c]
-        assert [r["jitter_ms"] for r in rows] == list(R.BOUND_JITTERS_MS)
-        assert len({r["added_per_ramp_trial"] for r in rows}) == 1 and rows[0]["added_per_ramp_trial"] >= 0
-        assert len({r["count_error"] for r in rows}) == 1  # jitter moves spikes, not counts
+        fitted = disk["missing_spike_bound"][c]["as_fitted"]
+        assert fitted["ratio_inter_intra"] == pytest.approx(disk["mapping"][c]["all"]["ratio_inter_intra"])
+        assert fitted["count_error"] == pytest.approx(disk["mapping"][c]["all"]["count_error_mean"])
+        for b in disk["missing_spike_bound"][c].values():
+            rows = b["filled"]
+            assert [r["jitter_ms"] for r in rows] == list(R.BOUND_JITTERS_MS)
+            assert len({r["added_per_ramp_trial"] for r in rows}) == 1 and rows[0]["added_per_ramp_trial"] >= 0
+            assert len({r["count_error"] for r in rows}) == 1  # jitter moves spikes, not counts
     assert "Missing-spike bound" in (out / "report.md").read_text()
     assert {"vr_ratio_SA1", "count_error_PC", "RA_band_pass_peak_100Hz", "PC_rising", "anova_source_RA"} <= set(disk["targets"])
     md = (out / "report.md").read_text()

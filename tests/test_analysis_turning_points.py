@@ -117,9 +117,36 @@ def test_missing_spike_bound_with_exact_times_removes_the_count_error_and_jitter
         trials.append(_trial(f"c{c}", np.asarray(tps[:2]) + 0.003, ts))
     fitted = mapping_metrics(trials, trials, ["PC"], 0.001)["PC"]["summary"]["all"]
     assert fitted["count_error_mean"] == pytest.approx(0.5)
-    rows = missing_spike_bound(trials, ["PC"], 0.001, (0.0, 2.0))["PC"]
+    bound = missing_spike_bound(trials, ["PC"], 0.001, (0.0, 2.0))["PC"]
+    assert bound["as_fitted"]["ratio_inter_intra"] == pytest.approx(fitted["ratio_inter_intra"])
+    rows = bound["as_fitted"]["filled"]
     assert [r["jitter_ms"] for r in rows] == [0.0, 2.0]
     assert all(r["added_per_ramp_trial"] == 2.0 and r["count_error"] == pytest.approx(0.0) for r in rows)
     assert rows[0]["ratio_inter_intra"] < fitted["ratio_inter_intra"]  # exact spikes reduce the distance
     assert rows[1]["ratio_inter_intra"] > rows[0]["ratio_inter_intra"] + 0.1  # 2 ms jitter costs most of that back
     assert [t.tr["PC"].size for t in trials] == [2] * 6  # the trials themselves are not modified
+
+
+def test_missing_spike_bound_unbiased_base_removes_each_turning_points_median_offset():
+    from touchreal.analysis.report import missing_spike_bound
+
+    e = ramp_entry(40.0, 40.0, 0.5)
+    tps = np.asarray([t for _, t, _ in tp.turning_points(e)])
+    rng = np.random.default_rng(2)
+    late = [0.0, 0.004, -0.002, 0.006]  # TouchReal fires at every turning point, each with its own constant offset
+    trials = []
+    for c in range(3):
+        ts = [tps + 0.003 + rng.normal(0, 0.0003, tps.size) for _ in range(4)]
+        trials.append(_trial(f"c{c}", np.median(ts, axis=0) + np.asarray(late), ts))
+    bound = missing_spike_bound(trials, ["PC"], 0.001, (0.0,))["PC"]
+    assert bound["as_fitted"]["ratio_inter_intra"] > 1.5
+    assert bound["unbiased"]["ratio_inter_intra"] < 1.0  # back on TouchSim's median spikes
+    assert bound["unbiased"]["filled"][0]["added_per_ramp_trial"] == 0.0
+
+
+def test_shift_windows_moves_each_windows_spikes_by_its_own_shift():
+    times = [0.0, 0.1, 1.0]
+    spikes = np.array([0.01, 0.049, 0.2, 0.9])
+    out = tp.shift_windows(spikes, times, [0.001, -0.002, 0.5])
+    assert out.tolist() == pytest.approx([0.011, 0.05, 0.198, 1.4])
+    assert tp.shift_windows(np.zeros(0), times, [1.0, 1.0, 1.0]).size == 0

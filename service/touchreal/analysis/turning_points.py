@@ -55,6 +55,13 @@ def split_at_turning_points(spikes: np.ndarray, times: Sequence[float]) -> list[
     return [spikes[idx[i] : idx[i + 1]] for i in range(edges.size - 1)]
 
 
+def shift_windows(spikes: np.ndarray, times: Sequence[float], shifts_s: Sequence[float]) -> np.ndarray:
+    """Sorted spike times (s) with the spikes of each nearest-turning-point window moved by that
+    window's shift (s)."""
+    parts = split_at_turning_points(np.sort(np.asarray(spikes, np.float64)), times)
+    return np.sort(np.concatenate([p + float(d) for p, d in zip(parts, shifts_s)] or [np.zeros(0)]))
+
+
 def fill_missing_spikes(
     spikes: np.ndarray, ts_trains: Sequence[np.ndarray], times: Sequence[float], jitter_s: float = 0.0, rng: np.random.Generator | None = None
 ) -> np.ndarray:
