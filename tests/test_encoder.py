@@ -184,3 +184,12 @@ def test_encoder_with_input_stage_is_chunk_invariant_and_reports_its_state():
     assert state["input_lowpass"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
     assert state["input_lead"].shape == (9, 30)  # 6 ms = 30 samples, one row per column
     assert all(np.isfinite(a).all() for a in state.values())
+
+
+def test_input_stage_rejects_channels_of_the_wrong_shape():
+    p = ClassParams(weights=[1.0] * 8, i_sat=0.0, tau_ms=1.0, ih=[0.0, 0.0], delay_ms=0.0, lowpass_hz=100.0)
+    stage = InputStage([p, p], [0, 1])
+    for bad in (np.zeros((10, 2, 3)), np.zeros((10, 1, 4)), np.zeros((10, 4))):
+        with pytest.raises(ValueError, match="channels must be"):
+            stage.process(bad)
+    assert stage.process(np.ones((10, 2, 4))).shape == (10, 2)

@@ -27,7 +27,7 @@ from scipy import signal
 
 from ..params import ClassParams, EncoderParams
 from ..preprocess.filters import SosFilter, sos_step
-from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
+from ..settings import CHANNELS, CLASSES, OUT_FS_HZ, PACKAGE_DATA
 from .lif import LifPopulation
 
 
@@ -38,6 +38,7 @@ def ih_basis() -> np.ndarray:
     return np.asarray(data["ihbasis"], dtype=np.float64)
 
 
+N_CHANNELS = len(CHANNELS)  #: ST, dST, PVDF, dPVDF (a compile-time constant of the input kernel)
 LOWPASS_ORDER = 3  #: order of the per-class input Butterworth (TouchSim's input filter)
 LOWPASS_SECTIONS = (LOWPASS_ORDER + 1) // 2
 
@@ -77,9 +78,10 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
     state stays local while it runs over the block); state (zi, ring, head) is updated in place.
     """
     n_t = channels.shape[0]
-    n_ch = channels.shape[2]
+    n_ch = N_CHANNELS
     n_sec = sos.shape[1]
     z = np.empty((n_sec, 2, n_ch))
+    v = np.empty(n_ch)
     for n in range(src.shape[0]):  # columns are independent: keep one column's state local
         x = src[n]
         lp = has_lp[n]
@@ -89,16 +91,17 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
         h = head[n]
         s_max = i_sat[n]
         for k in range(n_t):
+            for j in range(n_ch):
+                v[j] = channels[k, x, j]
+            if lp:  # the four channels' low-passes side by side
+                sos_step(col_sos, v, z, N_CHANNELS)
             pos = 0.0
             neg = 0.0
             for j in range(n_ch):
-                v = channels[k, x, j]
-                if lp:
-                    v = sos_step(col_sos, v, z, j)
-                if v > 0.0:
-                    pos += w[n, 2 * j] * v
-                elif v < 0.0:
-                    neg -= w[n, 2 * j + 1] * v
+                if v[j] > 0.0:
+                    pos += w[n, 2 * j] * v[j]
+                elif v[j] < 0.0:
+                    neg -= w[n, 2 * j + 1] * v[j]
             if n_lead > 0:
                 old = ring[n, h]
                 ring[n, h] = pos
@@ -147,6 +150,8 @@ class InputStage:
 
     def process(self, channels: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(channels, dtype=np.float64)
+        if x.ndim != 3 or x.shape[2] != N_CHANNELS or (self.src.size and self.src.max() >= x.shape[1]):
+            raise ValueError(f"channels must be (T, taxels > {int(self.src.max(initial=-1))}, {N_CHANNELS}), got {x.shape}")
         out = np.empty((self.src.size, x.shape[0]))
         if x.shape[0] == 0:
             return out.T

@@ -14,25 +14,33 @@ from scipy import signal
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def sos_step(sos, v, zi, j):  # pragma: no cover - compiled
-    """One sample ``v`` of column ``j`` through the cascade ``sos`` (sections, 6), a0 = 1: transposed
-    direct form II per section (scipy's sosfilt recursion), state ``zi[s, 0|1, j]`` updated in place.
+def sos_step(sos, v, zi, m):  # pragma: no cover - compiled
+    """One sample of ``m`` columns, ``v[:m]``, through the cascade ``sos`` (sections, 6), a0 = 1, in
+    place: transposed direct form II per section (scipy's sosfilt recursion), state
+    ``zi[s, 0|1, j]`` updated in place. Sections outer, columns inner, so the columns' independent
+    recursions run side by side (a caller with a constant ``m`` lets the compiler unroll them).
     Shared by the filter stages and the encoder's fused input kernel."""
     for s in range(sos.shape[0]):
-        y = sos[s, 0] * v + zi[s, 0, j]
-        zi[s, 0, j] = sos[s, 1] * v - sos[s, 4] * y + zi[s, 1, j]
-        zi[s, 1, j] = sos[s, 2] * v - sos[s, 5] * y
-        v = y
-    return v
+        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+        for j in range(m):
+            x = v[j]
+            y = b0 * x + zi[s, 0, j]
+            zi[s, 0, j] = b1 * x - a1 * y + zi[s, 1, j]
+            zi[s, 1, j] = b2 * x - a2 * y
+            v[j] = y
 
 
 @numba.njit(cache=True, nogil=True)
 def _sos_run(sos, x, zi, out):  # pragma: no cover - compiled
     """Every sample of every column through the cascade, state in place."""
-    n, m = x.shape
-    for i in range(n):
+    m = x.shape[1]
+    v = np.empty(m, x.dtype)
+    for i in range(x.shape[0]):
+        for j in range(m):  # element loops: a slice copy per sample costs more than the filter
+            v[j] = x[i, j]
+        sos_step(sos, v, zi, m)
         for j in range(m):
-            out[i, j] = sos_step(sos, x[i, j], zi, j)
+            out[i, j] = v[j]
 
 
 class SosFilter:
