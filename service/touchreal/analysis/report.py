@@ -242,13 +242,13 @@ def missing_spike_bound(
             s = mapping_metrics(trials, trials, [cls], tau_s, cache)[cls]["summary"]["all"]
             return {"ratio_inter_intra": float(s["ratio_inter_intra"]), "count_error": float(s["count_error_mean"])}
 
-        times = {id(t): [x for _, x, _ in tp.turning_points(t.entry)] for t in ramps}
+        points = {id(t): tp.turning_points(t.entry) for t in ramps}
+        times = {k: [x for _, x, _ in p] for k, p in points.items()}
         median_offset = {(r["event"], r["speed_mm_s"]): r["offset_ms_quartiles"][1] / 1000.0 if r["offset_ms_quartiles"] else 0.0
                          for r in tp.turning_point_table(ramps, [cls])[cls]}
         bases = {
             "as_fitted": {id(t): t.tr[cls] for t in ramps},
-            "unbiased": {id(t): tp.shift_windows(t.tr[cls], times[id(t)], [-median_offset[(n, v)] for n, _, v in tp.turning_points(t.entry)])
-                         for t in ramps},
+            "unbiased": {id(t): tp.shift_windows(t.tr[cls], times[id(t)], [-median_offset[(n, v)] for n, _, v in points[id(t)]]) for t in ramps},
         }
         res: dict[str, Any] = {}
         for b, (name, base) in enumerate(bases.items()):

@@ -132,6 +132,7 @@ class InputStage:
 
     def __init__(self, params: Sequence[ClassParams], taxels: Sequence[int] | np.ndarray):
         self.src = np.ascontiguousarray(taxels, dtype=np.int64)
+        self._n_taxels = int(self.src.max(initial=-1)) + 1  #: taxels the channels must have at least
         if self.src.shape != (len(params),):
             raise ValueError("one taxel index per column is required")
         n = len(params)
@@ -150,8 +151,8 @@ class InputStage:
 
     def process(self, channels: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(channels, dtype=np.float64)
-        if x.ndim != 3 or x.shape[2] != N_CHANNELS or (self.src.size and self.src.max() >= x.shape[1]):
-            raise ValueError(f"channels must be (T, taxels > {int(self.src.max(initial=-1))}, {N_CHANNELS}), got {x.shape}")
+        if x.ndim != 3 or x.shape[2] != N_CHANNELS or x.shape[1] < self._n_taxels:
+            raise ValueError(f"channels must be (T, >= {self._n_taxels} taxels, {N_CHANNELS}), got {x.shape}")
         out = np.empty((self.src.size, x.shape[0]))
         if x.shape[0] == 0:
             return out.T
