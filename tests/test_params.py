@@ -25,10 +25,12 @@ def _raw():
         (lambda d: d["classes"]["RA"].update(tau_ms=-1), "classes.RA.tau_ms"),
         (lambda d: d["classes"].update(SA2=d["classes"]["SA1"]), "unknown classes"),
         (lambda d: d["classes"]["PC"].update(colour="red"), "classes.PC.colour"),
-        (lambda d: d.update(version=3), "version"),
+        (lambda d: d.update(version=4), "version"),
         (lambda d: d["classes"]["RA"].update(lowpass_hz=1.0), "classes.RA.lowpass_hz"),
         (lambda d: d.update(version=1) or d["classes"]["RA"].update(lowpass_hz=100.0), "need schema version 2"),
         (lambda d: d["preprocess"].update(window_ms=1000), "preprocess.window_ms"),
+        (lambda d: d.update(version=2) or d["classes"]["SA1"].update(window_ms=16.0), "needs schema version 3"),
+        (lambda d: d["classes"]["SA1"].update(window_ms=2.0), "classes.SA1.window_ms"),
         (lambda d: d["preprocess"].update(notch_harmonics=[0, 1]), "preprocess.notch_harmonics"),
         (lambda d: d.update(classes={}), "at least one class"),
     ],
@@ -71,3 +73,13 @@ def test_version_1_files_still_load_without_the_new_input_stage():
     p = EncoderParams.parse(d)
     assert p.version == 1
     assert all(c.lowpass_hz is None and c.negative_lead_ms == 0.0 for c in p.classes.values())
+
+
+def test_class_window_defaults_to_the_preprocessing_window():
+    d = _raw()
+    d["version"] = 3
+    d["classes"]["SA1"]["window_ms"] = 16.0
+    p = EncoderParams.parse(d)
+    assert p.window_ms("SA1") == 16.0
+    assert p.window_ms("PC") == p.preprocess.window_ms
+

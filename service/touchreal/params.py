@@ -18,8 +18,9 @@ from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DAT
 
 SCHEMA_NAME = "touchreal.params"
 #: Written version. Version 1 files (no ``ClassParams.lowpass_hz`` / ``negative_lead_ms``) are still
-#: read, as no class low-pass and no lead.
-SCHEMA_VERSION = 2
+#: read, as no class low-pass and no lead; version 2 files (no ``ClassParams.window_ms``) as every
+#: class on ``preprocess.window_ms``.
+SCHEMA_VERSION = 3
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
 WEIGHT_NAMES = ("ST+", "ST-", "dST+", "dST-", "PVDF+", "PVDF-", "dPVDF+", "dPVDF-")
@@ -56,6 +57,14 @@ class ClassParams(_Strict):
         le=100.0,
         description="lead (ms) of the negative-part inputs max(-x, 0) over the positive parts: the positive "
         "parts are delayed by it before summation (compensates a sensor whose unloading lags its loading)",
+    )
+
+    window_ms: float | None = Field(
+        default=None,
+        ge=4.0,
+        le=512.0,
+        description="the class's own causal PVDF STFT window (ms); None = preprocess.window_ms. Classes with "
+        "equal windows share one PVDF branch; a class's latency follows its window",
     )
 
     @field_validator("weights", "ih")
@@ -115,7 +124,7 @@ class EncoderParams(_Strict):
     """A complete, versioned TouchReal parameter set."""
 
     schema_name: Literal["touchreal.params"] = Field(default=SCHEMA_NAME, alias="schema")
-    version: Literal[1, 2] = SCHEMA_VERSION
+    version: Literal[1, 2, 3] = SCHEMA_VERSION
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
     provenance: dict[str, str | float | int | list | dict] = Field(default_factory=dict)
@@ -136,7 +145,14 @@ class EncoderParams(_Strict):
     def _version_features(self) -> "EncoderParams":
         if self.version < 2 and any(c.lowpass_hz is not None or c.negative_lead_ms for c in self.classes.values()):
             raise ValueError("classes.*.lowpass_hz and negative_lead_ms need schema version 2")
+        if self.version < 3 and any(c.window_ms is not None for c in self.classes.values()):
+            raise ValueError("classes.*.window_ms needs schema version 3")
         return self
+
+    def window_ms(self, cls: str) -> float:
+        """Causal PVDF window (ms) of class ``cls``: its own, else the preprocessing default."""
+        own = self.classes[cls].window_ms
+        return self.preprocess.window_ms if own is None else own
 
     def to_json(self) -> str:
         return self.model_dump_json(by_alias=True, indent=1)
