@@ -1,0 +1,411 @@
+"""The ``/v1/stream`` wire protocol, sans-I/O: bytes and JSON texts in, typed messages out, and back.
+
+Shared by the service (which depends on this package) and every client, so both sides read one
+definition. Nothing here touches a socket; docs/stream-protocol.md is the normative description.
+
+* Binary frames (WebSocket binary messages, also the payload published to a broker): a 48-byte
+  header (:data:`HEADER`) followed by a payload of kind spikes, channels or decoded outputs.
+  All integers little-endian; times are integer microseconds, ``*_us`` on the sensor clock except
+  ``emit_us`` / ``sent_us`` (server wall clock, Unix epoch).
+* JSON messages (WebSocket text messages): ``hello``, ``subscribe``, ``subscribed``, ``time``,
+  ``status``, ``error``, and the JSON encoding of the three frame kinds.
+
+Per-connection fields (``seq``, ``dropped``, ``sent_us``) sit at fixed offsets of the header so a
+frame rendered once can be stamped for each connection (:func:`stamp`) without re-encoding.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+PROTOCOL = "touchreal.stream"
+VERSION = 1
+SUPPORTED_VERSIONS = (1,)
+CLASSES = ("SA1", "RA", "PC")
+CHANNELS = ("ST", "dST", "PVDF", "dPVDF")
+CHANNEL_UNITS = ("N", "N/s", "V", "V/s")
+ENCODINGS = ("binary", "json")
+STREAMS = ("spikes", "channels", "decoded")
+MAGIC = b"TR"
+MAX_CLIENT_MESSAGE_BYTES = 65536  #: larger client messages are refused (close 1009)
+
+# frame kinds
+KIND_SPIKES = 1
+KIND_CHANNELS = 2
+KIND_DECODED = 3
+KIND_NAMES = {KIND_SPIKES: "spikes", KIND_CHANNELS: "channels", KIND_DECODED: "decoded"}
+
+# header flags
+FLAG_SOURCE_GAP = 1  #: the source reported missing or repaired samples during this update
+FLAG_PARAMS_CHANGED = 2  #: first frame made with a new parameter set (see params_rev)
+FLAG_RESTARTED = 4  #: the pipeline restarted from rest before this frame (warm-up follows)
+FLAG_NAMES = {FLAG_SOURCE_GAP: "source_gap", FLAG_PARAMS_CHANGED: "params_changed", FLAG_RESTARTED: "restarted"}
+
+# close codes (RFC 6455 + application range)
+CLOSE_NORMAL = 1000
+CLOSE_GOING_AWAY = 1001  #: server shutting down
+CLOSE_TOO_BIG = 1009  #: a client message over MAX_CLIENT_MESSAGE_BYTES
+CLOSE_INTERNAL = 1011
+CLOSE_TRY_AGAIN = 1013  #: too many connections
+CLOSE_UNSUPPORTED_VERSION = 4001  #: subscribe asked for a protocol version the server does not speak
+CLOSE_SLOW_CONSUMER = 4008  #: the client did not read its frames fast enough; its queue overflowed
+CLOSE_TOO_MANY_ERRORS = 4400  #: too many malformed messages in a row
+
+#: Common header: magic, version, kind, flags, header_len, seq, dropped, update, emit_us, sent_us,
+#: params_rev, reserved (48 bytes).
+HEADER = struct.Struct("<2sBBHHIIQQQII")
+HEADER_LEN = HEADER.size
+_SEQ_DROPPED = struct.Struct("<II")  # at offset 8
+_SENT = struct.Struct("<Q")  # at offset 32
+OFF_SEQ, OFF_SENT = 8, 32
+
+#: Spikes payload head: n_events, class mask, 3 reserved bytes, final_us per class (SA1, RA, PC).
+SPIKES_HEAD = struct.Struct("<IB3x3Q")
+#: One address-event: sensor time (us), taxel, class index, reserved.
+EVENT_DTYPE = np.dtype([("t_us", "<u8"), ("taxel", "<u2"), ("cls", "u1"), ("_r", "u1")])
+#: Channels payload head: t0_us, period_us, n_samples, n_taxels, n_channels, reserved.
+CHANNELS_HEAD = struct.Struct("<QIIHBx")
+#: Decoded payload head: decoder index, n_taxels, n_values, n_steps.
+DECODED_HEAD = struct.Struct("<HHHH")
+
+
+class ProtocolError(ValueError):
+    """A message that does not follow the protocol; ``code`` is the error code sent to the peer."""
+
+    def __init__(self, message: str, code: str = "bad_message"):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class Header:
+    """The common frame header. ``kind`` is KIND_*; ``flags`` a bit set of FLAG_*."""
+
+    kind: int
+    update: int = 0
+    emit_us: int = 0
+    params_rev: int = 0
+    flags: int = 0
+    seq: int = 0
+    dropped: int = 0
+    sent_us: int = 0
+    version: int = VERSION
+
+    def flag_names(self) -> list[str]:
+        return [name for bit, name in FLAG_NAMES.items() if self.flags & bit]
+
+
+@dataclass
+class SpikesFrame:
+    """Spike events sorted by time. ``final_us[c]``: every spike of class c (for the subscribed
+    taxels) stamped before it has been sent; ``None`` for classes not in this stream."""
+
+    header: Header
+    t_us: np.ndarray  # (n,) uint64, sensor clock
+    taxel: np.ndarray  # (n,) uint16
+    cls: np.ndarray  # (n,) uint8, index into CLASSES
+    final_us: dict[str, int | None] = field(default_factory=dict)
+
+
+@dataclass
+class ChannelsFrame:
+    """``data[k, i, c]``: channel c of taxel ``taxels[i]`` at sensor time ``t0_us + k * period_us``."""
+
+    header: Header
+    t0_us: int
+    period_us: int
+    taxels: np.ndarray  # (n_taxels,) uint16
+    data: np.ndarray  # (n_samples, n_taxels, 4) float32
+
+
+@dataclass
+class DecodedFrame:
+    """Decoder outputs: ``values[s, i, j]`` is output j for taxel ``taxels[i]`` at step time ``t_us[s]``."""
+
+    header: Header
+    decoder: int  # index into hello.streams.decoded.decoders
+    taxels: np.ndarray  # (n_taxels,) uint16
+    t_us: np.ndarray  # (n_steps,) uint64, sensor clock (end of each decoding window)
+    values: np.ndarray  # (n_steps, n_taxels, n_values) float32
+
+
+Frame = SpikesFrame | ChannelsFrame | DecodedFrame
+
+
+# -- binary frames ---------------------------------------------------------------------------------
+def _pack_header(h: Header) -> bytes:
+    return HEADER.pack(
+        MAGIC, h.version, h.kind, h.flags, HEADER_LEN, h.seq, h.dropped, h.update, h.emit_us, h.sent_us, h.params_rev, 0
+    )
+
+
+def _pad4(n: int) -> int:
+    return (-n) % 4
+
+
+def encode_spikes(header: Header, t_us, taxel, cls, final_us: dict[str, int | None]) -> bytes:
+    """Binary spikes frame; events must be sorted by ``t_us``."""
+    ev = np.zeros(len(t_us), EVENT_DTYPE)
+    ev["t_us"], ev["taxel"], ev["cls"] = t_us, taxel, cls
+    mask = 0
+    finals = []
+    for i, c in enumerate(CLASSES):
+        f = final_us.get(c)
+        if f is not None:
+            mask |= 1 << i
+        finals.append(int(f or 0))
+    return _pack_header(header) + SPIKES_HEAD.pack(ev.size, mask, *finals) + ev.tobytes()
+
+
+def encode_channels(header: Header, t0_us: int, period_us: int, taxels, data: np.ndarray) -> bytes:
+    data = np.ascontiguousarray(data, dtype="<f4")
+    n_s, n_t, n_c = data.shape
+    tx = np.asarray(taxels, "<u2").tobytes()
+    return (
+        _pack_header(header)
+        + CHANNELS_HEAD.pack(int(t0_us), int(period_us), n_s, n_t, n_c)
+        + tx
+        + b"\0" * _pad4(len(tx))
+        + data.tobytes()
+    )
+
+
+def encode_decoded(header: Header, decoder: int, taxels, t_us, values: np.ndarray) -> bytes:
+    values = np.ascontiguousarray(values, dtype="<f4")
+    n_s, n_t, n_v = values.shape
+    tx = np.asarray(taxels, "<u2").tobytes()
+    return (
+        _pack_header(header)
+        + DECODED_HEAD.pack(decoder, n_t, n_v, n_s)
+        + tx
+        + b"\0" * _pad4(len(tx))
+        + np.asarray(t_us, "<u8").tobytes()
+        + values.tobytes()
+    )
+
+
+def stamp(frame: bytes | bytearray, seq: int, dropped: int, sent_us: int) -> bytearray:
+    """A copy of a binary frame with this connection's ``seq``, ``dropped`` and ``sent_us``."""
+    out = bytearray(frame)
+    _SEQ_DROPPED.pack_into(out, OFF_SEQ, seq & 0xFFFFFFFF, min(dropped, 0xFFFFFFFF))
+    _SENT.pack_into(out, OFF_SENT, sent_us)
+    return out
+
+
+def decode_header(buf: bytes | bytearray | memoryview) -> Header:
+    if len(buf) < HEADER_LEN:
+        raise ProtocolError(f"frame of {len(buf)} bytes is shorter than the {HEADER_LEN}-byte header")
+    magic, ver, kind, flags, hlen, seq, dropped, update, emit, sent, rev, _ = HEADER.unpack_from(buf, 0)
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {magic!r}")
+    if ver not in SUPPORTED_VERSIONS:
+        raise ProtocolError(f"unsupported frame version {ver}", "unsupported_version")
+    if kind not in KIND_NAMES:
+        raise ProtocolError(f"unknown frame kind {kind}")
+    if hlen < HEADER_LEN or hlen > len(buf):
+        raise ProtocolError(f"bad header length {hlen}")
+    return Header(kind, update, emit, rev, flags, seq, dropped, sent, ver)
+
+
+def decode_frame(buf: bytes | bytearray | memoryview) -> Frame:
+    """Parse one binary frame; raises :class:`ProtocolError` on anything malformed."""
+    buf = memoryview(buf).cast("B")
+    h = decode_header(buf)
+    p = HEADER.unpack_from(buf, 0)[4]  # header_len: later versions may extend the header
+    try:
+        if h.kind == KIND_SPIKES:
+            n, mask, *finals = SPIKES_HEAD.unpack_from(buf, p)
+            p += SPIKES_HEAD.size
+            _need(buf, p + n * EVENT_DTYPE.itemsize)
+            ev = np.frombuffer(buf, EVENT_DTYPE, n, p)
+            final = {c: (finals[i] if mask >> i & 1 else None) for i, c in enumerate(CLASSES)}
+            return SpikesFrame(h, ev["t_us"].copy(), ev["taxel"].copy(), ev["cls"].copy(), final)
+        if h.kind == KIND_CHANNELS:
+            t0, period, n_s, n_t, n_c = CHANNELS_HEAD.unpack_from(buf, p)
+            p += CHANNELS_HEAD.size
+            taxels, p = _taxels(buf, p, n_t)
+            _need(buf, p + 4 * n_s * n_t * n_c)
+            data = np.frombuffer(buf, "<f4", n_s * n_t * n_c, p).reshape(n_s, n_t, n_c).copy()
+            return ChannelsFrame(h, t0, period, taxels, data)
+        dec, n_t, n_v, n_s = DECODED_HEAD.unpack_from(buf, p)
+        p += DECODED_HEAD.size
+        taxels, p = _taxels(buf, p, n_t)
+        _need(buf, p + 8 * n_s + 4 * n_s * n_t * n_v)
+        t_us = np.frombuffer(buf, "<u8", n_s, p).copy()
+        values = np.frombuffer(buf, "<f4", n_s * n_t * n_v, p + 8 * n_s).reshape(n_s, n_t, n_v).copy()
+        return DecodedFrame(h, dec, taxels, t_us, values)
+    except struct.error as exc:
+        raise ProtocolError(f"truncated {KIND_NAMES[h.kind]} frame: {exc}") from exc
+
+
+def _need(buf: memoryview, n: int) -> None:
+    if len(buf) < n:
+        raise ProtocolError(f"truncated frame: {len(buf)} bytes, payload needs {n}")
+
+
+def _taxels(buf: memoryview, p: int, n_t: int) -> tuple[np.ndarray, int]:
+    _need(buf, p + 2 * n_t)
+    return np.frombuffer(buf, "<u2", n_t, p).copy(), p + 2 * n_t + _pad4(2 * n_t)
+
+
+# -- JSON frames -----------------------------------------------------------------------------------
+def frame_json_body(frame: Frame) -> dict[str, Any]:
+    """The JSON encoding of a frame without the per-connection fields (seq, dropped, sent_us)."""
+    h = frame.header
+    out: dict[str, Any] = {
+        "type": KIND_NAMES[h.kind],
+        "update": h.update,
+        "emit_us": h.emit_us,
+        "params_rev": h.params_rev,
+        "flags": h.flag_names(),
+    }
+    if isinstance(frame, SpikesFrame):
+        out["final_us"] = {c: v for c, v in frame.final_us.items() if v is not None}
+        out["t_us"] = frame.t_us.tolist()
+        out["taxel"] = frame.taxel.tolist()
+        out["class"] = [CLASSES[i] for i in frame.cls.tolist()]
+    elif isinstance(frame, ChannelsFrame):
+        out.update(t0_us=frame.t0_us, period_us=frame.period_us, taxels=frame.taxels.tolist(), channels=list(CHANNELS))
+        out["data"] = np.round(frame.data.astype(np.float64), 7).tolist()
+    else:
+        out.update(decoder=frame.decoder, taxels=frame.taxels.tolist(), t_us=frame.t_us.tolist())
+        out["values"] = np.round(frame.values.astype(np.float64), 7).tolist()
+    return out
+
+
+def render_json(body_text: str, seq: int, dropped: int, sent_us: int) -> str:
+    """Prefix a JSON body (``json.dumps(frame_json_body(...))``) with the per-connection fields."""
+    return f'{{"seq":{seq},"dropped":{dropped},"sent_us":{sent_us},{body_text[1:]}'
+
+
+def frame_from_json(msg: dict[str, Any]) -> Frame:
+    """Inverse of the JSON encoding (for clients that chose ``"encoding": "json"``)."""
+    try:
+        kind = {v: k for k, v in KIND_NAMES.items()}[msg["type"]]
+        flags = sum(bit for bit, name in FLAG_NAMES.items() if name in msg.get("flags", []))
+        h = Header(kind, msg["update"], msg["emit_us"], msg["params_rev"], flags, msg["seq"], msg["dropped"], msg["sent_us"])
+        if kind == KIND_SPIKES:
+            cls = np.array([CLASSES.index(c) for c in msg["class"]], np.uint8)
+            final = {c: msg["final_us"].get(c) for c in CLASSES}
+            return SpikesFrame(h, np.array(msg["t_us"], np.uint64), np.array(msg["taxel"], np.uint16), cls, final)
+        if kind == KIND_CHANNELS:
+            taxels = np.array(msg["taxels"], np.uint16)
+            data = np.array(msg["data"], np.float32).reshape(-1, taxels.size, len(CHANNELS))
+            return ChannelsFrame(h, msg["t0_us"], msg["period_us"], taxels, data)
+        taxels = np.array(msg["taxels"], np.uint16)
+        t_us = np.array(msg["t_us"], np.uint64)
+        values = np.array(msg["values"], np.float32).reshape(t_us.size, taxels.size, -1)
+        return DecodedFrame(h, msg["decoder"], taxels, t_us, values)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ProtocolError(f"malformed JSON frame: {exc!r}") from exc
+
+
+# -- control messages --------------------------------------------------------------------------------
+@dataclass
+class Subscription:
+    """What a connection wants. ``taxels``/``classes`` ``None`` mean all; empty lists mean none."""
+
+    taxels: list[int] | None = None
+    classes: list[str] = field(default_factory=lambda: list(CLASSES))
+    streams: list[str] = field(default_factory=lambda: ["spikes"])
+    encoding: str = "binary"
+    decimation: int = 25  #: channels: one 5 kHz sample in this many (25 -> 200 Hz)
+    decoders: list[str] | None = None  #: decoded: names, None = every installed decoder
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "type": "subscribe",
+            "version": VERSION,
+            "taxels": self.taxels,
+            "classes": self.classes,
+            "streams": self.streams,
+            "encoding": self.encoding,
+            "channels": {"decimation": self.decimation},
+            "decoders": self.decoders,
+        }
+
+
+def parse_subscribe(msg: dict[str, Any]) -> Subscription:
+    """Validate a subscribe message (every field but ``type`` optional); raise :class:`ProtocolError`."""
+    version = msg.get("version", VERSION)
+    if version not in SUPPORTED_VERSIONS:
+        raise ProtocolError(f"protocol version {version!r} is not supported (supported: {list(SUPPORTED_VERSIONS)})", "unsupported_version")
+    unknown = set(msg) - {"type", "version", "taxels", "classes", "streams", "encoding", "channels", "decoders"}
+    if unknown:
+        raise ProtocolError(f"unknown subscribe fields {sorted(unknown)}")
+    sub = Subscription()
+    taxels = msg.get("taxels")
+    if taxels is not None:
+        if not isinstance(taxels, list) or not all(isinstance(t, int) and not isinstance(t, bool) and 0 <= t < 65536 for t in taxels):
+            raise ProtocolError("taxels must be null or a list of taxel ids (integers)")
+        sub.taxels = sorted(set(taxels))
+    sub.classes = _names(msg, "classes", CLASSES, sub.classes)
+    sub.streams = _names(msg, "streams", STREAMS, sub.streams)
+    enc = msg.get("encoding", sub.encoding)
+    if enc not in ENCODINGS:
+        raise ProtocolError(f"encoding must be one of {list(ENCODINGS)}, got {enc!r}")
+    sub.encoding = enc
+    ch = msg.get("channels") or {}
+    if not isinstance(ch, dict) or set(ch) - {"decimation"}:
+        raise ProtocolError('channels must be an object {"decimation": int}')
+    dec = ch.get("decimation", sub.decimation)
+    if not isinstance(dec, int) or isinstance(dec, bool) or not 1 <= dec <= 5000:
+        raise ProtocolError("channels.decimation must be an integer in 1..5000")
+    sub.decimation = dec
+    decoders = msg.get("decoders")
+    if decoders is not None and (not isinstance(decoders, list) or not all(isinstance(d, str) for d in decoders)):
+        raise ProtocolError("decoders must be null or a list of decoder names")
+    sub.decoders = decoders
+    return sub
+
+
+def _names(msg: dict[str, Any], key: str, allowed: tuple[str, ...], default: list[str]) -> list[str]:
+    v = msg.get(key)
+    if v is None:
+        return list(default)
+    if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+        raise ProtocolError(f"{key} must be a list of names from {list(allowed)}")
+    bad = [x for x in v if x not in allowed]
+    if bad:
+        raise ProtocolError(f"unknown {key} {bad}; expected names from {list(allowed)}")
+    return [x for x in allowed if x in v]
+
+
+def parse_client_message(text: str | bytes) -> dict[str, Any]:
+    """Decode a client's text message: a JSON object with a known ``type``."""
+    if len(text) > MAX_CLIENT_MESSAGE_BYTES:
+        raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_CLIENT_MESSAGE_BYTES}", "too_big")
+    try:
+        msg = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"not valid JSON: {exc}") from exc
+    if not isinstance(msg, dict) or msg.get("type") not in ("subscribe", "time"):
+        raise ProtocolError('expected a JSON object with "type": "subscribe" or "time"')
+    if msg["type"] == "time" and not _is_uint(msg.get("t0_us", 0)):
+        raise ProtocolError("time.t0_us must be a non-negative integer (client clock, us)")
+    return msg
+
+
+def _is_uint(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**64
+
+
+def time_reply(request: dict[str, Any], t1_us: int, t2_us: int) -> dict[str, Any]:
+    """Answer to an NTP-style time request: the client's t0 back with the server's receive (t1) and
+    send (t2) wall-clock times (us)."""
+    return {"type": "time", "id": request.get("id"), "t0_us": request.get("t0_us", 0), "t1_us": t1_us, "t2_us": t2_us}
+
+
+def clock_offset(t0_us: int, t1_us: int, t2_us: int, t3_us: int) -> tuple[float, float]:
+    """(server minus client clock offset, round-trip delay) in us from one time exchange; the offset's
+    uncertainty is at most half the delay."""
+    return ((t1_us - t0_us) + (t2_us - t3_us)) / 2.0, float((t3_us - t0_us) - (t2_us - t1_us))
+
+
+def error_message(code: str, message: str) -> dict[str, Any]:
+    return {"type": "error", "code": code, "message": message}
