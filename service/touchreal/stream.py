@@ -7,7 +7,7 @@ command, the tests and the benchmarks all drive this same object.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -17,7 +17,7 @@ from .preprocess.pipeline import Channels, Preprocessor
 from .recording import Trial
 from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
-from .settings import CLASSES
+from .settings import CLASSES, OUT_FS_HZ
 
 
 class StreamEncoder:
@@ -31,8 +31,22 @@ class StreamEncoder:
         self.enc = Encoder(params, n_taxels, classes)
 
     @property
-    def latency_s(self) -> float:
-        return self.pre.latency_s
+    def latency_s(self) -> dict[str, float]:
+        """Per class: algorithmic latency (s), emission minus stamp without the class delay."""
+        return {c: self.pre.latency_s for c in self.params.classes}
+
+    @property
+    def final_s(self) -> dict[str, float]:
+        """Per computed class: every spike stamped before this time (s) has been returned."""
+        k = self.pre.align.next_k or 0
+        return {c: k / OUT_FS_HZ + self.params.classes[c].delay_ms / 1000.0 for c in self.enc.classes}
+
+    def set_active(self, columns: Mapping[str, Sequence[int]]) -> None:
+        """Demand: per class, the taxels wanted. Classes leaving stop; a class (re)joining starts from
+        rest. (Interim: whole classes, every taxel.)"""
+        classes = [c for c in CLASSES if columns.get(c)]
+        if tuple(classes) != self.enc.classes:
+            self.enc = Encoder(self.params, self.pre.n_taxels, classes)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """All state: preprocessing stages, class low-passes and membrane potentials."""

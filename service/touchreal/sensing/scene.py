@@ -138,7 +138,8 @@ class SceneSource:
         taxels_xy_mm: (N, 2) taxel centres (mm).
         seed: reproducibility (same seed -> identical arrays, however reads are chunked).
         skin, robot: physical parameters.
-        t0_s, st_phase_ticks: clock phase of the first PVDF tick and SingleTact sample (random if None).
+        t0_s, st_phase_ticks: time of the first PVDF tick (s; random within the first tick period if None,
+            any value to start the clock elsewhere, e.g. past 2^32 us) and SingleTact phase.
     """
 
     def __init__(
@@ -167,7 +168,7 @@ class SceneSource:
             initial_depth_mm=float(first["depth"][0]), initial_xy_mm=tuple(first["xy"][0]),
         )
         self.robot = Robot(self.robot_params, float(first["depth"][0]), float(first["x"][0]))
-        self._requested_s = 0.0
+        self._requested_s = t0 - math.fmod(t0, 1.0 / FS_HZ)  # the clock's start (0 unless t0_s is far out)
 
     @property
     def n_taxels(self) -> int:

@@ -1,0 +1,168 @@
+"""Live sources for the service: the blocking layer over the sans-I/O sources.
+
+Every live source hands the acquisition thread one :class:`~touchreal.sensing.raw.RawChunk` per
+update interval through ``next_chunk()`` (blocking about one interval; ``None`` once the source has
+ended or was closed), and reports its state and counters through ``status()``.
+
+A source's stream is a sequence of *segments*: the simulated e-skin and the serial reader have
+one; a replay has one per trial, each on its own recording clock. ``segment`` counts them and
+``offset_us`` is the integer offset that puts the current segment on the stream's monotonic sensor
+clock (the encoder sees the trial's own clock, so a replayed trial's spikes equal ``touchreal
+encode``'s; only the wire adds the offset).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import numpy as np
+
+from ..recording import Dataset, Trial
+from .raw import RawChunk
+from .replay import ReplaySource
+from .scene import SceneSource, taxel_grid
+
+
+class LiveSource(Protocol):
+    """What the service's acquisition thread reads."""
+
+    n_taxels: int
+    positions_mm: np.ndarray  #: (n_taxels, 2) taxel centres, mm
+    segment: int  #: index of the current segment (a replayed trial); the encoder restarts when it changes
+    offset_us: int  #: sensor-clock offset of the current segment on the wire (us)
+
+    def next_chunk(self) -> RawChunk | None: ...
+
+    def status(self) -> dict[str, int | float | str]: ...
+
+    def close(self) -> None: ...
+
+
+class _Paced:
+    """Wall-clock pacing: the k-th chunk is released at ``start + k * period_s`` (missed ones come
+    back to back, nothing is dropped). ``clock``/``sleep`` are injectable; ``close()`` wakes it."""
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic):
+        self.period_s = period_s
+        self.clock = clock
+        self._closed = threading.Event()
+        self._start: float | None = None
+        self._k = 0
+
+    def wait_next(self) -> bool:
+        """Sleep until the next release; False once closed."""
+        if self._start is None:
+            self._start = self.clock()
+        self._k += 1
+        wait = self._start + self._k * self.period_s - self.clock()
+        if wait > 0:
+            self._closed.wait(wait)
+        return not self._closed.is_set()
+
+    def close(self) -> None:
+        self._closed.set()
+
+    def restart(self) -> None:
+        """Start a new schedule at the next call (after a pause: no catching up)."""
+        self._start, self._k = None, 0
+
+
+class SimLiveSource:
+    """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
+    taxels (a grid of 10 mm pitch) in real time, looping forever."""
+
+    segment = 0
+
+    def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None):
+        self.positions_mm = taxel_grid(n_taxels)
+        self.n_taxels = n_taxels
+        self.update_s = update_s
+        self.scene = SceneSource(taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
+        self.offset_us = 0
+        self._pace = _Paced(update_s)
+        self._chunks = 0
+
+    def next_chunk(self) -> RawChunk | None:
+        if not self._pace.wait_next():
+            return None
+        self._chunks += 1
+        return self.scene.read(self.update_s)
+
+    def status(self) -> dict[str, int | float | str]:
+        return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks}
+
+    def close(self) -> None:
+        self._pace.close()
+
+
+class ReplayLiveSource:
+    """Recorded trials played back to back, each a segment on its own clock, in real time x ``speed``.
+
+    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations (rounded
+    up to whole ms) so the stream's clock keeps increasing. ``loop`` replays the list forever.
+    A replay waits for demand (``waits_for_demand``): it starts, and resumes, only while somebody
+    subscribes, so nobody misses the beginning of a trial.
+    """
+
+    waits_for_demand = True
+
+    def __init__(self, dataset: Dataset, trial_ids: Sequence[str] | None = None, update_s: float = 0.032,
+                 speed: float = 1.0, loop: bool = False):
+        entries = dataset.entries()
+        if trial_ids:
+            by_id = {e["id"]: e for e in entries}
+            missing = [t for t in trial_ids if t not in by_id]
+            if missing:
+                raise ValueError(f"dataset {dataset.root} has no trial {missing}")
+            entries = [by_id[t] for t in trial_ids]
+        if not entries:
+            raise ValueError(f"dataset {dataset.root} has no trials")
+        if not speed > 0:
+            raise ValueError("speed must be > 0")
+        self.dataset, self.entries, self.loop = dataset, entries, loop
+        self.update_s = update_s
+        self.n_taxels = 1
+        self.positions_mm = np.zeros((1, 2))
+        self.segment = -1
+        self.offset_us = 0
+        self.trial_id = ""
+        self._next_offset_us = 0
+        self._player: ReplaySource | None = None
+        self._pace = _Paced(update_s / speed)
+        self._ended = False
+
+    def _open_next(self) -> bool:
+        i = self.segment + 1
+        if i >= len(self.entries) and not self.loop:
+            return False
+        entry = self.entries[i % len(self.entries)]
+        trial: Trial = self.dataset.load(entry)
+        self.segment, self.trial_id = i, entry["id"]
+        self.offset_us = self._next_offset_us
+        self._next_offset_us += int(math.ceil(trial.duration_s * 1000.0 + 1.0)) * 1000
+        self._player = ReplaySource(trial)
+        return True
+
+    def next_chunk(self) -> RawChunk | None:
+        if self._ended or not self._pace.wait_next():
+            return None
+        if self._player is None or self._player.done:
+            if not self._open_next():
+                self._ended = True
+                return None
+        return self._player.read(self.update_s)
+
+    def resume(self) -> None:
+        """Continue after a pause for demand, in real time from now."""
+        self._pace.restart()
+
+    def status(self) -> dict[str, int | float | str]:
+        state = "ended" if self._ended else ("closed" if self._pace._closed.is_set() else "streaming")
+        return {"state": state, "kind": "replay", "trial": self.trial_id, "segment": self.segment}
+
+    def close(self) -> None:
+        self._pace.close()

@@ -1,0 +1,44 @@
+"""FastAPI wiring: routers over one :class:`~.service.Service`, started and stopped with the app."""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+import uvicorn
+from fastapi import FastAPI
+from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
+
+from .. import __version__
+from . import rest, ws
+from .service import Service
+
+
+def create_app(service: Service) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        await service.start()
+        try:
+            yield
+        finally:
+            await service.stop()
+
+    app = FastAPI(
+        title="TouchReal",
+        version=__version__,
+        summary="Biomimetic SA1/RA/PC afferent spikes from a tactile sensor, online",
+        description="REST configuration and parameter uploads; the spike stream is the WebSocket `/v1/stream` "
+        "(docs/stream-protocol.md).",
+        lifespan=lifespan,
+    )
+    app.state.service = service
+    app.include_router(rest.router)
+    app.include_router(ws.router)
+    return app
+
+
+def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning") -> uvicorn.Config:
+    """The server configuration (``touchreal serve``, the tests and the benchmark use this one):
+    websockets' sans-I/O implementation, client messages capped at the protocol's limit,
+    permessage-deflate only for clients that offer it."""
+    return uvicorn.Config(app, host=host, port=port, ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
+                          ws_per_message_deflate=True, log_level=log_level, lifespan="on")

@@ -1,0 +1,42 @@
+"""``touchreal serve``: the service on a source (the simulated e-skin by default)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="stream spikes over WebSockets (REST config, parameter uploads)")
+    p.add_argument("--source", default="sim", help="sim | replay:DATASET_DIR[:TRIAL_ID,...] | serial:PORT (default sim)")
+    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin / serial device")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed (x real time)")
+    p.add_argument("--loop", action="store_true", help="replay: start again after the last trial")
+    p.add_argument("--host", default=None, help="bind address (default 127.0.0.1; TOUCHREAL_HOST)")
+    p.add_argument("--port", type=int, default=None, help="port (default 8765; TOUCHREAL_PORT)")
+    p.add_argument("--token", default=None, help="bearer token for write endpoints (or TOUCHREAL_TOKEN)")
+    p.add_argument("--state-dir", type=Path, default=None, help="parameter history + user models (TOUCHREAL_STATE_DIR)")
+    p.add_argument("--params", type=Path, default=None, help="initial parameter file (default: last active, else shipped)")
+    p.add_argument("--log-level", default="warning", help="uvicorn log level")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app, uvicorn_config
+    from .service import Service
+    from .settings import RuntimeConfig, ServeSettings
+
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("token", args.token),
+                                   ("state_dir", args.state_dir), ("params", args.params)) if v is not None}
+    settings = ServeSettings(**overrides)
+    config = RuntimeConfig(source=args.source, taxels=args.taxels, speed=args.speed, loop=args.loop)
+    service = Service(settings, config)
+    app = create_app(service)
+    base = f"{settings.host}:{settings.port}"
+    print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "
+          f"stream ws://{base}/v1/stream · API http://{base}/docs · state {settings.state_dir}"
+          + (" · write endpoints need the token" if settings.token else ""), flush=True)
+    uvicorn.Server(uvicorn_config(app, settings.host, settings.port, args.log_level)).run()
+    return 0

@@ -1,0 +1,184 @@
+"""Fan-out: each update is rendered once per distinct subscription and offered to every subscriber.
+
+Sans-I/O apart from an ``asyncio.Event`` per subscriber for wake-up: :meth:`Hub.publish` never
+waits. Each :class:`Subscriber` has a bounded queue; a frame that does not fit is dropped for that
+subscriber only (its ``seq`` still advances, so the client sees the gap, and ``dropped`` counts
+it); a subscriber whose queue stays full for ``slow_timeout_s`` is marked for closing with
+:data:`~touchreal_client.protocol.CLOSE_SLOW_CONSUMER`. Other subscribers are unaffected.
+
+Queued items are rendered frames without the per-connection fields; the sender stamps ``seq``,
+``dropped`` and ``sent_us`` when it hands the frame to the socket (:meth:`Subscriber.render`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from touchreal_client import protocol as P
+
+from .demand import Demand, build_demand
+from .runtime import Update, wall_us
+
+
+@dataclass
+class Queued:
+    kind: int  #: P.KIND_*
+    payload: bytes | str  #: binary frame, or the JSON body text
+    seq: int
+    acq_us: int  #: wall time the update's chunk was acquired
+    update: Update
+
+
+class Subscriber:
+    """One connection's subscription, queue and counters (the WebSocket layer drives it)."""
+
+    def __init__(self, sub_id: int, capacity: int, slow_timeout_s: float, clock: Callable[[], float] = time.monotonic):
+        self.id = sub_id
+        self.capacity = capacity
+        self.slow_timeout_s = slow_timeout_s
+        self.clock = clock
+        self.subscription: P.Subscription | None = None
+        self.queue: deque[Queued] = deque()
+        self.seq = 0
+        self.dropped = 0
+        self.sent = 0
+        self.full_since: float | None = None
+        self.kick: tuple[int, str] | None = None  #: (close code, reason) once it must go
+        self.kicked = asyncio.Event()
+        self.control: deque[str] = deque()  #: JSON replies (subscribed, time, error): never dropped
+        self.wakeup = asyncio.Event()
+
+    def say(self, text: str) -> None:
+        """Queue a control message; it goes out before any queued frame."""
+        self.control.append(text)
+        self.wakeup.set()
+
+    def offer(self, kind: int, payload: bytes | str, update: Update) -> None:
+        seq, self.seq = self.seq, self.seq + 1
+        if len(self.queue) >= self.capacity:
+            self.dropped += 1
+            now = self.clock()
+            if self.full_since is None:
+                self.full_since = now
+            elif now - self.full_since >= self.slow_timeout_s and self.kick is None:
+                self.kick = (P.CLOSE_SLOW_CONSUMER, f"slow consumer: queue of {self.capacity} frames full for "
+                             f"{self.slow_timeout_s:g} s, {self.dropped} frames dropped")
+                self.kicked.set()
+            return
+        self.full_since = None
+        self.queue.append(Queued(kind, payload, seq, update.acq_us, update))
+        self.wakeup.set()
+
+    def render(self, item: Queued) -> tuple[bytes | str, int]:
+        """The frame as this connection sends it now, and its sent_us."""
+        sent = wall_us()
+        self.sent += 1
+        if isinstance(item.payload, str):
+            return P.render_json(item.payload, item.seq, self.dropped, sent), sent
+        return bytes(P.stamp(item.payload, item.seq, self.dropped, sent)), sent
+
+
+class Hub:
+    """All subscribers of one service; lives on the event loop."""
+
+    def __init__(self, capacity: int, slow_timeout_s: float, on_demand_change: Callable[[], None] | None = None):
+        self.capacity = capacity
+        self.slow_timeout_s = slow_timeout_s
+        self.subscribers: dict[int, Subscriber] = {}
+        self._ids = itertools.count(1)
+        self.demand = Demand()
+        self.n_taxels = 1
+        self.allowed_classes: Sequence[str] = P.CLASSES
+        self.decoder_classes: Mapping[str, Sequence[str]] = {}
+        self.decoder_names: list[str] = []
+        self.frames_rendered = 0
+        self._on_demand_change = on_demand_change
+
+    # -- membership -----------------------------------------------------------------------------
+    def add(self) -> Subscriber:
+        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s)
+        self.subscribers[sub.id] = sub
+        return sub
+
+    def remove(self, sub: Subscriber) -> None:
+        if self.subscribers.pop(sub.id, None) is not None and sub.subscription is not None:
+            self.refresh_demand()
+
+    def subscribe(self, sub: Subscriber, subscription: P.Subscription) -> None:
+        sub.subscription = subscription
+        self.refresh_demand()
+
+    def configure(self, n_taxels: int, allowed_classes: Sequence[str], decoder_classes: Mapping[str, Sequence[str]]) -> None:
+        self.n_taxels, self.allowed_classes = n_taxels, list(allowed_classes)
+        self.decoder_classes = dict(decoder_classes)
+        self.decoder_names = list(decoder_classes)
+        self.refresh_demand()
+
+    def refresh_demand(self) -> None:
+        subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
+        self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes)
+        if self._on_demand_change:
+            self._on_demand_change()
+
+    # -- fan-out --------------------------------------------------------------------------------
+    def publish(self, upd: Update) -> None:
+        """Render the update once per distinct subscription and offer it to every subscriber."""
+        cache: dict[tuple, list[tuple[int, bytes | str]]] = {}
+        for sub in list(self.subscribers.values()):
+            s = sub.subscription
+            if s is None or sub.kick is not None:
+                continue
+            key = (None if s.taxels is None else tuple(s.taxels), tuple(s.classes), tuple(s.streams), s.encoding,
+                   s.decimation, None if s.decoders is None else tuple(s.decoders))
+            frames = cache.get(key)
+            if frames is None:
+                frames = cache[key] = self._render(upd, s)
+                self.frames_rendered += len(frames)
+            for kind, payload in frames:
+                sub.offer(kind, payload, upd)
+
+    def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
+        out: list[P.Frame] = []
+        taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
+        if "spikes" in s.streams:
+            h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
+            cls_idx = [P.CLASSES.index(c) for c in s.classes]
+            sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
+            final = {c: (upd.final_us.get(c) if c in s.classes else None) for c in P.CLASSES}
+            out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
+        if "channels" in s.streams and upd.channels is not None and upd.channels.n_samples:
+            ch = upd.channels
+            k = ch.k0 + np.arange(ch.n_samples)
+            pick = k % s.decimation == 0
+            if pick.any():
+                h = P.Header(P.KIND_CHANNELS, upd.update, upd.emit_us, upd.params_rev, upd.flags)
+                t0_us = int(k[pick][0]) * 200 + upd.offset_us  # the 5 kHz grid: 200 us per sample
+                out.append(P.ChannelsFrame(h, t0_us, 200 * s.decimation, taxels.astype(np.uint16),
+                                           ch.data[pick][:, taxels, :].astype(np.float32)))
+        if "decoded" in s.streams:
+            wanted = self.decoder_names if s.decoders is None else s.decoders
+            for name, dec_taxels, t_us, values in upd.decoded:
+                if name not in wanted:
+                    continue
+                cols = [i for i, t in enumerate(dec_taxels) if t in set(taxels.tolist())]
+                h = P.Header(P.KIND_DECODED, upd.update, upd.emit_us, upd.params_rev, upd.flags)
+                out.append(P.DecodedFrame(h, self.decoder_names.index(name), np.array(dec_taxels, np.uint16)[cols],
+                                          t_us, values[:, cols, :]))
+        return [(f.header.kind, _encode(f, s.encoding)) for f in out]
+
+
+def _encode(frame: P.Frame, encoding: str) -> bytes | str:
+    if encoding == "json":
+        return json.dumps(P.frame_json_body(frame), separators=(",", ":"))
+    if isinstance(frame, P.SpikesFrame):
+        return P.encode_spikes(frame.header, frame.t_us, frame.taxel, frame.cls, frame.final_us)
+    if isinstance(frame, P.ChannelsFrame):
+        return P.encode_channels(frame.header, frame.t0_us, frame.period_us, frame.taxels, frame.data)
+    return P.encode_decoded(frame.header, frame.decoder, frame.taxels, frame.t_us, frame.values)

@@ -1,0 +1,35 @@
+"""Prometheus metrics of one service (its own registry, served at ``/metrics``)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from touchreal_client.protocol import CLASSES
+
+_LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3, 0.5, 1.0)
+_COMPUTE_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
+
+
+class Metrics:
+    def __init__(self) -> None:
+        r = self.registry = CollectorRegistry()
+        self.compute = Histogram("touchreal_update_compute_seconds", "encoder compute time per update", registry=r,
+                                 buckets=_COMPUTE_BUCKETS)
+        self.latency = Histogram("touchreal_latency_seconds", "end-to-end latency per spike: acquisition of the sample "
+                                 "that caused it to its update leaving the encoder", ["cls"], registry=r,
+                                 buckets=_LATENCY_BUCKETS)
+        self.events = Counter("touchreal_events", "spike events encoded", ["cls"], registry=r)
+        self.updates = Counter("touchreal_updates", "updates published", registry=r)
+        self.overload = Counter("touchreal_updates_dropped_overload", "updates dropped because the event loop fell "
+                                "behind the acquisition thread", registry=r)
+        self.clients = Gauge("touchreal_clients_connected", "connected stream clients", registry=r)
+        self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
+                                  registry=r)
+        self.drops = Counter("touchreal_dropped_frames", "frames dropped for slow clients", registry=r)
+        self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers", registry=r)
+        self.faults = Gauge("touchreal_input_faults", "cumulative input faults (sanitizer: NaN/Inf, gaps, ...; "
+                            "serial: CRC errors, gaps, resyncs, reconnects)", ["kind"], registry=r)
+        self.source_state = Gauge("touchreal_source_state", "1 for the source's current state", ["state"], registry=r)
+        self.ready = Gauge("touchreal_ready", "1 when the source delivers and the pipeline is warm", registry=r)
+        for c in CLASSES:
+            self.events.labels(c)

@@ -1,0 +1,135 @@
+"""The ``/v1`` REST surface: thin handlers over the :class:`~.service.Service` (OpenAPI at /openapi.json).
+
+Reads are open; writes (PATCH /v1/config, PUT /v1/params, POST /v1/params/rollback) need
+``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``).
+"""
+
+from __future__ import annotations
+
+import secrets
+from typing import Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel, Field
+
+from ..params import EncoderParams
+from .params_store import params_sha256
+from .settings import ConfigPatch
+
+router = APIRouter()
+_bearer = HTTPBearer(auto_error=False, description="required by write endpoints when the service has a token")
+
+
+def service_of(request: Request):
+    return request.app.state.service
+
+
+def require_token(request: Request, cred: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
+    token = service_of(request).settings.token
+    if token is None:
+        return
+    if cred is None or not secrets.compare_digest(cred.credentials.encode(), token.encode()):
+        raise HTTPException(401, "this endpoint needs 'Authorization: Bearer <token>'",
+                            headers={"WWW-Authenticate": "Bearer"})
+
+
+class Health(BaseModel):
+    status: str
+    session: str
+
+
+class Ready(BaseModel):
+    ready: bool
+    reason: str
+
+
+class ParamsInfo(BaseModel):
+    rev: int
+    sha256: str
+    params: dict[str, Any] | None = None
+
+
+class Rollback(BaseModel):
+    rev: int = Field(ge=1, description="an earlier revision from GET /v1/params/history")
+
+
+@router.get("/v1/health", response_model=Health, tags=["health"], responses={503: {"model": Health}})
+def health(request: Request) -> Any:
+    """Liveness: the process serves and its acquisition thread has not failed."""
+    svc = service_of(request)
+    ok = svc.runtime is None or svc.runtime.state != "failed"
+    return JSONResponse(Health(status="ok" if ok else "failed", session=svc.session).model_dump(),
+                        status_code=200 if ok else 503)
+
+
+@router.get("/v1/ready", response_model=Ready, tags=["health"], responses={503: {"model": Ready}})
+def ready(request: Request) -> Any:
+    """Readiness: the source delivers and the pipeline is warm (JIT compiled, first update done)."""
+    ok, reason = service_of(request).ready()
+    return JSONResponse(Ready(ready=ok, reason=reason).model_dump(), status_code=200 if ok else 503)
+
+
+@router.get("/v1/status", tags=["service"])
+def status(request: Request) -> dict[str, Any]:
+    """Source state and counters, pipeline state, current demand, per-client queues and drops."""
+    return service_of(request).status()
+
+
+@router.get("/v1/config", tags=["config"])
+def get_config(request: Request) -> dict[str, Any]:
+    return service_of(request).config_view()
+
+
+@router.patch("/v1/config", tags=["config"], dependencies=[Depends(require_token)],
+              responses={400: {"description": "invalid value"}, 401: {"description": "token missing or wrong"}})
+async def patch_config(patch: ConfigPatch, request: Request) -> dict[str, Any]:
+    """Change the source, taxels, replay speed/loop, update interval, default window or computed classes;
+    the answer says what was restarted (``source``, ``pipeline``)."""
+    try:
+        return await service_of(request).patch_config(patch)
+    except ValueError as exc:
+        raise HTTPException(400, str(exc)) from exc
+
+
+@router.get("/v1/params", response_model=ParamsInfo, tags=["params"])
+def get_params(request: Request) -> ParamsInfo:
+    store = service_of(request).store
+    rev, params = store.current
+    return ParamsInfo(rev=rev, sha256=params_sha256(params), params=params.model_dump(by_alias=True, mode="json"))
+
+
+@router.put("/v1/params", response_model=ParamsInfo, tags=["params"], dependencies=[Depends(require_token)],
+            responses={401: {"description": "token missing or wrong"},
+                       422: {"description": "invalid parameter set: every bad field is listed; the old set stays"}})
+def put_params(params: EncoderParams, request: Request) -> ParamsInfo:
+    """Upload a parameter set (the versioned JSON of ``touchreal fit``). It becomes active between two
+    updates and is persisted in the state directory."""
+    rev = service_of(request).put_params(params)
+    return ParamsInfo(rev=rev, sha256=params_sha256(params))
+
+
+@router.get("/v1/params/history", tags=["params"])
+def params_history(request: Request) -> dict[str, Any]:
+    store = service_of(request).store
+    return {"active": store.active_rev, "revisions": [r.__dict__ for r in store.revisions]}
+
+
+@router.post("/v1/params/rollback", response_model=ParamsInfo, tags=["params"], dependencies=[Depends(require_token)],
+             responses={401: {"description": "token missing or wrong"}, 404: {"description": "no such revision"}})
+def rollback(body: Rollback, request: Request) -> ParamsInfo:
+    """Activate an earlier revision again (recorded as a new revision)."""
+    store = service_of(request).store
+    try:
+        rev = store.rollback(body.rev)
+    except KeyError as exc:
+        raise HTTPException(404, str(exc.args[0])) from exc
+    return ParamsInfo(rev=rev, sha256=store.info().sha256)
+
+
+@router.get("/metrics", tags=["health"], response_class=Response)
+def metrics(request: Request) -> Response:
+    """Prometheus text exposition."""
+    return Response(generate_latest(service_of(request).metrics.registry), media_type=CONTENT_TYPE_LATEST)

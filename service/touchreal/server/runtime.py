@@ -1,0 +1,286 @@
+"""The acquisition + encoding loop, on its own thread.
+
+Once per update it reads the source's next chunk (the source paces itself: real time, a replay's
+speed, or the serial device), looks at the current :class:`~.demand.Demand`, runs the
+:class:`~touchreal.stream.StreamEncoder` on exactly that, and hands an :class:`Update` to
+``publish`` (which must not block: the service posts it to the event loop). The network side can
+therefore never stall acquisition, and compute never stalls the network side.
+
+What runs follows the demand: nothing beyond acquisition while nobody wants anything (the encoder
+is dropped and restarts from rest, flagged, when demand returns); otherwise only the demanded
+(taxel, class) columns, and the PVDF branches they need (``StreamEncoder.set_active``). A new
+parameter revision is swapped in between two updates: every update is made by one revision, which
+its frames carry (``params_rev``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from touchreal_client.protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_SOURCE_GAP
+
+from ..encoding.encoder import SpikeEvents
+from ..params import EncoderParams
+from ..preprocess.pipeline import Channels
+from ..sensing.live import LiveSource
+from ..sensing.raw import RawChunk
+from ..settings import CLASSES
+from ..stream import StreamEncoder
+from .demand import Demand
+
+log = logging.getLogger("touchreal.server")
+
+_SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects")  # source counters that flag a gap
+_SANITIZER_FAULTS = ("non_finite", "gaps", "bad_time", "duplicate", "out_of_range")
+
+
+def wall_us() -> int:
+    return time.time_ns() // 1000
+
+
+@dataclass
+class Update:
+    """What one update produced, on the wire clock (integer us; sensor clock + segment offset)."""
+
+    update: int
+    params_rev: int
+    flags: int
+    acq_us: int  #: wall clock when the chunk was read from the source
+    emit_us: int  #: wall clock when the update was handed to the hub
+    t_us: np.ndarray  #: (n,) uint64 spike stamps, sorted
+    taxel: np.ndarray  #: (n,) uint16
+    cls: np.ndarray  #: (n,) uint8 index into CLASSES
+    final_us: dict[str, int]  #: per computed class: all its spikes stamped before this are out
+    channels: Channels | None = None
+    offset_us: int = 0
+    decoded: list[tuple[str, tuple[int, ...], np.ndarray, np.ndarray]] = field(default_factory=list)
+    compute_s: float = 0.0
+    latency_us: dict[str, np.ndarray] = field(default_factory=dict)  #: per class: emit - acquisition of the cause
+
+
+class ChunkLog:
+    """Recent (last sensor time of a chunk, wall time it was read): maps a spike's cause to the
+    moment its sample was acquired."""
+
+    def __init__(self, size: int = 512):
+        self.end_s = np.full(size, np.inf)
+        self.acq_us = np.zeros(size, np.int64)
+        self.i = 0
+
+    def add(self, chunk: RawChunk, acq_us: int) -> None:
+        ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
+        if not ends:
+            return
+        j = self.i % self.end_s.size
+        self.end_s[j], self.acq_us[j] = max(ends), acq_us
+        self.i += 1
+
+    def acquired_us(self, t_s: np.ndarray) -> np.ndarray:
+        """Wall time (us) at which the sample at sensor time ``t_s`` had arrived (-1 if unknown)."""
+        order = np.argsort(self.end_s)
+        ends = self.end_s[order]
+        k = np.searchsorted(ends, t_s, side="left")
+        ok = k < np.isfinite(ends).sum()
+        out = np.full(t_s.shape, -1, np.int64)
+        out[ok] = self.acq_us[order][k[ok]]
+        return out
+
+    def clear(self) -> None:
+        self.end_s[:] = np.inf
+        self.i = 0
+
+
+class Runtime:
+    """The acquisition thread of one source. ``demand()`` returns the current Demand, ``params()``
+    the active (revision, EncoderParams), ``publish(update)`` must return at once."""
+
+    def __init__(
+        self,
+        source: LiveSource,
+        demand: Callable[[], Demand],
+        params: Callable[[], tuple[int, EncoderParams]],
+        publish: Callable[[Update], None],
+        decoders: Callable[[], dict[str, object]] | None = None,
+    ):
+        self.source = source
+        self._demand, self._params, self._publish = demand, params, publish
+        self._decoders = decoders or (lambda: {})
+        self.encoder: StreamEncoder | None = None
+        self.enc_rev = 0
+        self.enc_segment = source.segment
+        self.active: dict[str, tuple[int, ...]] | None = None
+        self.update_no = 0
+        self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
+        self.error: str | None = None
+        self.first_output = threading.Event()
+        self.chunk_log = ChunkLog()
+        self.counters: dict[str, int] = {}  #: cumulative sanitizer + source fault counters
+        self._enc_stats: dict[str, int] = {}
+        self._src_faults = self._source_faults()
+        self._pending_flags = FLAG_RESTARTED
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="touchreal-acquisition", daemon=True)
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self.source.close()
+        self._thread.join(timeout)
+        self.state = "stopped"
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _run(self) -> None:
+        waits = getattr(self.source, "waits_for_demand", False)
+        paused = False
+        try:
+            while not self._stop.is_set():
+                if waits and self._demand().empty:  # a replay holds still until somebody subscribes
+                    self.state, paused = "waiting", True
+                    self._stop.wait(0.01)
+                    continue
+                if paused:
+                    self.source.resume()
+                    paused = False
+                chunk = self.source.next_chunk()
+                if chunk is None:
+                    self._end_of_stream()
+                    break
+                self.step(chunk, wall_us())
+        except Exception as exc:  # the service reports it (ready goes false); clients stay connected
+            log.exception("acquisition thread failed")
+            self.state, self.error = "failed", f"{type(exc).__name__}: {exc}"
+
+    # -- one update -----------------------------------------------------------------------------
+    def step(self, chunk: RawChunk, acq_us: int) -> Update | None:
+        """Process one chunk acquired at ``acq_us`` (wall clock); returns the published update."""
+        self.chunk_log.add(chunk, acq_us)
+        flags = self._pending_flags | self._source_flags()
+        tail = None
+        if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
+            tail = self._finish_encoder()
+            self.enc_segment = self.source.segment
+            self.chunk_log.clear()
+            self.chunk_log.add(chunk, acq_us)
+            flags |= FLAG_RESTARTED
+        demand = self._demand()
+        rev, params = self._params()
+        if demand.empty:
+            if tail is not None:
+                self._emit(tail, flags, acq_us, 0.0, None)
+            self.encoder, self.active, self.state = None, None, "idle"
+            self._pending_flags = FLAG_RESTARTED
+            return None
+        if self.encoder is not None and rev != self.enc_rev:
+            flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
+            self.encoder = None
+        if self.encoder is None:
+            self.encoder = StreamEncoder(params, self.source.n_taxels)
+            self.enc_rev, self.active, self._enc_stats = rev, None, {}
+        columns = dict(demand.columns)
+        if columns != self.active:
+            self.encoder.set_active(columns)
+            self.active = columns
+        t0 = time.perf_counter()
+        if demand.channel_taxels:
+            ch, ev = self.encoder.process_channels(chunk)
+        else:
+            ch, ev = None, self.encoder.process(chunk)
+        compute = time.perf_counter() - t0
+        flags |= self._count_sanitizer()
+        self._pending_flags = 0
+        self.state = "running"
+        if tail is not None:
+            self._emit(tail, flags, acq_us, 0.0, None)
+            flags &= ~FLAG_RESTARTED
+        return self._emit(ev, flags, acq_us, compute, ch)
+
+    def _finish_encoder(self) -> tuple[SpikeEvents, int, dict[str, float], dict[str, float]] | None:
+        if self.encoder is None:
+            return None
+        ev = self.encoder.finish()
+        out = (ev, self.source.offset_us, dict(self.encoder.final_s), self._delays())
+        self.encoder = None
+        return out
+
+    def _end_of_stream(self) -> None:
+        if self._stop.is_set():
+            return
+        tail = self._finish_encoder()
+        if tail is not None:
+            self._emit(tail, 0, wall_us(), 0.0, None)
+        self.state = "ended"
+
+    def _delays(self) -> dict[str, float]:
+        p = self.encoder.params if self.encoder is not None else self._params()[1]
+        return {c: p.classes[c].delay_ms / 1000.0 for c in p.classes}
+
+    def _emit(self, ev, flags: int, acq_us: int, compute_s: float, channels: Channels | None) -> Update:
+        if isinstance(ev, tuple):  # a flushed segment tail: (events, its offset, its finals, its delays)
+            ev, offset_us, final_s, delays = ev
+        else:
+            offset_us, final_s, delays = self.source.offset_us, dict(self.encoder.final_s), self._delays()
+        t_us = np.round(ev.t_s * 1e6).astype(np.int64) + offset_us
+        keep = t_us >= 0  # a negative class delay can stamp the very first spikes before the clock's zero
+        t_us, taxel, cls = t_us[keep].astype(np.uint64), ev.taxel[keep].astype(np.uint16), ev.cls[keep].astype(np.uint8)
+        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) for c, v in final_s.items()}
+        self.update_no += 1
+        emit = wall_us()
+        latency = {}
+        for i, c in enumerate(CLASSES):
+            sel = cls == i
+            if sel.any():
+                cause_s = ev.t_s[keep][sel] - delays.get(c, 0.0)
+                acq = self.chunk_log.acquired_us(cause_s)
+                latency[c] = (emit - acq[acq >= 0]) / 1e6
+        upd = Update(self.update_no, self.enc_rev, flags, acq_us, emit, t_us, taxel, cls, final_us, channels, offset_us,
+                     [], compute_s, latency)
+        upd.decoded = self._decode(upd)
+        self._publish(upd)
+        self.first_output.set()
+        return upd
+
+    def _decode(self, upd: Update) -> list:
+        out = []
+        for name, dec in self._decoders().items():
+            for t_us, values in dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us):
+                out.append((name, tuple(dec.taxels), np.array([t_us], np.uint64), values[None]))
+        return out
+
+    # -- counters -------------------------------------------------------------------------------
+    def _source_faults(self) -> dict[str, int]:
+        st = self.source.status()
+        return {k: int(st.get(k, 0)) for k in _SOURCE_FAULTS}
+
+    def _source_flags(self) -> int:
+        now = self._source_faults()
+        flag = FLAG_SOURCE_GAP if any(now[k] > self._src_faults[k] for k in now) else 0
+        for k in now:
+            self.counters[f"source_{k}"] = now[k]
+        self._src_faults = now
+        return flag
+
+    def _count_sanitizer(self) -> int:
+        """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing."""
+        flag = 0
+        for sensor, stats in self.encoder.pre.stats.items():
+            for k in _SANITIZER_FAULTS:
+                key = f"{sensor}_{k}"
+                v = int(stats.get(k, 0))
+                delta = v - self._enc_stats.get(key, 0)
+                if delta > 0:
+                    self.counters[key] = self.counters.get(key, 0) + delta
+                    flag |= FLAG_SOURCE_GAP if k == "gaps" else 0
+                self._enc_stats[key] = v
+        return flag

@@ -1,0 +1,239 @@
+"""The one service object the routers call: source + runtime, hub, parameter store, metrics.
+
+Threading: the acquisition :class:`~.runtime.Runtime` runs on its own thread and posts each update
+to the event loop (``call_soon_threadsafe``); everything else here runs on the event loop. If the
+loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dropped and counted
+(``touchreal_updates_dropped_overload``) rather than queued without bound.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import uuid
+from pathlib import Path
+from typing import Any
+
+from touchreal_client import protocol as P
+
+from .. import __version__
+from ..params import EncoderParams
+from .demand import Demand
+from .hub import Hub
+from .metrics import Metrics
+from .params_store import ParamsStore
+from .runtime import Runtime, Update, wall_us
+from .settings import ConfigPatch, RuntimeConfig, ServeSettings
+from .sources import open_source, parse_source
+
+log = logging.getLogger("touchreal.server")
+MAX_BACKLOG = 64
+
+
+def warm_up(params: EncoderParams) -> None:
+    """Compile the pipeline's numba kernels (cached on disk after the first run) on a short
+    synthetic stream, so the first client does not wait for the JIT."""
+    import numpy as np
+
+    from ..sensing.raw import RawChunk
+    from ..stream import StreamEncoder
+
+    se = StreamEncoder(params, 1)
+    st_t, pv_t = np.arange(50) / 100.0, np.arange(1000) / 2000.0
+    se.process(RawChunk(st_t, np.ones((50, 1)), pv_t, np.zeros((1000, 1))))
+    se.finish()
+
+
+class Service:
+    def __init__(self, settings: ServeSettings, config: RuntimeConfig):
+        parse_source(config.source)  # fail early on a bad spec
+        self.settings, self.config = settings, config
+        self.session = uuid.uuid4().hex
+        self.started_us = wall_us()
+        self.store = ParamsStore(settings.state_dir, settings.params)
+        self.metrics = Metrics()
+        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.runtime: Runtime | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest update
+        self._posted = 0
+        self._delivered = 0
+        self.source_error: str | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        await asyncio.to_thread(warm_up, self.store.active)
+        await self._open_runtime()
+
+    async def stop(self) -> None:
+        if self.runtime is not None:
+            rt, self.runtime = self.runtime, None
+            await asyncio.to_thread(rt.stop)
+
+    async def _open_runtime(self) -> None:
+        update_s = self.store.active.preprocess.update_ms / 1000.0
+        try:
+            source = await asyncio.to_thread(open_source, self.config, self.settings, update_s)
+        except (ValueError, OSError) as exc:
+            self.source_error = str(exc)
+            log.error("cannot open source %s: %s", self.config.source, exc)
+            return
+        self.source_error = None
+        self.hub.configure(source.n_taxels, self.config.classes, {})
+        self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post)
+        self.runtime.start()
+
+    async def restart_source(self) -> None:
+        await self.stop()
+        await self._open_runtime()
+
+    # -- acquisition thread -> event loop ------------------------------------------------------------
+    def _post(self, upd: Update) -> None:
+        """Called on the acquisition thread; never blocks."""
+        if self._posted - self._delivered >= MAX_BACKLOG:
+            self.metrics.overload.inc()
+            return
+        self._posted += 1
+        self.loop.call_soon_threadsafe(self._deliver, upd)
+
+    def _deliver(self, upd: Update) -> None:
+        self._delivered += 1
+        m = self.metrics
+        m.updates.inc()
+        m.compute.observe(upd.compute_s)
+        for i, c in enumerate(P.CLASSES):
+            n = int((upd.cls == i).sum())
+            if n:
+                m.events.labels(c).inc(n)
+        for c, lat in upd.latency_us.items():
+            for v in lat:
+                m.latency.labels(c).observe(float(v))
+        for sub in self.hub.subscribers.values():
+            if sub.dropped:
+                m.client_drops.labels(str(sub.id)).set(sub.dropped)
+        if upd.final_us:
+            self.anchor = (max(upd.final_us.values()), upd.emit_us)
+        self.hub.publish(upd)
+
+    # -- views ----------------------------------------------------------------------------------
+    @property
+    def n_taxels(self) -> int:
+        return self.hub.n_taxels
+
+    def latency_us(self) -> dict[str, int]:
+        """Per class: algorithmic latency of the pipeline (us), as the encoder states it."""
+        enc = self.runtime.encoder if self.runtime is not None else None
+        if enc is None:
+            from ..stream import StreamEncoder
+
+            enc = StreamEncoder(self.store.active, 1)
+        return {c: int(round(v * 1e6)) for c, v in enc.latency_s.items()}
+
+    def hello(self) -> dict[str, Any]:
+        params = self.store.active
+        positions = self.runtime.source.positions_mm if self.runtime is not None else []
+        info = self.store.info()
+        return {
+            "type": "hello",
+            "protocol": P.PROTOCOL,
+            "version": P.VERSION,
+            "versions": list(P.SUPPORTED_VERSIONS),
+            "session": self.session,
+            "server": f"touchreal {__version__}",
+            "units": {"time": "us", "force": "N", "pvdf": "V", "channels": dict(zip(P.CHANNELS, P.CHANNEL_UNITS))},
+            "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
+            "update_us": int(round(params.preprocess.update_ms * 1000)),
+            "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
+            "latency_us": self.latency_us(),
+            "classes": [c for c in P.CLASSES if c in params.classes and c in self.config.classes],
+            "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
+            "streams": {
+                "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
+                "channels": {"names": list(P.CHANNELS), "units": list(P.CHANNEL_UNITS), "rate_hz": 5000,
+                             "default_decimation": P.Subscription().decimation},
+                "decoded": {"decoders": self.decoder_list()},
+            },
+            "encodings": list(P.ENCODINGS),
+            "default_encoding": "binary",
+            "params": {"rev": info.rev, "sha256": info.sha256},
+            "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": self.settings.queue_frames,
+                       "slow_timeout_s": self.settings.slow_timeout_s},
+        }
+
+    def decoder_list(self) -> list[dict[str, Any]]:
+        return []
+
+    def status(self) -> dict[str, Any]:
+        rt = self.runtime
+        src = rt.source.status() if rt is not None else {"state": "failed", "error": self.source_error}
+        return {
+            "session": self.session,
+            "source": {"spec": self.config.source, **src},
+            "pipeline": {"state": rt.state if rt else "stopped", "error": rt.error if rt else self.source_error,
+                         "updates": rt.update_no if rt else 0, "active": rt.active if rt else None},
+            "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
+                       "channel_taxels": list(self.hub.demand.channel_taxels)},
+            "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
+                        for s in self.hub.subscribers.values()],
+            "faults": dict(rt.counters) if rt else {},
+            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
+        }
+
+    def live(self) -> bool:
+        return self.runtime is None or self.runtime.state != "failed" or self.source_error is not None
+
+    def ready(self) -> tuple[bool, str]:
+        rt = self.runtime
+        if rt is None:
+            return False, f"source not open: {self.source_error}"
+        if rt.state in ("failed", "stopped"):
+            return False, f"pipeline {rt.state}: {rt.error}"
+        st = rt.source.status().get("state")
+        if st != "streaming":
+            return False, f"source {st}"
+        if rt.state == "starting" and not rt.first_output.is_set():
+            return False, "pipeline warming up"
+        return True, "ok"
+
+    def config_view(self) -> dict[str, Any]:
+        p = self.store.active.preprocess
+        return {**self.config.model_dump(), "update_ms": p.update_ms, "window_ms": p.window_ms}
+
+    # -- changes --------------------------------------------------------------------------------
+    async def patch_config(self, patch: ConfigPatch) -> dict[str, Any]:
+        """Apply a validated patch; returns the new config and what was restarted."""
+        changes = patch.model_dump(exclude_none=True)
+        if "source" in changes:
+            parse_source(changes["source"])
+        if "classes" in changes:
+            bad = [c for c in changes["classes"] if c not in P.CLASSES]
+            if bad:
+                raise ValueError(f"classes: unknown {bad}; expected names from {list(P.CLASSES)}")
+        restarted = []
+        pre = {k: changes.pop(k) for k in ("update_ms", "window_ms") if k in changes}
+        if pre:
+            params = self.store.active
+            new = params.model_copy(update={"preprocess": params.preprocess.model_copy(update=pre)})
+            self.store.put(EncoderParams.parse(new.to_json()), "config")
+            restarted.append("pipeline")
+        cfg = self.config.model_copy(update=changes)
+        source_change = any(getattr(cfg, k) != getattr(self.config, k) for k in ("source", "taxels", "speed", "loop"))
+        self.config = cfg
+        if source_change or "update_ms" in pre:
+            await self.restart_source()
+            restarted.append("source")
+        elif "classes" in changes:
+            self.hub.configure(self.n_taxels, cfg.classes, self.hub.decoder_classes)
+        return {"config": self.config_view(), "restarted": restarted}
+
+    def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
+        """Validated parameters become active at the start of the next update."""
+        return self.store.put(params, origin)
+
+    def demand(self) -> Demand:
+        return self.hub.demand
+
+    @property
+    def state_dir(self) -> Path:
+        return self.settings.state_dir

@@ -1,0 +1,134 @@
+"""``/v1/stream``: the WebSocket layer over one :class:`~.hub.Subscriber` (docs/stream-protocol.md).
+
+Two tasks per connection: this handler reads client messages, and a sender task is the only writer
+(control replies first, then frames). A client that stalls is closed from here when the hub marks
+it (``kicked``), even while the sender is stuck in a send.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from typing import Any
+
+from fastapi import APIRouter, WebSocket
+from starlette.websockets import WebSocketDisconnect
+from touchreal_client import protocol as P
+
+from .hub import Subscriber
+from .runtime import wall_us
+
+log = logging.getLogger("touchreal.server")
+router = APIRouter()
+MAX_ERRORS_IN_A_ROW = 10
+#: How long a close may wait for a stalled client's socket to take the close frame; afterwards the
+#: transport is closed without it (the subscriber left the hub at once either way).
+CLOSE_TIMEOUT_S = 30.0
+
+
+def _dumps(msg: dict[str, Any]) -> str:
+    return json.dumps(msg, separators=(",", ":"))
+
+
+@router.websocket("/v1/stream")
+async def stream(ws: WebSocket) -> None:
+    service = ws.app.state.service
+    hub = service.hub
+    await ws.accept()
+    if len(hub.subscribers) >= service.settings.max_clients:
+        await ws.close(P.CLOSE_TRY_AGAIN, f"server full ({service.settings.max_clients} clients)")
+        return
+    sub = hub.add()
+    service.metrics.clients.inc()
+    sub.say(_dumps(service.hello()))
+    sender = asyncio.create_task(_send_loop(ws, sub))
+    kicked = asyncio.create_task(sub.kicked.wait())
+    close: tuple[int, str] | None = None
+    try:
+        close = await _receive_loop(ws, sub, service, sender, kicked)
+    except WebSocketDisconnect:
+        close = None
+    finally:
+        sender.cancel()
+        kicked.cancel()
+        hub.remove(sub)
+        service.metrics.clients.dec()
+        try:
+            service.metrics.client_drops.remove(str(sub.id))
+        except KeyError:  # never labelled: it dropped nothing
+            pass
+        if sub.kick is not None:
+            service.metrics.kicked.inc()
+            close = sub.kick
+        if close is not None:
+            try:
+                await asyncio.wait_for(ws.close(*close), CLOSE_TIMEOUT_S)
+            except Exception:  # the peer is gone or stuck: uvicorn tears the transport down
+                pass
+
+
+async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio.Task,
+                        kicked: asyncio.Task) -> tuple[int, str] | None:
+    errors = 0
+    while True:
+        recv = asyncio.ensure_future(ws.receive())
+        done, _ = await asyncio.wait({recv, sender, kicked}, return_when=asyncio.FIRST_COMPLETED)
+        if recv not in done:
+            recv.cancel()
+            return sub.kick if kicked in done else None  # the sender ended: the socket is gone
+        msg = recv.result()
+        if msg["type"] == "websocket.disconnect":
+            return None
+        t1 = wall_us()
+        text = msg.get("text")
+        try:
+            if text is None:
+                raise P.ProtocolError("binary messages from clients are not part of the protocol; send JSON text")
+            m = P.parse_client_message(text)
+            if m["type"] == "time":
+                sub.say(_dumps(P.time_reply(m, t1, wall_us())))
+            else:
+                s = P.parse_subscribe(m)
+                service.hub.subscribe(sub, s)
+                sub.say(_dumps({"type": "subscribed", **{k: v for k, v in s.to_json().items() if k != "type"},
+                                "latency_us": service.latency_us()}))
+            errors = 0
+        except P.ProtocolError as exc:
+            sub.say(_dumps(P.error_message(exc.code, str(exc))))
+            if exc.code == "unsupported_version":
+                await _drain_control(ws, sub)
+                return P.CLOSE_UNSUPPORTED_VERSION, "unsupported protocol version"
+            if exc.code == "too_big":
+                await _drain_control(ws, sub)
+                return P.CLOSE_TOO_BIG, "message too big"
+            errors += 1
+            if errors >= MAX_ERRORS_IN_A_ROW:
+                await _drain_control(ws, sub)
+                return P.CLOSE_TOO_MANY_ERRORS, f"{errors} malformed messages in a row"
+
+
+async def _drain_control(ws: WebSocket, sub: Subscriber) -> None:
+    """Give the sender a moment to deliver the error before the close."""
+    for _ in range(20):
+        if not sub.control:
+            return
+        await asyncio.sleep(0.01)
+
+
+async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
+    try:
+        while True:
+            await sub.wakeup.wait()
+            sub.wakeup.clear()
+            while sub.control or sub.queue:
+                if sub.control:
+                    await ws.send_text(sub.control.popleft())
+                    continue
+                data, _ = sub.render(sub.queue.popleft())
+                if isinstance(data, str):
+                    await ws.send_text(data)
+                else:
+                    await ws.send_bytes(data)
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        return

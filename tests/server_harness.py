@@ -1,0 +1,76 @@
+"""A real uvicorn server on 127.0.0.1 (a free port, its own thread) and small WebSocket helpers."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import uvicorn
+import websockets
+from touchreal_client import protocol as P
+
+from touchreal.server.app import create_app, uvicorn_config
+from touchreal.server.service import Service
+from touchreal.server.settings import RuntimeConfig, ServeSettings
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def running_server(state_dir: Path, config: RuntimeConfig | None = None, **settings) -> Iterator[tuple[str, Service]]:
+    """Yields (``host:port``, the service) of a server that is up; stops it afterwards (bounded)."""
+    port = free_port()
+    svc = Service(ServeSettings(host="127.0.0.1", port=port, state_dir=state_dir, **settings), config or RuntimeConfig())
+    server = uvicorn.Server(uvicorn_config(create_app(svc), "127.0.0.1", port))
+    th = threading.Thread(target=server.run, daemon=True)
+    th.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        if time.monotonic() > deadline or not th.is_alive():
+            raise RuntimeError("server did not start")
+        time.sleep(0.05)
+    try:
+        yield f"127.0.0.1:{port}", svc
+    finally:
+        server.should_exit = True
+        th.join(15)
+
+
+def connect(addr: str, **kw):
+    return websockets.connect(f"ws://{addr}/v1/stream", compression=None, open_timeout=10, **kw)
+
+
+async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:
+    hello = json.loads(await ws.recv())
+    await ws.send(json.dumps({"type": "subscribe", **sub}))
+    while True:
+        msg = await ws.recv()
+        if isinstance(msg, str) and json.loads(msg)["type"] == "subscribed":
+            return hello, json.loads(msg)
+
+
+async def collect(ws, seconds: float, until=None) -> list:
+    """Frames (decoded) received for ``seconds`` or until ``until(frames)`` is true."""
+    frames: list = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not (until and until(frames)):
+        try:
+            msg = await asyncio.wait_for(ws.recv(), max(end - time.monotonic(), 0.01))
+        except asyncio.TimeoutError:
+            break
+        if isinstance(msg, bytes):
+            frames.append(P.decode_frame(msg))
+        else:
+            m = json.loads(msg)
+            frames.append(P.frame_from_json(m) if m["type"] in ("spikes", "channels", "decoded") else m)
+    return frames

@@ -1,0 +1,289 @@
+"""/v1/stream against a real uvicorn server on 127.0.0.1 with real WebSocket clients."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+from helpers import synthetic_trial
+from server_harness import collect, connect, hello_and_subscribe, running_server
+from touchreal_client import protocol as P
+
+from touchreal.params import default_params
+from touchreal.recording import write_dataset
+from touchreal.server.settings import RuntimeConfig
+from touchreal.stream import encode_trial
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+def _spikes(frames):
+    return [f for f in frames if isinstance(f, P.SpikesFrame)]
+
+
+def test_hello_bare_subscribe_and_time_sync(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                hello, sub = await hello_and_subscribe(ws)
+                assert hello["protocol"] == "touchreal.stream" and hello["version"] == 1
+                assert hello["session"] == svc.session and hello["taxels"][0]["id"] == 0
+                assert set(hello["latency_us"]) == {"SA1", "RA", "PC"} and hello["update_us"] == 32000
+                assert sub["taxels"] is None and sub["classes"] == ["SA1", "RA", "PC"] and sub["encoding"] == "binary"
+                frames = _spikes(await collect(ws, 3.0))
+                await ws.send(json.dumps({"type": "time", "id": 7, "t0_us": 123}))
+                reply = next(m for m in await collect(ws, 2.0, lambda fs: any(isinstance(x, dict) for x in fs))
+                             if isinstance(m, dict))
+                return frames, reply
+
+        frames, reply = run(go())
+    assert len(frames) >= 30  # about 31 updates per second
+    seqs = [f.header.seq for f in frames]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and all(f.header.dropped == 0 for f in frames)
+    t = np.concatenate([f.t_us for f in frames]).astype(np.int64)
+    c = np.concatenate([f.cls for f in frames])
+    assert t.size > 0 and all(np.all(np.diff(t[c == k]) >= 0) for k in range(3))  # each class in time order
+    for prev, f in zip(frames, frames[1:]):  # finality: nothing arrives before the class's previous final_us
+        for k, cls in enumerate(P.CLASSES):
+            assert np.all(f.t_us[f.cls == k] >= prev.final_us[cls])
+    assert {c for f in frames for c in f.cls.tolist()} <= {0, 1, 2}
+    assert all(f.header.params_rev == 1 and f.header.sent_us >= f.header.emit_us for f in frames)
+    assert reply["type"] == "time" and reply["id"] == 7 and reply["t0_us"] == 123
+    assert reply["t1_us"] <= reply["t2_us"]
+
+
+def test_subscription_filters_and_changes_what_is_computed(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, taxels=[1, 2], classes=["SA1"], encoding="json")
+                first = _spikes(await collect(ws, 2.0))
+                demand = dict(svc.hub.demand.columns)
+                await ws.send(json.dumps({"type": "subscribe", "classes": ["PC"], "taxels": [3]}))
+                second = _spikes(await collect(ws, 2.5))
+                return first, demand, second
+
+        first, demand, second = run(go())
+    assert demand == {"SA1": (1, 2)}
+    assert first and all(set(f.cls.tolist()) <= {0} and set(f.taxel.tolist()) <= {1, 2} for f in first)
+    assert all(f.final_us["RA"] is None and f.final_us["SA1"] is not None for f in first)
+    late = [f for f in second if f.final_us["PC"] is not None]
+    assert late and all(set(f.cls.tolist()) <= {2} and set(f.taxel.tolist()) <= {3} for f in late)
+
+
+def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            await asyncio.sleep(0.5)
+            idle = svc.runtime.state, svc.runtime.encoder
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws)
+                await collect(ws, 1.0)
+                busy = svc.runtime.state, svc.runtime.encoder is not None
+            await asyncio.sleep(0.5)
+            return idle, busy, (svc.runtime.state, svc.runtime.encoder)
+
+        idle, busy, after = run(go())
+    assert idle == ("idle", None) and busy == ("running", True) and after == ("idle", None)
+
+
+def _replay_dataset(tmp_path):
+    trials = {"a": synthetic_trial(seed=0), "b": synthetic_trial(seed=1, freq_hz=400.0)}
+    entries = [{"id": i, "protocol": "ramp", "condition": "c", "repeat": r, "params": {}, "onset_s": 0.3,
+                "stim_end_s": 1.05} for r, i in enumerate(trials)]
+    write_dataset(tmp_path / "ds", {"name": "t", "trials": entries}, trials)
+    return tmp_path / "ds", trials
+
+
+def _replayed_trains(addr, svc, n_trials):
+    """Spikes of every replayed trial, per class, in us on the trial's own clock."""
+
+    async def go():
+        async with connect(addr) as ws:
+            await hello_and_subscribe(ws)
+            return await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended")
+
+    frames = _spikes(run(go()))
+    # trial boundaries: the source's segment offsets, in the order played
+    t = np.concatenate([f.t_us for f in frames]).astype(np.int64)
+    c = np.concatenate([f.cls for f in frames])
+    return t, c
+
+
+def test_replay_spikes_equal_touchreal_encode_to_the_microsecond(tmp_path):
+    ds, trials = _replay_dataset(tmp_path)
+    params = default_params()
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc):
+        t, c = _replayed_trains(addr, svc, 2)
+        offsets = [0, svc.runtime.source.offset_us]
+    assert offsets[1] > 0
+    for i, (name, trial) in enumerate(trials.items()):
+        lo = offsets[i]
+        hi = offsets[i + 1] if i + 1 < len(offsets) else np.iinfo(np.int64).max
+        ref = encode_trial(trial, params)
+        for k, cls in enumerate(P.CLASSES):
+            got = t[(c == k) & (t >= lo) & (t < hi)] - lo
+            want = np.round(ref[cls] * 1e6).astype(np.int64)
+            want = want[want >= 0]
+            assert np.array_equal(got, want), (name, cls, got[:5], want[:5])
+
+
+@pytest.mark.shared
+def test_replay_of_a_rig_trial_equals_encode(tmp_path, rig):
+    entry = rig.entries("ramp")[5]
+    with running_server(tmp_path, RuntimeConfig(source=f"replay:{rig.root}:{entry['id']}", speed=10.0)) as (addr, svc):
+        t, c = _replayed_trains(addr, svc, 1)
+    ref = encode_trial(rig.load(entry), default_params())
+    for k, cls in enumerate(P.CLASSES):
+        want = np.round(ref[cls] * 1e6).astype(np.int64)
+        assert np.array_equal(t[c == k], want[want >= 0]), cls
+
+
+def test_sensor_clock_runs_past_2_to_the_32_microseconds(tmp_path):
+    with running_server(tmp_path, sim_t0_s=2**32 / 1e6 - 0.5) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 50})
+                return await collect(ws, 2.5)
+
+        frames = run(go())
+    ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    finals = [f.final_us["SA1"] for f in _spikes(frames)]
+    assert min(finals) < 2**32 < max(finals)
+    assert ch and ch[-1].t0_us > 2**32 and ch[0].period_us == 50 * 200
+    assert np.isfinite(np.concatenate([f.data for f in ch])).all()
+
+
+def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            out = {}
+            async with connect(addr) as ws:
+                json.loads(await ws.recv())
+                for bad in ("{", "[1]", '{"type": "subscribe", "classes": ["SA9"]}'):
+                    await ws.send(bad)
+                    out.setdefault("errors", []).append(json.loads(await ws.recv()))
+                await ws.send(b"\x00\x01")
+                out["binary"] = json.loads(await ws.recv())
+                await ws.send(json.dumps({"type": "subscribe"}))  # still alive and serving
+                out["ok"] = json.loads(await ws.recv())["type"]
+            async with connect(addr) as ws:
+                await ws.recv()
+                await ws.send(json.dumps({"type": "subscribe", "version": 99}))
+                out["version_error"] = json.loads(await ws.recv())
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    await asyncio.wait_for(ws.recv(), 5)
+                out["version_close"] = closed.value.rcvd.code
+            async with connect(addr) as ws:
+                await ws.recv()
+                for _ in range(10):
+                    await ws.send("nonsense")
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    while True:
+                        await asyncio.wait_for(ws.recv(), 5)
+                out["spam_close"] = closed.value.rcvd.code
+            async with connect(addr, max_size=None) as ws:
+                await ws.recv()
+                await ws.send("x" * (P.MAX_CLIENT_MESSAGE_BYTES + 10))
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    await asyncio.wait_for(ws.recv(), 5)
+                out["big_close"] = closed.value.rcvd.code
+            return out
+
+        out = run(go())
+        alive = httpx.get(f"http://{addr}/v1/health").status_code
+    assert [e["code"] for e in out["errors"]] == ["bad_message"] * 3
+    assert "SA9" in out["errors"][2]["message"] and "binary" in out["binary"]["message"]
+    assert out["ok"] == "subscribed"
+    assert out["version_error"]["code"] == "unsupported_version" and out["version_close"] == P.CLOSE_UNSUPPORTED_VERSION
+    assert out["spam_close"] == P.CLOSE_TOO_MANY_ERRORS
+    assert out["big_close"] == P.CLOSE_TOO_BIG
+    assert alive == 200
+
+
+def test_stalled_client_is_dropped_and_others_are_unaffected(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=8, slow_timeout_s=0.5) as (addr, svc):
+
+        async def go():
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect(tuple(addr.split(":")[:1]) + (int(addr.split(":")[1]),))
+            sub = {"streams": ["spikes", "channels"], "channels": {"decimation": 1}}
+            async with connect(addr, sock=sock, max_size=None) as stalled, connect(addr, max_size=None) as good:
+                await hello_and_subscribe(stalled, **sub)
+                stalled_id = min(svc.hub.subscribers)  # it connected first
+                await hello_and_subscribe(good, **sub)
+                frames = await collect(good, 8.0, lambda fs: svc.metrics.kicked._value.get() >= 1 and len(fs) > 100)
+                gone = stalled_id not in svc.hub.subscribers
+                # the stalled client now reads what was buffered, then its close
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    while True:
+                        await asyncio.wait_for(stalled.recv(), 10)
+                return frames, closed.value.rcvd, gone
+
+        frames, rcvd, gone = run(go())
+        kicked = svc.metrics.kicked._value.get()
+    assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and "slow consumer" in rcvd.reason
+    assert kicked == 1 and gone
+    seqs = [f.header.seq for f in frames]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and frames[-1].header.dropped == 0
+
+
+def test_many_subscribers_lose_nothing(tmp_path):
+    n = 25
+    with running_server(tmp_path) as (addr, svc):
+
+        async def one():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws)
+                return _spikes(await collect(ws, 3.0))
+
+        async def go():
+            return await asyncio.gather(*(one() for _ in range(n)))
+
+        results = run(go())
+        rendered = svc.hub.frames_rendered
+        updates = svc.runtime.update_no
+    for frames in results:
+        seqs = [f.header.seq for f in frames]
+        assert len(frames) > 40 and seqs == list(range(len(seqs))) and frames[-1].header.dropped == 0
+    # the same subscription is rendered once per update, whatever the number of subscribers
+    assert rendered <= updates
+    # every subscriber got the same spikes for the updates they share
+    common = set.intersection(*({f.header.update for f in fr} for fr in results))
+    by_update = [{f.header.update: f.t_us.tolist() for f in fr} for fr in results]
+    assert all(b[u] == by_update[0][u] for b in by_update for u in common)
+
+
+def test_parameter_upload_while_streaming_swaps_between_updates(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+        new = default_params().model_copy(deep=True)
+        new.classes["SA1"].tau_ms = new.classes["SA1"].tau_ms * 1.5
+
+        async def go():
+            async with connect(addr) as ws, httpx.AsyncClient(base_url=f"http://{addr}") as http:
+                await hello_and_subscribe(ws)
+                before = _spikes(await collect(ws, 1.0))
+                r = await http.put("/v1/params", json=json.loads(new.to_json()))
+                after = _spikes(await collect(ws, 1.5))
+                return before, r, after
+
+        before, r, after = run(go())
+    assert r.status_code == 200 and r.json()["rev"] == 2
+    revs = [f.header.params_rev for f in before + after]
+    assert revs == sorted(revs) and set(revs) == {1, 2}
+    first_new = next(f for f in after if f.header.params_rev == 2)
+    assert "params_changed" in first_new.header.flag_names()
+    assert sum("params_changed" in f.header.flag_names() for f in before + after) == 1
