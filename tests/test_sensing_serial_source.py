@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from helpers import synthetic_trial
 
+from touchreal.encoding.encoder import SpikeEvents
 from touchreal.params import default_params
 from touchreal.recording import Trial, write_dataset
 from touchreal.sensing.mcu_emulator import Faults, PtyPort, frame_schedule, play
@@ -27,14 +28,33 @@ from touchreal.stream import StreamEncoder, encode_trial
 SPEED = 6.0  # playback speed: a 1.5 s trial streams in 0.25 s
 
 
+def wait_until(cond: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
 @contextmanager
-def emulated(path: Path, trials: list[Trial], n_taxels: int = 1, speed: float = SPEED, **play_kw) -> Iterator[threading.Thread]:
-    """The emulator in a thread, writing to a real pty linked at ``path``; waits for the reader."""
+def reading(path: Path, n_taxels: int = 1) -> Iterator[tuple[PtyPort, SerialSource]]:
+    """A plugged emulated port and a SerialSource that has opened it (and flushed its input)."""
     port = PtyPort(path)
     port.plug()
+    src = SerialSource(str(path), n_taxels=n_taxels, update_s=0.02)
+    try:
+        wait_until(lambda: src.status()["connects"] > 0)
+        yield port, src
+    finally:
+        src.close()
+        port.close()
+
+
+@contextmanager
+def emulated(port: PtyPort, trials: list[Trial], n_taxels: int = 1, speed: float = SPEED) -> Iterator[threading.Thread]:
+    """The emulator in a thread, writing ``trials`` to the real pty of ``port``."""
     stop = threading.Event()
     schedule = frame_schedule(trials, n_taxels=n_taxels)
-    kw = dict(speed=speed, wait_for_host_s=10.0, linger_s=0.3, should_stop=stop.is_set) | play_kw
+    kw = dict(speed=speed, linger_s=0.3, should_stop=stop.is_set)
     thread = threading.Thread(target=play, args=(schedule, port), kwargs=kw, daemon=True)
     thread.start()
     try:
@@ -42,7 +62,6 @@ def emulated(path: Path, trials: list[Trial], n_taxels: int = 1, speed: float = 
     finally:
         stop.set()
         thread.join(5)
-        port.close()
 
 
 def drain(
@@ -80,14 +99,10 @@ def stream_encoded(path: Path, trial: Trial, n_taxels: int) -> tuple[RawChunk, S
     """Play ``trial`` through a pty into a SerialSource and a live StreamEncoder."""
     se = StreamEncoder(default_params(), n_taxels)
     parts = []
-    src = SerialSource(str(path), n_taxels=n_taxels, update_s=0.02)
-    try:
-        with emulated(path, [trial], n_taxels=n_taxels) as emu:
-            got, states = drain(src, lambda: not emu.is_alive(), lambda c: parts.append(se.process(c)))
-        parts.append(se.finish())
+    with reading(path, n_taxels) as (port, src), emulated(port, [trial], n_taxels) as emu:
+        got, states = drain(src, lambda: not emu.is_alive(), lambda c: parts.append(se.process(c)))
         status = src.status()
-    finally:
-        src.close()
+    parts.append(se.finish())
     assert "streaming" in states
     return got, se, parts, status
 
@@ -101,12 +116,11 @@ def test_samples_and_spikes_through_a_pty_equal_the_recording(tmp_path):
         assert np.array_equal(got.st[:, taxel], trial.st) and np.array_equal(got.pvdf[:, taxel], trial.pvdf)
     assert status["frames"] == trial.st.size + trial.pvdf.size // 10
     assert status["crc_errors"] == status["gaps"] == status["bytes_discarded"] == status["reconnects"] == 0
-    from touchreal.encoding.encoder import SpikeEvents
-
+    assert 0 <= status["seconds_since_frame"] < 2
     assert_spikes_equal(SpikeEvents.concatenate(parts), trial, n_taxels=2)
 
 
-def test_source_after_close_returns_none_and_says_closed(tmp_path):
+def test_missing_port_never_raises_and_close_ends_the_stream(tmp_path):
     src = SerialSource(str(tmp_path / "absent"), update_s=0.01)
     chunk = src.next_chunk()  # no port: an empty chunk, no exception
     assert chunk is not None and chunk.st_t.size == chunk.pvdf_t.size == 0
@@ -126,8 +140,6 @@ def test_rig_trial_through_a_pty_gives_the_recorded_samples_and_spikes(tmp_path,
     np.testing.assert_allclose(got.pvdf_t, trial.pvdf_t, rtol=0, atol=1e-6)
     assert np.array_equal(got.st[:, 0], trial.st) and np.array_equal(got.pvdf[:, 0], trial.pvdf)
     assert status["crc_errors"] == status["gaps"] == 0
-    from touchreal.encoding.encoder import SpikeEvents
-
     assert_spikes_equal(SpikeEvents.concatenate(parts), trial, n_taxels=1)
 
 
@@ -142,21 +154,25 @@ def test_non_finite_samples_pass_through_and_the_encoder_stays_finite(tmp_path):
     assert se.pre.stats["singletact"]["non_finite"] == 3 and se.pre.stats["pvdf"]["non_finite"] == 12
     finite, peak, _ = se.state_report()
     assert finite and np.isfinite(peak)
-    from touchreal.encoding.encoder import SpikeEvents
-
     events = SpikeEvents.concatenate(parts)
     assert len(events) > 0 and np.all(np.isfinite(events.t_s))
 
 
+def test_a_second_reader_of_the_same_port_is_refused_and_says_why(tmp_path):
+    with reading(tmp_path / "ttyTR0") as (port, first):
+        second = SerialSource(str(port.path), update_s=0.01)
+        time.sleep(0.3)
+        status = second.status()
+        second.close()
+    assert first.status()["connects"] == 1 and not port.host_attached()
+    assert status["connects"] == 0 and status["state"] == "disconnected" and "lock" in status["last_error"]
+
+
 def test_frames_with_another_taxel_count_are_rejected_and_counted(tmp_path):
-    path = tmp_path / "ttyTR0"
-    src = SerialSource(str(path), n_taxels=1, update_s=0.02)
-    try:
-        with emulated(path, [synthetic_trial(duration_s=0.5)], n_taxels=3) as emu:
+    with reading(tmp_path / "ttyTR0", n_taxels=1) as (port, src):
+        with emulated(port, [synthetic_trial(duration_s=0.5)], n_taxels=3) as emu:
             got, _ = drain(src, lambda: not emu.is_alive())
         status = src.status()
-    finally:
-        src.close()
     assert got.st_t.size == got.pvdf_t.size == 0
     assert status["frames"] == status["wrong_taxels"] == 50 + 100
 
@@ -173,6 +189,16 @@ def test_device_restart_rebases_the_clock_so_time_keeps_increasing():
     assert chunk.pvdf_t[10] == pytest.approx(5.0045 + 0.75) and chunk.pvdf_t[20] == pytest.approx(5.7545 + 0.005)
     assert parser.stats.restarts == 1 and parser.stats.gaps == 0 and coll.wrong_taxels == 1
     assert coll.take().pvdf_t.size == 0
+
+
+def test_samples_nobody_takes_are_bounded_and_counted():
+    parser, coll = FrameParser(), SampleCollector(n_taxels=1)
+    data = b"".join(encode_frame(Channel.SINGLETACT, k, 1, 10_000 * k, [[float(k)]]) for k in range(1500))
+    coll.add(parser.feed(data), now_s=0.0)  # 15 s of SingleTact, never taken
+    chunk = coll.take()
+    assert coll.overflowed == 500 and chunk.st.shape == (1000, 1) and chunk.st[0, 0] == 500.0
+    with pytest.raises(ValueError, match="n_taxels"):
+        SerialSource("loop://", n_taxels=0)
 
 
 def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):

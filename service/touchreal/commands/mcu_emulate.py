@@ -31,7 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drop-rate", type=float, default=0.0, help="probability a frame is lost")
     p.add_argument("--unplug-after", type=float, default=None, metavar="S", help="unplug after S s of playback")
     p.add_argument("--replug-after", type=float, default=1.0, metavar="S", help="replug S s after an unplug (default 1)")
-    p.add_argument("--wait-for-host", type=float, default=0.0, metavar="S", help="hold the start until a host opens the port (at most S s)")
+    p.add_argument(
+        "--wait-for-host", type=float, default=0.0, metavar="S", help="hold the start until a host opens the port (at most S s)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault generator and the session id")
     p.set_defaults(func=run)
 

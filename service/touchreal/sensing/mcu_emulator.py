@@ -32,6 +32,9 @@ from ..recording import Trial
 from .serial_frame import PERIOD_US, Channel, encode_frame
 
 
+HOST_SETTLE_S = 0.1  #: pause after a host opens the port before playback starts (wait_for_host_s)
+
+
 @dataclass(frozen=True)
 class Faults:
     """Per-frame fault probabilities and the generator seed."""
@@ -206,13 +209,16 @@ def play(
     With ``unplug_after_s`` the port is unplugged after that many seconds of playback (recording
     time) and replugged ``replug_after_s`` later, repeatedly; the device clock and sequence numbers
     run on meanwhile. ``wait_for_host_s`` holds the start until a host opens the port (like firmware
-    that waits for the USB host), at most that long. After the last frame the port stays open
+    that waits for the USB host), at most that long, then ``HOST_SETTLE_S`` more for the host to
+    configure the port (opening flushes its input: frames written meanwhile would be lost). After the last frame the port stays open
     ``linger_s`` (wall time) so the host can read what is still in the pty's buffer.
     """
     if speed <= 0:
         raise ValueError("speed must be positive")
     port.plug()
-    _wait(wait_for_host_s, lambda: port.host_attached() or should_stop())
+    if wait_for_host_s > 0:
+        _wait(wait_for_host_s, lambda: port.host_attached() or should_stop())
+        time.sleep(HOST_SETTLE_S)
     start = time.monotonic()
     first_us: int | None = None
     for send_us, data in schedule:

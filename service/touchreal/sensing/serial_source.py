@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable
 
 import numpy as np
@@ -23,11 +24,12 @@ import serial
 
 from .raw import RawChunk
 from .scene import taxel_grid
-from .serial_frame import PERIOD_US, Channel, Event, Frame, FrameParser, Restart
+from .serial_frame import MAX_TAXELS, PERIOD_US, Channel, Event, Frame, FrameParser, Restart
 
 DEFAULT_BAUDRATE = 921_600
 BACKOFF_S = (0.1, 2.0)  #: first and largest reconnect delay
 READ_TIMEOUT_S = 0.05  #: longest a blocking read waits (bounds how fast close() is noticed)
+MAX_PENDING_S = 10.0  #: samples kept for a consumer that stopped calling next_chunk (s per channel)
 
 
 class SampleCollector:
@@ -36,18 +38,22 @@ class SampleCollector:
     Frames with another taxel count than ``n_taxels`` are rejected and counted
     (``wrong_taxels``). After a device restart (:class:`Restart`: its clock starts again at 0) the
     device clock is re-based so the new samples continue after the last delivered ones, spaced by
-    the host time that passed (``now_s``), so sensor time never runs backwards.
+    the host time that passed (``now_s``), so sensor time never runs backwards. If nobody takes the
+    samples, at most ``MAX_PENDING_S`` of each channel are kept; older frames are dropped and
+    counted (``overflowed``), so a stalled consumer cannot exhaust memory.
     """
 
     def __init__(self, n_taxels: int):
         self.n_taxels = n_taxels
         self.wrong_taxels = 0
+        self.overflowed = 0
         self.samples = {Channel.SINGLETACT: 0, Channel.PVDF: 0}
         self._offset_us = 0  # sensor clock = device clock + offset
         self._rebase = False
         self._last_us: int | None = None  # sensor time of the latest sample delivered
         self._last_host_s = 0.0  # host time it arrived
-        self._pending: dict[Channel, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in Channel}
+        self._pending: dict[Channel, deque[tuple[np.ndarray, np.ndarray]]] = {c: deque() for c in Channel}
+        self._n_pending = {c: 0 for c in Channel}
 
     def add(self, events: Iterable[Event], now_s: float) -> None:
         """Take the frames of ``events``; ``now_s`` is the host's monotonic time of arrival (s)."""
@@ -63,17 +69,26 @@ class SampleCollector:
                     self._offset_us = self._last_us + elapsed_us - ev.t0_us
                     self._rebase = False
                 t_us = ev.times_us + self._offset_us
-                self._pending[ev.channel].append((t_us, ev.samples))
+                self._keep(ev.channel, t_us, ev.samples)
                 self.samples[ev.channel] += ev.samples.shape[0]
                 self._last_us = max(int(t_us[-1]), self._last_us if self._last_us is not None else int(t_us[-1]))
                 self._last_host_s = now_s
+
+    def _keep(self, channel: Channel, t_us: np.ndarray, samples: np.ndarray) -> None:
+        pending = self._pending[channel]
+        pending.append((t_us, samples))
+        self._n_pending[channel] += t_us.size
+        limit = MAX_PENDING_S * 1e6 / PERIOD_US[channel]
+        while self._n_pending[channel] > limit:
+            self._n_pending[channel] -= pending.popleft()[0].size
+            self.overflowed += 1
 
     def take(self) -> RawChunk:
         """Every sample collected since the last call (times in s, values float64)."""
         parts = []
         for ch in (Channel.SINGLETACT, Channel.PVDF):
             got = self._pending[ch]
-            self._pending[ch] = []
+            self._pending[ch], self._n_pending[ch] = deque(), 0
             t = np.concatenate([g[0] for g in got]) / 1e6 if got else np.zeros(0)
             x = np.concatenate([g[1] for g in got]).astype(np.float64) if got else np.zeros((0, self.n_taxels))
             parts += [t, x]
@@ -97,6 +112,8 @@ class SerialSource:
     ):
         if update_s <= 0:
             raise ValueError("update_s must be positive")
+        if not 1 <= n_taxels <= MAX_TAXELS:
+            raise ValueError(f"n_taxels must be in 1..{MAX_TAXELS}, got {n_taxels}")
         self.port = port
         self.n_taxels = int(n_taxels)
         self.positions_mm = taxel_grid(self.n_taxels)
@@ -111,6 +128,7 @@ class SerialSource:
         self._connects = 0
         self._bytes = 0
         self._last_error = ""
+        self._last_frame_s: float | None = None  # host monotonic time of the latest valid frame
         self._next_tick = time.monotonic() + self.update_s
         self._thread = threading.Thread(target=self._run, name=f"serial-source {port}", daemon=True)
         self._thread.start()
@@ -127,19 +145,23 @@ class SerialSource:
             return self._collector.take()
 
     def status(self) -> dict[str, int | float | str]:
-        """State (connecting | streaming | disconnected | closed) and cumulative counters."""
+        """State (connecting | streaming | disconnected | closed), cumulative counters and
+        ``seconds_since_frame`` (-1 before the first frame; a silent device shows here)."""
         with self._lock:
+            age = -1.0 if self._last_frame_s is None else time.monotonic() - self._last_frame_s
             return {
                 "state": self._state,
                 "port": self.port,
                 **self._parser.stats.as_dict(),
                 "wrong_taxels": self._collector.wrong_taxels,
+                "overflowed": self._collector.overflowed,
                 "samples_st": self._collector.samples[Channel.SINGLETACT],
                 "samples_pvdf": self._collector.samples[Channel.PVDF],
                 "bytes_received": self._bytes,
                 "connects": self._connects,
                 "reconnects": max(0, self._connects - 1),
                 "last_error": self._last_error,
+                "seconds_since_frame": round(age, 3),
             }
 
     def close(self) -> None:
@@ -160,7 +182,9 @@ class SerialSource:
         while not self._closed.is_set():
             self._set_state("connecting")
             try:
-                dev = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=READ_TIMEOUT_S)
+                dev = serial.serial_for_url(
+                    self.port, baudrate=self.baudrate, timeout=READ_TIMEOUT_S, exclusive=True
+                )
             except (serial.SerialException, OSError, ValueError) as exc:
                 self._set_state("disconnected", exc)
                 self._closed.wait(delay)
@@ -188,5 +212,7 @@ class SerialSource:
                 self._bytes += len(data)
                 events = self._parser.feed(data)
                 self._collector.add(events, now)
-                if any(isinstance(ev, Frame) for ev in events) and not self._closed.is_set():
-                    self._state = "streaming"
+                if any(isinstance(ev, Frame) for ev in events):
+                    self._last_frame_s = now
+                    if not self._closed.is_set():
+                        self._state = "streaming"
