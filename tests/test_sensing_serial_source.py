@@ -20,7 +20,7 @@ from touchreal.params import default_params
 from touchreal.recording import Trial, write_dataset
 from touchreal.sensing.mcu_emulator import Faults, PtyPort, frame_schedule, play
 from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.serial_frame import Channel, FrameParser, encode_frame
+from touchreal.sensing.serial_frame import Channel, Frame, FrameParser, encode_frame
 from touchreal.sensing.serial_source import SampleCollector, SerialSource
 from touchreal.settings import CLASSES
 from touchreal.stream import StreamEncoder, encode_trial
@@ -199,6 +199,45 @@ def test_samples_nobody_takes_are_bounded_and_counted():
     assert coll.overflowed == 500 and chunk.st.shape == (1000, 1) and chunk.st[0, 0] == 500.0
     with pytest.raises(ValueError, match="n_taxels"):
         SerialSource("loop://", n_taxels=0)
+
+
+def test_schedule_plays_trials_back_to_back_on_one_device_clock_with_seeded_faults():
+    a, b = synthetic_trial(duration_s=0.6, seed=1), synthetic_trial(duration_s=0.4, seed=2)
+    sched = list(frame_schedule([a, b], pvdf_block=10))
+    assert all(s1 <= s2 for (s1, _), (s2, _) in zip(sched, sched[1:]))  # in send order
+    parser = FrameParser()
+    events = parser.feed(b"".join(d for _, d in sched))
+    st_frames = [e for e in events if isinstance(e, Frame) and e.channel is Channel.SINGLETACT]
+    t_us = np.concatenate([f.times_us for f in st_frames])
+    offset = t_us[a.st.size] - round(b.st_t[0] * 1e6)
+    assert offset % 10_000 == 0 and offset > a.duration_s * 1e6  # phase kept, after trial a
+    assert np.array_equal(t_us[: a.st.size], np.rint(a.st_t * 1e6)) and np.all(np.diff(t_us) > 0)
+    assert np.array_equal(np.concatenate([f.samples[:, 0] for f in st_frames]), np.concatenate([a.st, b.st]))
+    assert parser.stats.frames == len(sched) == a.st.size + b.st.size + (a.pvdf.size + b.pvdf.size) // 10
+    assert parser.stats.gaps == 0
+    faulty = list(frame_schedule([a, b], faults=Faults(drop_rate=0.1, corrupt_rate=0.1, seed=7)))
+    assert faulty == list(frame_schedule([a, b], faults=Faults(drop_rate=0.1, corrupt_rate=0.1, seed=7)))
+    hurt = FrameParser()
+    hurt.feed(b"".join(d for _, d in faulty))
+    assert hurt.stats.frames < len(faulty) < len(sched) and hurt.stats.crc_errors > 0
+    assert hurt.stats.frames + hurt.stats.frames_missed == len(sched)  # every loss is counted
+    with pytest.raises(ValueError, match="drop_rate"):
+        Faults(drop_rate=1.5)
+
+
+def test_emulator_command_reports_bad_arguments_clearly(tmp_path, capsys):
+    from touchreal.cli import main
+
+    root = tmp_path / "data"
+    entry = {"id": "syn", "protocol": "ramp", "condition": "press", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.0}
+    write_dataset(root, {"trials": [entry]}, {"syn": synthetic_trial(duration_s=0.3)})
+    (tmp_path / "file").write_text("keep me")
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--trial", "nope"]) == 2
+    assert "no trial 'nope'" in capsys.readouterr().err
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "file")]) == 2
+    assert "not a symlink" in capsys.readouterr().err and (tmp_path / "file").read_text() == "keep me"
+    assert main(["mcu-emulate", str(tmp_path), "--port", str(tmp_path / "p")]) == 2
+    assert "no manifest.json" in capsys.readouterr().err
 
 
 def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
