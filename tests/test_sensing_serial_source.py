@@ -236,6 +236,8 @@ def test_emulator_command_reports_bad_arguments_clearly(tmp_path, capsys):
     assert "no trial 'nope'" in capsys.readouterr().err
     assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "file")]) == 2
     assert "not a symlink" in capsys.readouterr().err and (tmp_path / "file").read_text() == "keep me"
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--taxels", "200"]) == 2
+    assert "values per frame" in capsys.readouterr().err and not (tmp_path / "p").exists()
     assert main(["mcu-emulate", str(tmp_path), "--port", str(tmp_path / "p")]) == 2
     assert "no manifest.json" in capsys.readouterr().err
 

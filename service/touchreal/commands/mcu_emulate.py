@@ -16,13 +16,14 @@ from pathlib import Path
 
 from ..recording import Dataset
 from ..sensing.mcu_emulator import Faults, PtyPort, frame_schedule, play
+from ..sensing.serial_frame import MAX_TAXELS, MAX_VALUES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("mcu-emulate", help="play a recording over a pseudo-terminal like the sensor microcontroller")
     p.add_argument("dataset", type=Path, help="dataset folder (manifest.json + trials/)")
     p.add_argument("--port", type=Path, required=True, help="symlink to create for the emulated port, e.g. /tmp/ttyTR0")
-    p.add_argument("--trial", action="append", default=None, metavar="ID", help="play this trial (repeatable; default all)")
+    p.add_argument("--trial", nargs="+", action="extend", default=None, metavar="ID", help="trials to play (default all)")
     p.add_argument("--loop", action="store_true", help="start over after the last trial, forever")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed relative to real time (default 1)")
     p.add_argument("--taxels", type=int, default=1, help="taxels per frame; each carries the recording (default 1)")
@@ -44,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
         entries = [ds.entry(t) for t in args.trial] if args.trial else ds.trials
     except KeyError as exc:
         raise ValueError(f"{args.dataset}: no trial {exc.args[0]!r}") from None
-    if args.taxels < 1:
-        raise ValueError("--taxels must be >= 1")
+    if not (1 <= args.taxels <= MAX_TAXELS and 1 <= args.pvdf_block and args.taxels * args.pvdf_block <= MAX_VALUES):
+        raise ValueError(f"--taxels (1..{MAX_TAXELS}) times --pvdf-block must be at most {MAX_VALUES} values per frame")
     faults = Faults(drop_rate=args.drop_rate, corrupt_rate=args.corrupt_rate, seed=args.seed)
     trials = (ds.load(e) for e in (itertools.cycle(entries) if args.loop else entries))
     schedule = frame_schedule(trials, n_taxels=args.taxels, pvdf_block=args.pvdf_block, faults=faults)

@@ -231,8 +231,10 @@ def play(
             time.sleep(delay)
         if unplug_after_s is not None:
             connected = rec_s % (unplug_after_s + replug_after_s) < unplug_after_s
-            if connected != port.plugged:
-                port.plug() if connected else port.unplug()
+            if connected and not port.plugged:
+                port.plug()
+            elif not connected and port.plugged:
+                port.unplug()
         if port.plugged:
             port.send(data)
         else:
