@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -221,3 +222,30 @@ def test_worked_example_in_the_protocol_document_is_what_the_encoder_writes():
     assert example == want
     (ev,) = FrameParser().feed(example)
     assert ev.t0_us == 1_500_000
+
+
+def test_c_struct_in_the_protocol_document_reads_the_worked_example(tmp_path):
+    """Compile the document's C header and decode the example frame with it (needs a C compiler)."""
+    import shutil
+    import subprocess
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    text = DOC.read_text()
+    (tmp_path / "tr.h").write_text(re.search(r"```c\n(.*?)```", text, re.S).group(1))
+    example = bytes.fromhex("".join(re.search(r"<!-- example-frame -->\s*```\s*(.*?)```", text, re.S).group(1).split()))
+    (tmp_path / "main.c").write_text(
+        '#include <stdio.h>\n#include <string.h>\n#include "tr.h"\n'
+        f"static const unsigned char frame[] = {{{', '.join(str(b) for b in example)}}};\n"
+        "int main(void) { tr_header_t h; float s[4]; memcpy(&h, frame, sizeof h);\n"
+        "  memcpy(s, frame + sizeof h, sizeof s);\n"
+        '  printf("%u %u %x %llu %u %u %x %g %g %g %g %x %lx", h.channel, h.seq, h.session, (unsigned long long)h.t0_us,\n'
+        "         h.n_taxels, h.n_samples, h.header_crc, s[0], s[1], s[2], s[3], tr_crc16(frame, 20),\n"
+        "         (unsigned long)tr_crc32(frame, sizeof frame - 4)); return 0; }\n"
+    )
+    subprocess.run([cc, "-std=c11", "-Wall", "-Werror", "-o", str(tmp_path / "main"), str(tmp_path / "main.c")], check=True)
+    out = subprocess.run([str(tmp_path / "main")], check=True, capture_output=True, text=True).stdout
+    header_crc, frame_crc = f"{crc16(example[:20]):x}", f"{zlib.crc32(example[:-4]):x}"
+    fields = ["2", "258", "beef", "1500000", "2", "2", header_crc, "0.25", "-0.5", "1", "0.125", header_crc, frame_crc]
+    assert out.split() == fields

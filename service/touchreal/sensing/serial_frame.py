@@ -1,31 +1,17 @@
-"""The microcontroller's serial frame (docs/serial-protocol.md): a sans-I/O encoder and parser.
+"""The microcontroller's serial frame (layout, CRCs, C struct: docs/serial-protocol.md), sans-I/O.
 
-One frame carries ``n_samples`` consecutive samples of one sensor channel for ``n_taxels`` taxels:
+A frame is a 22-byte header (sync ``A5 5A``, version, channel, per-channel ``seq``, boot
+``session``, ``t0_us`` device time of the first sample, ``n_taxels``, ``n_samples``, CRC-16 of the
+header), ``n_samples x n_taxels`` little-endian float32 samples (N for the SingleTact at 100 Hz,
+V for the PVDF at 2 kHz; sample k at ``t0_us + k * period_us``), and a CRC-32 of everything before
+it. The header CRC lets the parser reject a corrupted length field as soon as the header is in,
+and :data:`MAX_VALUES` bounds what a header may announce (4 KiB of samples), so a bad length never
+makes it wait for a frame that is not there.
 
-====== ====== =============== =====================================================================
-offset bytes  field           meaning
-====== ====== =============== =====================================================================
-0      2      sync            ``A5 5A``
-2      1      version         1
-3      1      channel         1 = SingleTact (N, 100 Hz), 2 = PVDF (V, 2 kHz)
-4      2      seq             per-channel frame counter, +1 per frame, wraps 65535 -> 0
-6      2      session         random at device boot; a change means the device restarted
-8      8      t0_us           device time of the first sample (us); sample k is at
-                              ``t0_us + k * period_us`` (10 000 us SingleTact, 500 us PVDF)
-16     2      n_taxels        1 .. 256
-18     2      n_samples       1 .. ; ``n_taxels * n_samples <= MAX_VALUES``
-20     2      header_crc      CRC-16/CCITT-FALSE of bytes 0..19
-22     4*k    samples         float32, sample-major: ``samples[s][taxel]``, k = n_samples * n_taxels
-22+4k  4      crc             CRC-32 (zlib) of bytes 0 .. 22+4k-1 (header and samples)
-====== ====== =============== =====================================================================
-
-All integers and floats are little-endian. The header CRC lets the parser reject a corrupted
-length field as soon as the 22 header bytes are in, so a bad length never makes it wait for a
-frame that is not there; :data:`MAX_VALUES` bounds what a header may announce (4 KiB of samples).
-
-:class:`FrameParser` turns bytes into events (:class:`Frame`, :class:`Gap`, :class:`Restart`,
-:class:`CrcError`, :class:`Resync`) and keeps :class:`ParserStats`. It never blocks, sleeps or
-does I/O, and the events do not depend on how the byte stream is split into ``feed`` calls.
+:func:`encode_frame` writes a frame; :class:`FrameParser` turns bytes into events
+(:class:`Frame`, :class:`Gap`, :class:`Restart`, :class:`CrcError`, :class:`Resync`) and keeps
+:class:`ParserStats`. It never blocks, sleeps or does I/O, and its events do not depend on how
+the byte stream is split into ``feed`` calls.
 """
 
 from __future__ import annotations
