@@ -14,6 +14,7 @@ import sys
 COMMAND_MODULES = (
     "touchreal.commands.demo",
     "touchreal.commands.encode",
+    "touchreal.commands.mcu_emulate",
     "touchreal.reference.command",
     "touchreal.sensing.command",
     "touchreal.fitting.command",
