@@ -102,6 +102,9 @@ class SerialSource:
     :meth:`next_chunk` blocks (s). Taxel centres are ``taxel_grid(n_taxels)`` (mm).
     """
 
+    segment = 0  #: one stream, reconnects included (a gap, not a new segment)
+    offset_us = 0  #: the device clock is the wire clock
+
     def __init__(
         self,
         port: str,

@@ -109,6 +109,13 @@ class Service:
         for c, lat in upd.latency_us.items():
             for v in lat:
                 m.latency.labels(c).observe(float(v))
+        if self.runtime is not None:
+            for kind, v in self.runtime.counters.items():
+                m.faults.labels(kind).set(v)
+            state = str(self.runtime.source.status().get("state"))
+            for s in ("connecting", "streaming", "disconnected", "closed", "ended"):
+                m.source_state.labels(s).set(1.0 if s == state else 0.0)
+        m.ready.set(1.0 if self.ready()[0] else 0.0)
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
