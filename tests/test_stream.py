@@ -288,3 +288,15 @@ def test_set_active_rejects_unknown_classes_and_taxels():
     with pytest.raises(ValueError, match="out of range"):
         se.set_active({"SA1": [2]})
     assert se.active == {"SA1": (0, 1), "PC": (0, 1)}  # a rejected demand changes nothing
+
+
+def test_a_malformed_chunk_is_rejected_whole():
+    se = StreamEncoder(_params(), n_taxels=2)
+    good = _two_taxel_chunks(0.032)
+    se.process(good[0])
+    bad = RawChunk(good[1].st_t, good[1].st, good[1].pvdf_t, good[1].pvdf[:, :1])
+    with pytest.raises(ValueError, match="PVDF: expected values of shape"):
+        se.process(bad)
+    assert se.stats["singletact"]["accepted"] == good[0].st.size  # the SingleTact part was not consumed
+    se.process(good[1])
+    assert se.stats["singletact"]["duplicate"] == 0

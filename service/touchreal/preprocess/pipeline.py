@@ -264,12 +264,6 @@ class _PvdfWindowBranch:
         self.out_slot += y.shape[0]
         self.out.add(self.rs.process(self.slot_time(slots), np.concatenate((y, dy), axis=1)))
 
-    @property
-    def latency_s(self) -> float:
-        """Worst case: the gate finalises slot n once slot n + N - 1 arrived (n on a frame boundary),
-        and PCHIP needs the knot after the next one (2 slots)."""
-        return (self.gate.n - 1 + 2) / PVDF_FS_HZ
-
     def state_arrays(self, name: str) -> dict[str, np.ndarray]:
         out = {f"{name}_gate_buf": self.gate._buf, f"{name}_gate_acc": self.gate._acc, f"{name}_rs": self.rs._y}
         if self.prev is not None:
@@ -370,7 +364,13 @@ class Preprocessor:
 
     # -- data -----------------------------------------------------------------------------------
     def feed(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> None:
-        """Feed raw samples (either sensor may be absent in a call)."""
+        """Feed raw samples (either sensor may be absent in a call). Both parts are checked before
+        either is used, so a malformed chunk raises ValueError and changes nothing."""
+        for name, t, x in (("SingleTact", st_t, st), ("PVDF", pvdf_t, pvdf)):
+            if t is not None and len(t):
+                shape = np.shape(x)
+                if shape not in ((len(t), self.n_taxels),) + (((len(t),),) if self.n_taxels == 1 else ()):
+                    raise ValueError(f"{name}: expected values of shape ({len(t)}, {self.n_taxels}), got {shape}")
         if st_t is not None and len(st_t):
             first, x = self.st_in.push(st_t, st)
             self.st_hist.push(first, x)
@@ -447,11 +447,14 @@ class Preprocessor:
         return next(iter(self.cursor))
 
     # -- reporting ------------------------------------------------------------------------------
-    def latency_s(self, source: Source | None = None) -> float:
+    @staticmethod
+    def latency_s(source: Source) -> float:
         """Algorithmic latency (s) of a source: the longest look-ahead of the branches it reads, i.e.
-        the time from a grid point to the arrival of the last raw sample it needs. SingleTact: PCHIP
-        needs up to two knot intervals (20 ms); a window of N PVDF samples: (N + 1) / 2 kHz."""
-        source = self._only_source() if source is None and len(self.cursor) == 1 else source
+        the time from a grid point to the arrival of the last raw sample it needs. The branches run
+        side by side, so a source waits for the slower one, not for their sum. SingleTact: PCHIP
+        needs up to :data:`ST_LOOKAHEAD_KNOTS` knot intervals (20 ms); a window of N PVDF samples:
+        the gate finalises a sample once the last frame covering it is complete (up to N - 1
+        samples later) and PCHIP needs up to 2 more samples: (N + 1) / 2 kHz."""
         st = ST_LOOKAHEAD_KNOTS / ST_FS_HZ
         if source is None:
             return st
