@@ -234,7 +234,7 @@ class Runtime:
         t_us = np.round(ev.t_s * 1e6).astype(np.int64) + offset_us
         keep = t_us >= 0  # a negative class delay can stamp the very first spikes before the clock's zero
         t_us, taxel, cls = t_us[keep].astype(np.uint64), ev.taxel[keep].astype(np.uint16), ev.cls[keep].astype(np.uint8)
-        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) for c, v in final_s.items()}
+        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) if np.isfinite(v) else 0 for c, v in final_s.items()}
         self.update_no += 1
         emit = wall_us()
         latency = {}
@@ -274,7 +274,7 @@ class Runtime:
     def _count_sanitizer(self) -> int:
         """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing."""
         flag = 0
-        for sensor, stats in self.encoder.pre.stats.items():
+        for sensor, stats in self.encoder.stats.items():
             for k in _SANITIZER_FAULTS:
                 key = f"{sensor}_{k}"
                 v = int(stats.get(k, 0))
