@@ -85,16 +85,20 @@ def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
 
         async def go():
             await asyncio.sleep(0.5)
-            idle = svc.runtime.state, svc.runtime.encoder
+            rt = svc.runtime
+            idle = rt.state, rt.encoder.active, rt.encoder.pre.sources
             async with connect(addr) as ws:
-                await hello_and_subscribe(ws)
-                await collect(ws, 1.0)
-                busy = svc.runtime.state, svc.runtime.encoder is not None
+                await hello_and_subscribe(ws, classes=["SA1"])
+                frames = _spikes(await collect(ws, 1.0))
+                busy = rt.state, rt.encoder.active
             await asyncio.sleep(0.5)
-            return idle, busy, (svc.runtime.state, svc.runtime.encoder)
+            return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.pre.sources)
 
-        idle, busy, after = run(go())
-    assert idle == ("idle", None) and busy == ("running", True) and after == ("idle", None)
+        idle, frames, busy, after = run(go())
+    assert idle == ("idle", {}, ()) and after == ("idle", {}, ())  # no branch runs: acquisition only
+    assert busy == ("running", {"SA1": (0,)})
+    # a returning subscriber waits for no warm-up: SA1 is final to within its latency from the first frame
+    assert frames[0].final_us["SA1"] > 0
 
 
 def _replay_dataset(tmp_path):

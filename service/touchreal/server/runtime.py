@@ -6,9 +6,9 @@ speed, or the serial device), looks at the current :class:`~.demand.Demand`, run
 ``publish`` (which must not block: the service posts it to the event loop). The network side can
 therefore never stall acquisition, and compute never stalls the network side.
 
-What runs follows the demand: nothing beyond acquisition while nobody wants anything (the encoder
-is dropped and restarts from rest, flagged, when demand returns); otherwise only the demanded
-(taxel, class) columns, and the PVDF branches they need (``StreamEncoder.set_active``). A new
+What runs follows the demand (``StreamEncoder.set_active``): only the demanded (taxel, class)
+columns and the branches they read; while nobody wants anything, only acquisition (the input
+policy and the raw history a branch restarts from, so a returning subscriber waits for no warm-up). A new
 parameter revision is swapped in between two updates: every update is made by one revision, which
 its frames carry (``params_rev``).
 """
@@ -176,12 +176,6 @@ class Runtime:
             flags |= FLAG_RESTARTED
         demand = self._demand()
         rev, params = self._params()
-        if demand.empty:
-            if tail is not None:
-                self._emit(tail, flags, acq_us, 0.0, None)
-            self.encoder, self.active, self.state = None, None, "idle"
-            self._pending_flags = FLAG_RESTARTED
-            return None
         if self.encoder is not None and rev != self.enc_rev:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
@@ -192,6 +186,13 @@ class Runtime:
         if columns != self.active:
             self.encoder.set_active(columns)
             self.active = columns
+        if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
+            self.encoder.process(chunk)
+            flags |= self._count_sanitizer()
+            if tail is not None:
+                self._emit(tail, flags, acq_us, 0.0, None)
+            self.state = "idle"
+            return None
         t0 = time.perf_counter()
         if demand.channel_taxels:
             ch, ev = self.encoder.process_channels(chunk)
