@@ -26,7 +26,8 @@ def running_server(state_dir: Path, config: RuntimeConfig | None = None, **setti
 
 
 def connect(addr: str, **kw):
-    return websockets.connect(f"ws://{addr}/v1/stream", compression=None, open_timeout=10, **kw)
+    """A client that, like ours, does not offer permessage-deflate unless asked (``compression=...``)."""
+    return websockets.connect(f"ws://{addr}/v1/stream", **{"compression": None, "open_timeout": 10, **kw})
 
 
 async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:

@@ -291,3 +291,41 @@ def test_parameter_upload_while_streaming_swaps_between_updates(tmp_path):
     first_new = next(f for f in after if f.header.params_rev == 2)
     assert "params_changed" in first_new.header.flag_names()
     assert sum("params_changed" in f.header.flag_names() for f in before + after) == 1
+
+
+def test_permessage_deflate_only_when_the_client_asks(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            out = []
+            for compression in (None, "deflate"):
+                async with connect(addr, compression=compression) as ws:
+                    out.append(ws.response.headers.get("Sec-WebSocket-Extensions"))
+                    await hello_and_subscribe(ws)
+            return out
+
+        plain, deflate = run(go())
+    assert plain is None and deflate is not None and "permessage-deflate" in deflate
+
+
+def test_nan_and_inf_from_the_source_are_repaired_flagged_and_counted(tmp_path):
+    trial = synthetic_trial(seed=3)
+    trial.st[40:45] = np.nan
+    trial.pvdf[500:520] = np.inf
+    trial.pvdf[900] = -np.inf
+    entries = [{"id": "bad", "protocol": "ramp", "condition": "c", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.05}]
+    write_dataset(tmp_path / "ds", {"name": "t", "trials": entries}, {"bad": trial})
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{tmp_path / 'ds'}", speed=4.0)) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 5})
+                return await collect(ws, 20.0, lambda fs: svc.runtime.state == "ended")
+
+        frames = run(go())
+        faults = httpx.get(f"http://{addr}/v1/status").json()["faults"]
+        assert httpx.get(f"http://{addr}/v1/health").status_code == 200
+    assert faults["singletact_non_finite"] == 5 and faults["pvdf_non_finite"] == 21
+    assert any("source_gap" in f.header.flag_names() for f in _spikes(frames))
+    data = np.concatenate([f.data for f in frames if isinstance(f, P.ChannelsFrame)])
+    assert data.size and np.isfinite(data).all()

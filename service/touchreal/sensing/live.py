@@ -24,7 +24,7 @@ import numpy as np
 from ..recording import Dataset, Trial
 from .raw import RawChunk
 from .replay import ReplaySource
-from .scene import SceneSource, taxel_grid
+from .scene import SceneSource, default_scene, taxel_grid
 
 
 class LiveSource(Protocol):
@@ -73,7 +73,9 @@ class _Paced:
 
 class SimLiveSource:
     """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
-    taxels (a grid of 10 mm pitch) in real time, looping forever."""
+    taxels (a grid of 10 mm pitch) in real time, looping forever. With several taxels the script is
+    played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
+    feel each touch differently (the skin's spatial response)."""
 
     segment = 0
 
@@ -81,7 +83,8 @@ class SimLiveSource:
         self.positions_mm = taxel_grid(n_taxels)
         self.n_taxels = n_taxels
         self.update_s = update_s
-        self.scene = SceneSource(taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
+        spots = [(0.0, 0.0)] + ([tuple(self.positions_mm[0]), tuple(self.positions_mm[-1])] if n_taxels > 1 else [])
+        self.scene = SceneSource(default_scene(spots), taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
         self.offset_us = 0
         self._pace = _Paced(update_s)
         self._chunks = 0

@@ -273,7 +273,8 @@ class Runtime:
         return flag
 
     def _count_sanitizer(self) -> int:
-        """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing."""
+        """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing or
+        non-finite (repaired by the input policy)."""
         flag = 0
         for sensor, stats in self.encoder.stats.items():
             for k in _SANITIZER_FAULTS:
@@ -282,6 +283,6 @@ class Runtime:
                 delta = v - self._enc_stats.get(key, 0)
                 if delta > 0:
                     self.counters[key] = self.counters.get(key, 0) + delta
-                    flag |= FLAG_SOURCE_GAP if k == "gaps" else 0
+                    flag |= FLAG_SOURCE_GAP if k in ("gaps", "non_finite") else 0
                 self._enc_stats[key] = v
         return flag
