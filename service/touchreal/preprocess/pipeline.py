@@ -82,6 +82,16 @@ class Channels:
 
 
 
+def check_raw(st_t, st, pvdf_t, pvdf, n_taxels: int) -> None:
+    """Raise ValueError unless each sensor's values are (n, n_taxels) (or (n,) for one taxel) for
+    its n timestamps."""
+    for name, t, x in (("SingleTact", st_t, st), ("PVDF", pvdf_t, pvdf)):
+        if t is not None and len(t):
+            shape = np.shape(x)
+            if shape not in ((len(t), n_taxels),) + (((len(t),),) if n_taxels == 1 else ()):
+                raise ValueError(f"{name}: expected values of shape ({len(t)}, {n_taxels}), got {shape}")
+
+
 class _History:
     """The last ``size`` samples of a regular grid (n, n_taxels), by grid slot (a ring buffer)."""
 
@@ -271,11 +281,64 @@ class _PvdfWindowBranch:
         return out
 
 
+class Acquisition:
+    """What always runs, for all N taxels: the sanitizers of both sensors (input policy, counters)
+    and the raw history rings that a (re)starting branch is rebuilt from (the last
+    :data:`ST_HISTORY_S` of SingleTact; the hum estimate plus two frames of ``max_window_ms`` of PVDF).
+    Several :class:`Preprocessor` s (taxel blocks) can share one."""
+
+    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0):
+        self.n_taxels = n_taxels
+        self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
+        self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
+        self.n_pv = int(round(HUM_PRIME_S * PVDF_FS_HZ)) + 2 * frame_length(max_window_ms, PVDF_FS_HZ) + 16
+        self.st_hist = _History(int(round(ST_HISTORY_S * ST_FS_HZ)), n_taxels)
+        self.pv_hist = _History(self.n_pv, n_taxels)
+
+    def push(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> tuple[tuple[int, np.ndarray] | None, ...]:
+        """Sanitize raw samples (both parts checked before either is used, so a malformed chunk
+        raises ValueError and changes nothing); return (first slot, (n, N) samples) or None per sensor."""
+        check_raw(st_t, st, pvdf_t, pvdf, self.n_taxels)
+        out: list[tuple[int, np.ndarray] | None] = [None, None]
+        for j, (san, hist, t, x) in enumerate(((self.st_in, self.st_hist, st_t, st), (self.pv_in, self.pv_hist, pvdf_t, pvdf))):
+            if t is not None and len(t):
+                first, clean = san.push(t, x)
+                hist.push(first, clean)
+                out[j] = (first, clean)
+        return tuple(out)
+
+    def restart_index(self) -> int | None:
+        """First grid index after the newest raw sample of either sensor (None before any data)."""
+        newest = [float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in) if s.t0 is not None]
+        return first_grid_index(max(newest), OUT_FS_HZ) if newest else None
+
+    def first_index(self) -> int | None:
+        """First grid index both sensors cover (the stream start of every source), once known."""
+        if self.st_in.t0 is None or self.pv_in.t0 is None:
+            return None
+        return max(first_grid_index(float(s.slot_time(1)), OUT_FS_HZ) for s in (self.st_in, self.pv_in))
+
+    def until_s(self) -> float | None:
+        """Time of the last sample both sensors delivered (s; None before both started)."""
+        if self.st_in.t0 is None or self.pv_in.t0 is None:
+            return None
+        return min(float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in))
+
+    @property
+    def stats(self) -> dict[str, dict[str, int]]:
+        return {"singletact": self.st_in.stats.as_dict(), "pvdf": self.pv_in.stats.as_dict()}
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        return {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_hist": self.st_hist.buf, "pv_hist": self.pv_hist.buf}
+
+
 class Preprocessor:
     """Causal, chunk-wise, stateful preprocessing of N taxels for a set of sources (module docstring).
 
     ``sources`` are the initially active sources (default: ``params.window_ms``); ``max_window_ms``
-    sizes the raw history kept for restarts (default: the longest window of ``sources``).
+    sizes the raw history kept for restarts (default: the longest window of ``sources``). With a
+    shared ``acquisition``, the preprocessor serves its ``taxels`` (a block of the acquisition's
+    taxels) and is fed by :meth:`consume` after the owner's :meth:`Acquisition.push`.
     """
 
     def __init__(
@@ -285,21 +348,24 @@ class Preprocessor:
         dtype: type = np.float64,
         sources: Iterable[Source] | None = None,
         max_window_ms: float | None = None,
+        acquisition: Acquisition | None = None,
+        taxels: range | None = None,
     ):
         self.params = params = params or PreprocessParams()
-        self.n_taxels = n_taxels
         self.dtype = np.dtype(dtype)  # arithmetic of the filters and the STFT gate
         sources = [params.window_ms] if sources is None else list(sources)
-        windows = [s for s in sources if s is not None]
         if max_window_ms is None:
-            max_window_ms = max(windows, default=params.window_ms)
-        self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
-        self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
-        # acquisition keeps this much raw history for branch restarts (hum estimate + two frames + margin)
-        n_pv = int(round(HUM_PRIME_S * PVDF_FS_HZ)) + 2 * frame_length(max_window_ms, PVDF_FS_HZ) + 16
-        self.st_hist = _History(int(round(ST_HISTORY_S * ST_FS_HZ)), n_taxels)
-        self.pv_hist = _History(n_pv, n_taxels)
-        self.pv_filtered = _History(n_pv, n_taxels)  # the running PVDF filter's output (window restarts)
+            max_window_ms = max((s for s in sources if s is not None), default=params.window_ms)
+        self._owns_acquisition = acquisition is None
+        if acquisition is None:
+            acquisition, taxels = Acquisition(n_taxels, max_window_ms), range(n_taxels)
+        elif taxels is None or taxels.step != 1 or not 0 <= taxels.start < taxels.stop <= acquisition.n_taxels:
+            raise ValueError("a preprocessor on a shared acquisition needs a contiguous block of its taxels")
+        self.acq = acquisition
+        self.taxels = taxels
+        self.n_taxels = len(taxels)
+        self._cols = slice(taxels.start, taxels.stop)
+        self.pv_filtered = _History(acquisition.n_pv, self.n_taxels)  # the running PVDF filter's output (window restarts)
         self.st: _SingleTactBranch | None = None
         self.pv_filter: _PvdfFilter | None = None
         self.pv_windows: dict[float, _PvdfWindowBranch] = {}
@@ -313,39 +379,41 @@ class Preprocessor:
 
     def set_sources(self, sources: Iterable[Source]) -> None:
         """Make ``sources`` the active ones: branches no active source needs stop (their state is
-        dropped); a branch that (re)starts is rebuilt from the raw history acquisition keeps
+        dropped); a branch that (re)starts is rebuilt from the raw history the acquisition keeps
         (SingleTact: the last :data:`ST_HISTORY_S`; PVDF: the hum estimate plus two frames of the
         longest window): a restarted PVDF filter is primed on the hum of that history's first
         100 ms as at stream start, and a restarted window's gate replays the filtered history, so
         its output from one frame after the history start on is the one of a branch that never
         stopped (exactly so when the PVDF filter kept running). A source that (re)starts delivers
-        from the first grid index after the newest raw sample received (:meth:`restart_index`),
-        or from the stream start before any data."""
+        from the first grid index after the newest raw sample received
+        (:meth:`Acquisition.restart_index`), or from the stream start before any data."""
         sources = list(dict.fromkeys(float(s) if s is not None else None for s in sources))
-        k_r = self.restart_index()
+        acq, cols = self.acq, self._cols
+        k_r = acq.restart_index()
         self.cursor = {s: self.cursor[s] if s in self.cursor else k_r for s in sources}
         windows = {s for s in sources if s is not None}
         if not sources:
             self.st = None
         elif self.st is None:
-            self.st = _SingleTactBranch(self.params, self.n_taxels, self.dtype, self.st_in.slot_time)
-            first = self.st_hist.first
+            self.st = _SingleTactBranch(self.params, self.n_taxels, self.dtype, acq.st_in.slot_time)
+            first = acq.st_hist.first
             if first is not None:
-                self.st.process(*self.st_hist.since(first))
+                slot, x = acq.st_hist.since(first)
+                self.st.process(slot, x[:, cols])
         if not windows:
             self.pv_filter = None
             self.pv_filtered.clear()
         elif self.pv_filter is None:
-            first = self.pv_hist.first
-            self.pv_filter = _PvdfFilter(self.params, self.n_taxels, self.dtype, self.pv_in.next_slot if first is None else first)
+            first = acq.pv_hist.first
+            self.pv_filter = _PvdfFilter(self.params, self.n_taxels, self.dtype, acq.pv_in.next_slot if first is None else first)
             self.pv_filtered.clear()
             if first is not None:
-                self.pv_filtered.push(*self.pv_filter.process(self.pv_hist.since(first)[1]))
+                self.pv_filtered.push(*self.pv_filter.process(acq.pv_hist.since(first)[1][:, cols]))
         self.pv_windows = {w: b for w, b in self.pv_windows.items() if w in windows}
         for w in windows - set(self.pv_windows):
             first = self.pv_filtered.first
             start = self.pv_filter.slot if first is None else first
-            branch = _PvdfWindowBranch(self.params, w, self.n_taxels, self.dtype, self.pv_in.slot_time, start)
+            branch = _PvdfWindowBranch(self.params, w, self.n_taxels, self.dtype, acq.pv_in.slot_time, start)
             if first is not None:
                 branch.process(*self.pv_filtered.since(first))
             self.pv_windows[w] = branch
@@ -353,34 +421,22 @@ class Preprocessor:
 
     def restart_index(self) -> int | None:
         """First grid index after the newest raw sample of either sensor (None before any data)."""
-        newest = [float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in) if s.t0 is not None]
-        return first_grid_index(max(newest), OUT_FS_HZ) if newest else None
-
-    def first_index(self) -> int | None:
-        """First grid index both sensors cover (the stream start of every source), once known."""
-        if self.st_in.t0 is None or self.pv_in.t0 is None:
-            return None
-        return max(first_grid_index(float(s.slot_time(1)), OUT_FS_HZ) for s in (self.st_in, self.pv_in))
+        return self.acq.restart_index()
 
     # -- data -----------------------------------------------------------------------------------
     def feed(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> None:
         """Feed raw samples (either sensor may be absent in a call). Both parts are checked before
         either is used, so a malformed chunk raises ValueError and changes nothing."""
-        for name, t, x in (("SingleTact", st_t, st), ("PVDF", pvdf_t, pvdf)):
-            if t is not None and len(t):
-                shape = np.shape(x)
-                if shape not in ((len(t), self.n_taxels),) + (((len(t),),) if self.n_taxels == 1 else ()):
-                    raise ValueError(f"{name}: expected values of shape ({len(t)}, {self.n_taxels}), got {shape}")
-        if st_t is not None and len(st_t):
-            first, x = self.st_in.push(st_t, st)
-            self.st_hist.push(first, x)
-            if self.st is not None:
-                self.st.process(first, x)
-        if pvdf_t is not None and len(pvdf_t):
-            first, x = self.pv_in.push(pvdf_t, pvdf)
-            self.pv_hist.push(first, x)
-            if self.pv_filter is not None:
-                self._pv_windows(*self.pv_filter.process(x))
+        if not self._owns_acquisition:
+            raise RuntimeError("a preprocessor on a shared acquisition is fed by consume()")
+        self.consume(*self.acq.push(st_t, st, pvdf_t, pvdf))
+
+    def consume(self, st_new: tuple[int, np.ndarray] | None, pv_new: tuple[int, np.ndarray] | None) -> None:
+        """Run the branches on newly sanitized samples (:meth:`Acquisition.push`'s result)."""
+        if st_new is not None and self.st is not None:
+            self.st.process(st_new[0], st_new[1][:, self._cols])
+        if pv_new is not None and self.pv_filter is not None:
+            self._pv_windows(*self.pv_filter.process(pv_new[1][:, self._cols]))
 
     def _pv_windows(self, first: int, y: np.ndarray) -> None:
         self.pv_filtered.push(first, y)
@@ -389,9 +445,9 @@ class Preprocessor:
 
     def flush(self) -> None:
         """End of stream: finish every running branch up to the last sample both sensors delivered."""
-        if self.st_in.t0 is None or self.pv_in.t0 is None:
+        until = self.acq.until_s()
+        if until is None:
             return
-        until = min(float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in))
         if self.pv_filter is not None:
             self._pv_windows(*self.pv_filter.process(np.zeros((0, self.n_taxels)), final=True))
         for branch in self.pv_windows.values():
@@ -404,7 +460,7 @@ class Preprocessor:
         source = float(source) if source is not None else None
         if source not in self.cursor:
             raise KeyError(f"source {source} is not active")
-        k_first = self.first_index()
+        k_first = self.acq.first_index()
         if k_first is None or self.st is None:
             return Channels(self.cursor[source] or 0, np.zeros((0, self.n_taxels, 4)))
         start = max(k_first, self.cursor[source] if self.cursor[source] is not None else k_first)
@@ -462,7 +518,8 @@ class Preprocessor:
 
     @property
     def stats(self) -> dict[str, dict[str, int]]:
-        return {"singletact": self.st_in.stats.as_dict(), "pvdf": self.pv_in.stats.as_dict()}
+        """Input-policy counters of the acquisition (all its taxels)."""
+        return self.acq.stats
 
     @property
     def running(self) -> dict[str, bool | tuple[float, ...]]:
@@ -470,8 +527,9 @@ class Preprocessor:
         return {"singletact": self.st is not None, "pvdf_filter": self.pv_filter is not None, "pvdf_windows": tuple(sorted(self.pv_windows))}
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """Every numeric state variable of the running stages and buffers (stability checks, monitoring)."""
-        out = {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_hist": self.st_hist.buf, "pv_hist": self.pv_hist.buf}
+        """Every numeric state variable of the running stages and buffers (stability checks, monitoring;
+        the acquisition's too when this preprocessor owns it)."""
+        out = self.acq.state_arrays() if self._owns_acquisition else {}
         if self.st is not None:
             out.update(self.st.state_arrays())
             out.update({f"st_out_{i}": a for i, a in enumerate(self.st.out.arrays())})
