@@ -24,7 +24,6 @@ and a short raw history) always runs, and a branch that (re)starts is rebuilt fr
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -81,7 +80,6 @@ class Channels:
         return Channels(blocks[0].k0, np.concatenate([b.data for b in blocks], axis=0))
 
 
-
 def check_raw(st_t, st, pvdf_t, pvdf, n_taxels: int) -> None:
     """Raise ValueError unless each sensor's values are (n, n_taxels) (or (n,) for one taxel) for
     its n timestamps."""
@@ -132,7 +130,6 @@ class _Grid:
     def __init__(self, n_taxels: int):
         self.n_taxels = n_taxels
         self.blocks: list[tuple[int, np.ndarray]] = []
-        self.start: int | None = None  # first grid index ever emitted
         self.end: int | None = None  # grid index after the newest emitted sample
 
     def add(self, emitted: tuple[int, np.ndarray]) -> None:
@@ -140,7 +137,6 @@ class _Grid:
         if v.shape[0] == 0:
             return
         self.blocks.append((k0, v.reshape(v.shape[0], 2, self.n_taxels).transpose(0, 2, 1)))
-        self.start = k0 if self.start is None else self.start
         self.end = k0 + v.shape[0]
 
     @property
