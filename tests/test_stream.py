@@ -328,3 +328,19 @@ def test_taxel_blocks_give_the_same_spikes_and_idle_blocks_only_acquire():
     assert many.stats == one.stats and one.stats["pvdf"]["non_finite"] == 3
     with pytest.raises(ValueError, match="single taxel block"):
         many.process_channels(chunks[0])
+
+
+def test_class_channels_give_the_stream_spikes_offline():
+    from touchreal.encoding.encoder import encode_population
+    from touchreal.stream import class_channels, encode_trial
+
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params({"SA1": 16.0, "PC": 64.0}, pvdf_free=("RA",))
+    channels = class_channels(tr, params)
+    assert channels["RA"].data[:, :, 2:].any() == False and channels["SA1"].k0 == channels["PC"].k0  # noqa: E712
+    trains = encode_trial(tr, params)
+    for c in CLASSES:
+        ch = channels[c]
+        got = encode_population(ch.data[:, 0, :], ch.t0_s, [params.classes[c]])[0]
+        np.testing.assert_allclose(got, trains[c], rtol=0, atol=1e-12, err_msg=c)  # same samples; t0 + k/fs vs (k0 + k)/fs
+        assert got.size > 0 or c == "RA"

@@ -15,7 +15,7 @@ import numpy as np
 
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
-from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source
+from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .recording import Trial
 from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
@@ -73,6 +73,8 @@ class StreamEncoder:
     acquisition but nothing else: a block with no active column runs nothing, so a few subscribed
     taxels of a large skin cost about one block's preprocessing; with every column active, one
     block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent).
+
+    Not thread-safe: call :meth:`set_active` between :meth:`process` calls (same thread or lock).
     """
 
     def __init__(
@@ -236,6 +238,17 @@ class StreamEncoder:
         finite = all(bool(np.all(np.isfinite(a))) for a in arrays)
         peak = max((float(np.max(np.abs(a))) for a in arrays if a.size), default=0.0)
         return finite, peak, sum(a.nbytes for a in arrays)
+
+
+def class_channels(trial: Trial, params: EncoderParams, classes: Sequence[str] | None = None) -> dict[str, Channels]:
+    """One taxel's whole-recording channels per class, each on its own source (window, or the
+    SingleTact alone), every distinct source computed once: the offline counterpart of the
+    stream for fitting and evaluation (``encode_population`` on a class's channels gives the
+    spikes :func:`encode_trial` gives)."""
+    classes = [c for c in CLASSES if c in params.classes and (classes is None or c in classes)]
+    sources = {c: class_source(params, c) for c in classes}
+    channels = preprocess_trial_windows(trial, params.preprocess, list(sources.values()))
+    return {c: channels[sources[c]] for c in classes}
 
 
 def encode_chunks(
