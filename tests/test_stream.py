@@ -86,11 +86,15 @@ def test_pvdf_free_classes_run_no_pvdf_branch_and_match_the_window_path():
     tr = synthetic_trial(duration_s=1.2)
     params = _params(pvdf_free=("SA1", "RA", "PC"))
     se = StreamEncoder(params)
+    with_pvdf = StreamEncoder(_params())  # the same classes reading the 128 ms window
     parts = []
     for chunk in ReplaySource(tr).chunks(0.004):
         parts.append(se.process(chunk))
+        with_pvdf.process(chunk)
         assert se.running == {"singletact": True, "pvdf_filter": False, "pvdf_windows": (), "blocks": 1}
         assert not any(k.startswith(("pv_filter", "pv_gate", "pv128")) for k in se.state_arrays())
+    for c in CLASSES:  # no window to wait for: final about a window (less the SingleTact look-ahead) sooner
+        assert se.final_s[c] - with_pvdf.final_s[c] > 0.09, c
     parts.append(se.finish())
     got = _trains(type(parts[0]).concatenate(parts))
     # the same columns on the full 128 ms channels (zero weights on real PVDF) give the same spikes
