@@ -161,3 +161,15 @@ def test_several_windows_at_once_equal_one_window_each():
     assert st_only.k0 == both[128.0].k0 and st_only.n_samples == both[128.0].n_samples
     np.testing.assert_array_equal(st_only.data[:, :, :2], both[128.0].data[:, :, :2])
     assert not st_only.data[:, :, 2:].any()
+
+
+def test_a_preprocessor_on_a_shared_acquisition_is_fed_through_it():
+    from touchreal.preprocess.pipeline import Acquisition
+
+    acq = Acquisition(n_taxels=3)
+    pre = Preprocessor(PreprocessParams(), acquisition=acq, taxels=range(1, 3))
+    assert pre.n_taxels == 2
+    with pytest.raises(RuntimeError, match="consume"):
+        pre.feed(np.array([0.0]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="contiguous block"):
+        Preprocessor(PreprocessParams(), acquisition=acq, taxels=range(2, 4))

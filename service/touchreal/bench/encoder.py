@@ -64,9 +64,10 @@ def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0)
 
 
 def _time_updates(
-    params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type, active: dict[str, list[int]] | None = None
+    params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type, active: dict[str, list[int]] | None = None,
+    taxel_block: int | None = None,
 ) -> np.ndarray:
-    se = StreamEncoder(params, n_taxels, dtype=dtype)
+    se = StreamEncoder(params, n_taxels, dtype=dtype, taxel_block=taxel_block)
     if active is not None:
         se.set_active(active)
     warm = warmup_updates(se, params)
@@ -161,10 +162,11 @@ def demand(params: EncoderParams, n_taxels: int, seconds: float) -> None:
         "nobody (acquisition only)": {},
     }
     print(f"\n== demand: compute time per {params.preprocess.update_ms:g} ms update, {n_taxels} taxels ({windows_label(params)})")
-    print(f"{'active columns':<28} {'mean ms':>8} {'p95 ms':>8}")
+    print(f"{'active columns':<28} {'taxel block':>11} {'mean ms':>8} {'p95 ms':>8}")
     for name, active in cases.items():
-        ms = _time_updates(params, chunks, n_taxels, np.float64, active) * 1000
-        print(f"{name:<28} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f}")
+        for block in (None, 16):
+            ms = _time_updates(params, chunks, n_taxels, np.float64, active, block) * 1000
+            print(f"{name:<28} {block or n_taxels:>11} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f}")
 
 
 def _sweep_dataset(n_trials: int) -> tuple[Dataset, str]:
