@@ -40,11 +40,10 @@ class ModelSpec:
         out: dict = {}
         if self.task == "force":
             config = "+".join(self.classes)
-            prefixes = [f"force.window.{self.window_ms:g}ms.{config}"]
             if self.window_ms == FORCE_WINDOW_MS:
-                prefixes.insert(0, f"force.{config}")
-            for p in prefixes:
-                out.update({f"{p}.{k}": v for k, v in metrics.items()})
+                out.update({f"force.{config}.{k}": v for k, v in metrics.items()})
+            # the sweep's entry: scalars only (the per-trial list is under force.<config> once)
+            out.update({f"force.window.{self.window_ms:g}ms.{config}.{k}": v for k, v in metrics.items() if not isinstance(v, list)})
             return out
         pre = f"texture.prewindow.{dict(self.class_window_ms)['PC']:g}ms." if self.class_window_ms else "texture."
         head = f"{pre}{self.features}.acc_{self.window_ms:g}ms"

@@ -20,7 +20,7 @@ import onnx
 import skl2onnx
 import sklearn
 from sklearn.calibration import CalibratedClassifierCV
-from sklearn.model_selection import GroupKFold
+from sklearn.model_selection import StratifiedGroupKFold
 from sklearn.neural_network import MLPRegressor
 from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
@@ -60,10 +60,13 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
         mlp = MLPRegressor(hidden_layer_sizes=(64, 32), alpha=1e-3, max_iter=400, early_stopping=True,
                            n_iter_no_change=20, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
-    n_groups = np.unique(groups).size
-    if n_groups < 2 or np.unique(target).size < 2:
-        raise ValueError("texture training needs at least two trials and two textures in the training split")
-    folds = list(GroupKFold(n_splits=min(CALIBRATION_FOLDS, n_groups)).split(feats, target, groups))
+    labels, first = np.unique(groups, return_index=True)
+    _, per_label = np.unique(target[first], return_counts=True)
+    if per_label.size < 2 or per_label.min() < 2:
+        raise ValueError("texture training needs at least two textures and two training trials of each "
+                         f"(the training split has {dict(zip(*np.unique(target[first], return_counts=True)))})")
+    cv = StratifiedGroupKFold(n_splits=min(CALIBRATION_FOLDS, int(per_label.min())))
+    folds = list(cv.split(feats, target, groups))
     svc = CalibratedClassifierCV(SVC(C=SVC_C, gamma="scale"), ensemble=False, cv=folds)
     return make_pipeline(StandardScaler(), svc).fit(feats, target)
 
