@@ -82,3 +82,55 @@ def test_stream_waits_for_every_class_and_validates_input(trials):
     late = StreamingDecoder(model, taxels=[0])  # no start: the first step is at the first completeness time
     assert late.push(empty, empty, empty, {"SA1": 50_000, "RA": 70_000}) == []  # first step: 64 ms
     assert [s for s, _ in late.push(empty, empty, empty, {"SA1": 70_000, "RA": 70_000})] == [64_000]
+
+
+def test_client_side_binner_with_its_own_session_matches_the_service(trials):
+    """A client: the downloaded ONNX bytes, metadata read back by onnxruntime, StreamBinner."""
+    import json
+
+    import onnxruntime as ort
+    from touchreal_client.features import META_KEY, StreamBinner
+
+    model = ModelStore().load("texture")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads, so.inter_op_num_threads = 1, 1
+    sess = ort.InferenceSession(model.onnx_bytes, so, providers=["CPUExecutionProvider"])
+    meta = json.loads(sess.get_modelmeta().custom_metadata_map[META_KEY])
+    assert meta == model.meta
+    binner = StreamBinner.from_metadata(meta, [3], start_us=0)
+    dec = StreamingDecoder(model, [3], start_us=0)
+    t, tax, cls = _events(trials["texture"], 3)
+    for lo in range(0, trials["texture"].end_us, 32_000):
+        sel = (t >= lo) & (t < lo + 32_000)
+        final = {c: lo + 32_000 for c in CLASSES}
+        ours = dec.push(t[sel], tax[sel], cls[sel], final)
+        theirs = binner.push(t[sel], tax[sel], cls[sel], final)
+        assert [s for s, _ in ours] == [s for s, _, _ in theirs]
+        for (_, v), (_, counts, filled) in zip(ours, theirs):
+            if filled[0]:
+                (p, label) = sess.run(["probabilities", "label"], {"counts": counts})
+                np.testing.assert_array_equal(v, p)
+                assert label[0] == np.argmax(v[0])
+
+
+def test_binner_reanchors_after_silence_like_the_offline_rule():
+    from touchreal_client import features as F
+
+    rng = np.random.default_rng(7)
+    burst1 = np.sort(rng.integers(100_000, 900_000, 60))
+    burst2 = np.sort(rng.integers(1_600_000, 2_500_000, 60))  # > 500 ms after burst 1: a new anchor
+    pc = np.concatenate([burst1, burst2])
+    align = {"rule": F.ALIGN_RULE, "class": "PC", "silence_ms": 500.0}
+    binner = F.StreamBinner(["PC"], [0], 300_000, alignment=align, start_us=0)
+    got = {}
+    for lo in range(0, 2_700_000, 45_000):
+        sel = (pc >= lo) & (pc < lo + 45_000)
+        for step, counts, filled in binner.push(pc[sel], np.zeros(sel.sum(), int), np.full(sel.sum(), 2), {"PC": lo + 45_000}):
+            got[step] = (counts[0, :, 0], filled[0])
+    steps = np.array(sorted(got))
+    ends, anchor = F.anchored_end(steps, F.anchors(pc, 500_000))
+    ok = F.ready(ends, anchor, 300_000)
+    assert set(anchor[ok]) == {burst1[0], burst2[0]}
+    expected = F.window_counts(pc, ends[ok], 300_000)
+    np.testing.assert_array_equal(np.stack([got[s][0] for s in steps[ok]]), expected)
+    assert [got[s][1] for s in steps] == ok.tolist()

@@ -22,12 +22,12 @@ from onnx import compose, helper
 from sklearn.pipeline import Pipeline
 from skl2onnx import convert_sklearn
 from skl2onnx.common.data_types import FloatTensorType
+from touchreal_client.features import META_KEY  # the key clients read too
 
 from .features import FeatureSpec
 
 TARGET_OPSET = 17
 ML_OPSET = 3
-META_KEY = "touchreal.decoder"  #: ONNX metadata_props key holding the metadata JSON
 INPUT_NAME = "counts"
 REGRESSION_OUTPUT = "force_N"
 

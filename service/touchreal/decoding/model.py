@@ -76,6 +76,9 @@ def validate_metadata(meta: Any, where: str) -> dict[str, Any]:
     if meta["input"].get("shape") != [None, nb, len(meta["classes"])]:
         raise DecoderModelError(f"{where}: metadata input shape {meta['input'].get('shape')} does not match "
                                 f"window {meta['window_ms']} ms / bin {meta['bin_ms']} ms x {len(meta['classes'])} classes")
+    align = meta["alignment"]
+    if align is not None and (align.get("rule") != F.ALIGN_RULE or align.get("class") not in meta["classes"]):
+        raise DecoderModelError(f"{where}: unknown alignment {align!r}")
     if meta["task"] == "texture" and (not meta.get("labels") or meta["output_names"] != meta["labels"]):
         raise DecoderModelError(f"{where}: a texture model names its labels (output_names == labels)")
     return meta

@@ -96,9 +96,9 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "binning": "touchreal_client.features.window_counts: ceil(window/bin) bins counted back from the window end, "
                    "oldest first, the oldest bin truncated; a bin [a, b) counts a <= t < b (sensor clock, us)",
         "alignment": None if spec.task == "force" else {
-            "rule": "first spike after silence", "class": "PC", "silence_ms": TEXTURE_SILENCE_US / 1000,
-            "doc": "touchreal_client.features.anchors / anchored_end: window ends on anchor + k * bin <= step, "
-                   "output once end - anchor >= window"},
+            "rule": F.ALIGN_RULE, "class": "PC", "silence_ms": TEXTURE_SILENCE_US / 1000,
+            "doc": "touchreal_client.features.anchors / anchored_end / StreamBinner: window ends on anchor + k * bin "
+                   "<= step, output once end - anchor >= window"},
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
                      "bands_hz": [list(b) for b in BANDS_HZ], "in_graph": True},
         "estimator": _describe(pipe),
