@@ -72,7 +72,8 @@ def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads:
     pred = labels[np.argmax(out, axis=1)]
     metrics = texture_metrics(target, pred, groups, fold_of_trials([t.label for t in trials], N_FOLDS))
     _, n = np.unique(target, return_counts=True)
-    return metrics | {"chance": 1.0 / len(labels), "chance_majority": float(n.max() / n.sum())}
+    return metrics | {"chance": 1.0 / len(labels), "chance_majority": float(n.max() / n.sum()), "n_trials": len(trials),
+                      "n_trials_without_window": len(trials) - int(np.unique(groups).size)}
 
 
 def evaluate_models(models: Sequence[DecoderModel], cache: TrialCache, split: str, threads: int = 1,

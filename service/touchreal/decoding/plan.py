@@ -48,7 +48,8 @@ class ModelSpec:
         pre = f"texture.prewindow.{dict(self.class_window_ms)['PC']:g}ms." if self.class_window_ms else "texture."
         head = f"{pre}{self.features}.acc_{self.window_ms:g}ms"
         return {head: metrics["acc"], f"{head}_fold_mean": metrics["acc_fold_mean"], f"{head}_fold_std": metrics["acc_fold_std"],
-                f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"]}
+                f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"],
+                f"{head}_trials_without_window": metrics["n_trials_without_window"]}
 
 
 def _ms(x: float) -> str:
