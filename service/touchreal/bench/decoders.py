@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for m in models:
         meta = m.meta
-        if meta["params"].get("class_window_ms"):
+        if meta["params"].get("pvdf_window_ms") is not None:
             continue  # the preprocessing-window sweep is not a decoding-window cost
         if meta["task"] == "force" and meta["classes"] != ["SA1", "RA"]:
             continue

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..params import EncoderParams
 from ..recording import Dataset
-from .evaluate import TrialCache, evaluate_model, protocol_of
+from .evaluate import TrialCache, evaluate_model, flat_metrics, protocol_of
 from .export import set_metadata
 from .model import DecoderModel, load_model, write_model
 from .plan import ModelSpec
@@ -47,8 +47,8 @@ def train_all(
         set_metadata(model, meta)
         path = write_model(out_dir / spec.folder, model, meta)
         load_model(path)  # what was written loads and validates
-        if held and metrics.get("n_windows"):
-            flat.update(spec.metric_keys(metrics))
+        if held:
+            flat.update(flat_metrics(spec, metrics))
         if progress is not None:
             progress(spec.name)
     return flat

@@ -14,7 +14,7 @@ import numpy as np
 from ..params import EncoderParams
 from ..recording import Dataset
 from .metrics import fold_of_trials, force_metrics, texture_metrics
-from .model import DecoderModel, with_class_windows
+from .model import DecoderModel, with_pvdf_window
 from .plan import ModelSpec, spec_from_meta
 from .train import windows
 from .windows import FORCE_PROTOCOL, TEXTURE_PROTOCOL, EncodedTrial, encode, require_trials, split_entries
@@ -27,7 +27,7 @@ def protocol_of(task: str) -> str:
 
 
 class TrialCache:
-    """Encoded trials of one dataset, per (split, protocol, PVDF-window overrides), encoded once."""
+    """Encoded trials of one dataset, per (trial, PVDF-window override), encoded once."""
 
     def __init__(self, ds: Dataset, params: EncoderParams, progress: Callable[[], None] | None = None):
         self.ds, self.params, self.progress = ds, params, progress
@@ -38,10 +38,10 @@ class TrialCache:
         protocol = protocol_of(spec.task)
         require_trials(self.ds, protocol, f"{spec.task} decoding")
         entries, self.split_seed = split_entries(self.ds, self.params, protocol, split)
-        params = with_class_windows(self.params, dict(spec.class_window_ms))
+        params = with_pvdf_window(self.params, spec.pvdf_window_ms)
         out = []
         for e in entries:
-            key = (e["id"], spec.class_window_ms)
+            key = (e["id"], spec.pvdf_window_ms)
             if key not in self._enc:
                 self._enc[key] = encode(e, self.ds.load(e), params)
                 if self.progress is not None:
@@ -55,7 +55,7 @@ class TrialCache:
         for s in specs:
             protocol = protocol_of(s.task)
             if self.ds.entries(protocol):
-                keys |= {(e["id"], s.class_window_ms) for e in split_entries(self.ds, self.params, protocol, split)[0]}
+                keys |= {(e["id"], s.pvdf_window_ms) for e in split_entries(self.ds, self.params, protocol, split)[0]}
         return len(keys - set(self._enc))
 
 
@@ -76,20 +76,24 @@ def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads:
                       "n_trials_without_window": len(trials) - int(np.unique(groups).size)}
 
 
+def flat_metrics(spec: ModelSpec, metrics: dict[str, Any]) -> dict[str, Any]:
+    """One model's metrics under their METRICS.json keys (texture adds the chance levels)."""
+    if metrics.get("n_windows", 0) == 0:
+        return {f"{spec.name}.n_windows": 0}
+    flat = spec.metric_keys(metrics)
+    if spec.task == "texture":
+        flat["texture.chance"] = metrics["chance"]
+        flat["texture.chance_majority"] = metrics["chance_majority"]
+    return flat
+
+
 def evaluate_models(models: Sequence[DecoderModel], cache: TrialCache, split: str, threads: int = 1,
                     done: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Flat METRICS.json dict of every model (keys from :meth:`ModelSpec.metric_keys`)."""
     flat: dict[str, Any] = {}
     for m in models:
         spec = spec_from_meta(m.meta)
-        metrics = evaluate_model(m, cache.trials(spec, split), threads)
-        if metrics.get("n_windows", 0) == 0:
-            flat[f"{spec.name}.n_windows"] = 0
-        else:
-            flat.update(spec.metric_keys(metrics))
-            if spec.task == "texture":
-                flat["texture.chance"] = metrics["chance"]
-                flat["texture.chance_majority"] = metrics["chance_majority"]
+        flat.update(flat_metrics(spec, evaluate_model(m, cache.trials(spec, split), threads)))
         if done is not None:
             done(spec.name)
     return flat

@@ -41,18 +41,20 @@ def params_hash(params: EncoderParams) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
-def with_class_windows(params: EncoderParams, class_window_ms: dict[str, float]) -> EncoderParams:
-    """``params`` with some classes' causal PVDF window replaced (schema 3)."""
-    if not class_window_ms:
+def with_pvdf_window(params: EncoderParams, window_ms: float | None) -> EncoderParams:
+    """``params`` with the causal PVDF window set to ``window_ms`` for every class (the
+    preprocessing default and any class's own window), or unchanged for None."""
+    if window_ms is None:
         return params
-    classes = {c: p.model_copy(update={"window_ms": class_window_ms.get(c, p.window_ms)}) for c, p in params.classes.items()}
-    return params.model_copy(update={"classes": classes, "version": 3})
+    pre = params.preprocess.model_copy(update={"window_ms": float(window_ms)})
+    classes = {c: p if p.window_ms is None else p.model_copy(update={"window_ms": float(window_ms)}) for c, p in params.classes.items()}
+    return params.model_copy(update={"preprocess": pre, "classes": classes})
 
 
 def params_warning(meta: dict[str, Any], params: EncoderParams) -> str | None:
     """A warning when ``params`` (the active set) differ from those the model was trained on, else None."""
     want = meta["params"]["sha256"]
-    have = params_hash(with_class_windows(params, meta["params"].get("class_window_ms") or {}))
+    have = params_hash(with_pvdf_window(params, meta["params"].get("pvdf_window_ms")))
     if have == want:
         return None
     return (f"decoder {meta['name']!r} was trained on parameters {want[:12]} ({meta['params'].get('source', '?')}); "

@@ -4,13 +4,13 @@ Product models (top folder, installed and served): ``force`` (SA1 + RA, 128 ms),
 ``force_ra``, ``texture`` (temporal features, 500 ms), ``texture_rate``, ``texture_both``.
 Sweep models (``sweep/``): force SA1 + RA per other decoding window, texture per feature set and
 other inference window (the product models are the sweeps' 128 ms and 500 ms points), and texture (temporal, 500 ms) per PC causal preprocessing window (the paper's
-Fig. 16: the spikes are re-encoded with that PVDF window for PC).
+Fig. 16: the spikes are re-encoded with that causal PVDF window).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 FORCE_CONFIGS: dict[str, tuple[str, ...]] = {"SA1": ("SA1",), "RA": ("RA",), "SA1+RA": ("SA1", "RA")}
 FORCE_WINDOW_MS = 128.0
@@ -32,7 +32,7 @@ class ModelSpec:
     window_ms: float
     features: str  #: counts (force) or a texture feature set
     folder: str = ""  #: "" (product) or "sweep"
-    class_window_ms: tuple[tuple[str, float], ...] = field(default=())  #: encoder PVDF-window overrides
+    pvdf_window_ms: float | None = None  #: spikes re-encoded with this causal PVDF window (Fig. 16)
 
     def metric_keys(self, metrics: dict) -> dict:
         """This model's metrics under their METRICS.json keys (e.g. ``force.SA1+RA.r2``,
@@ -45,7 +45,7 @@ class ModelSpec:
             # the sweep's entry: scalars only (the per-trial list is under force.<config> once)
             out.update({f"force.window.{self.window_ms:g}ms.{config}.{k}": v for k, v in metrics.items() if not isinstance(v, list)})
             return out
-        pre = f"texture.prewindow.{dict(self.class_window_ms)['PC']:g}ms." if self.class_window_ms else "texture."
+        pre = f"texture.prewindow.{self.pvdf_window_ms:g}ms." if self.pvdf_window_ms is not None else "texture."
         head = f"{pre}{self.features}.acc_{self.window_ms:g}ms"
         return {head: metrics["acc"], f"{head}_fold_mean": metrics["acc_fold_mean"], f"{head}_fold_std": metrics["acc_fold_std"],
                 f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"],
@@ -76,11 +76,11 @@ def plan(tasks: Sequence[str] = TASKS, sweeps: bool = True) -> list[ModelSpec]:
                     specs.append(ModelSpec(f"texture_{fs}_w{_ms(w)}", "texture", ("PC",), w, fs, "sweep"))
             for pw in PRE_WINDOW_SWEEP_MS:
                 specs.append(ModelSpec(f"texture_temporal_w{_ms(TEXTURE_WINDOW_MS)}_pre{_ms(pw)}", "texture", ("PC",),
-                                       TEXTURE_WINDOW_MS, "temporal", "sweep", (("PC", pw),)))
+                                       TEXTURE_WINDOW_MS, "temporal", "sweep", pw))
     return specs
 
 
 def spec_from_meta(meta: dict) -> ModelSpec:
     """The spec a model was trained from (its metadata records it)."""
     return ModelSpec(meta["name"], meta["task"], tuple(meta["classes"]), float(meta["window_ms"]), meta["features"]["set"],
-                     meta["training"].get("folder", ""), tuple(sorted((meta["params"].get("class_window_ms") or {}).items())))
+                     meta["training"].get("folder", ""), meta["params"].get("pvdf_window_ms"))

@@ -31,7 +31,7 @@ from .. import __version__
 from ..params import EncoderParams
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
 from .features import BANDS_HZ, SMOOTH_SIGMA_MS, FeatureSpec
-from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_class_windows
+from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
 from .windows import TEXTURE_SILENCE_US, EncodedTrial, force_windows, texture_windows
 
@@ -74,8 +74,7 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
 def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderParams, training: dict[str, Any]) -> dict[str, Any]:
     """The model's metadata (format in docs/decoders.md); ``metrics`` is filled after evaluation."""
     labels = [str(c) for c in pipe.classes_] if spec.task == "texture" else None
-    overrides = dict(spec.class_window_ms)
-    used = with_class_windows(params, overrides)
+    used = with_pvdf_window(params, spec.pvdf_window_ms)
     meta: dict[str, Any] = {
         "schema": SCHEMA,
         "version": SCHEMA_VERSION,
@@ -102,7 +101,7 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
                      "bands_hz": [list(b) for b in BANDS_HZ], "in_graph": True},
         "estimator": _describe(pipe),
-        "params": {"sha256": params_hash(used), "class_window_ms": overrides or None,
+        "params": {"sha256": params_hash(used), "pvdf_window_ms": spec.pvdf_window_ms,
                    "source": str(params.provenance.get("source") or params.provenance.get("dataset") or "unknown"),
                    "provenance": {k: params.provenance[k] for k in ("fitted_by", "dataset", "split_seed", "code") if k in params.provenance}},
         "training": training | {"folder": spec.folder},
