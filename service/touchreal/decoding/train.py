@@ -60,11 +60,11 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
         mlp = MLPRegressor(hidden_layer_sizes=(64, 32), alpha=1e-3, max_iter=400, early_stopping=True,
                            n_iter_no_change=20, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
-    labels, first = np.unique(groups, return_index=True)
-    _, per_label = np.unique(target[first], return_counts=True)
-    if per_label.size < 2 or per_label.min() < 2:
+    _, first = np.unique(groups, return_index=True)  # one row per trial
+    names, per_label = np.unique(target[first], return_counts=True)
+    if names.size < 2 or per_label.min() < 2:
         raise ValueError("texture training needs at least two textures and two training trials of each "
-                         f"(the training split has {dict(zip(*np.unique(target[first], return_counts=True)))})")
+                         f"(trials per texture in the training split: {dict(zip(names.tolist(), per_label.tolist()))})")
     cv = StratifiedGroupKFold(n_splits=min(CALIBRATION_FOLDS, int(per_label.min())))
     folds = list(cv.split(feats, target, groups))
     svc = CalibratedClassifierCV(SVC(C=SVC_C, gamma="scale"), ensemble=False, cv=folds)
