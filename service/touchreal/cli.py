@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "touchreal.fitting.command",
     "touchreal.analysis.command",
     "touchreal.bench.command",
+    "touchreal.decoding.command",
     "touchreal.server.command",
 )
 
