@@ -27,6 +27,9 @@ from .replay import ReplaySource
 from .scene import SceneSource, default_scene, taxel_grid
 
 
+SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
+
+
 class LiveSource(Protocol):
     """What the service's acquisition thread reads."""
 
@@ -105,8 +108,9 @@ class SimLiveSource:
 class ReplayLiveSource:
     """Recorded trials played back to back, each a segment on its own clock, in real time x ``speed``.
 
-    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations (rounded
-    up to whole ms) so the stream's clock keeps increasing. ``loop`` replays the list forever.
+    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations, each
+    rounded up to :data:`SEGMENT_GRID_US`, so the stream's clock keeps increasing and every grid the
+    stream is cut on (10 ms decoder bins, 32 ms steps) falls on the same instants of a trial. ``loop`` replays the list forever.
     A replay waits for demand (``waits_for_demand``): it starts, and resumes, only while somebody
     subscribes, so nobody misses the beginning of a trial.
     """
@@ -146,7 +150,8 @@ class ReplayLiveSource:
         trial: Trial = self.dataset.load(entry)
         self.segment, self.trial_id = i, entry["id"]
         self.offset_us = self._next_offset_us
-        self._next_offset_us += int(math.ceil(trial.duration_s * 1000.0 + 1.0)) * 1000
+        span = trial.duration_s * 1e6 + 1000.0
+        self._next_offset_us += int(math.ceil(span / SEGMENT_GRID_US)) * SEGMENT_GRID_US
         self._player = ReplaySource(trial)
         return True
 

@@ -106,11 +106,12 @@ class Runtime:
         demand: Callable[[], Demand],
         params: Callable[[], tuple[int, EncoderParams]],
         publish: Callable[[Update], None],
-        decoders: Callable[[], dict[str, object]] | None = None,
+        make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
     ):
         self.source = source
         self._demand, self._params, self._publish = demand, params, publish
-        self._decoders = decoders or (lambda: {})
+        self._make_decoder = make_decoder
+        self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
         self.encoder: StreamEncoder | None = None
         self.enc_rev = 0
         self.enc_segment = source.segment
@@ -170,6 +171,7 @@ class Runtime:
         tail = None
         if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
             tail = self._finish_encoder()
+            self.decoders = {}
             self.enc_segment = self.source.segment
             self.chunk_log.clear()
             self.chunk_log.add(chunk, acq_us)
@@ -182,6 +184,8 @@ class Runtime:
         if self.encoder is None:
             self.encoder = StreamEncoder(params, self.source.n_taxels)
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
+            self.decoders = {}
+        self._follow_decoder_demand(demand)
         columns = dict(demand.columns)
         if columns != self.active:
             self.encoder.set_active(columns)
@@ -252,11 +256,27 @@ class Runtime:
         self.first_output.set()
         return upd
 
+    def _follow_decoder_demand(self, demand: Demand) -> None:
+        """Keep one streaming decoder per demanded model, for its demanded taxels (a decoder whose
+        taxels change starts afresh; one nobody wants is dropped)."""
+        if self._make_decoder is None:
+            return
+        for name in [n for n in self.decoders if n not in demand.decoders]:
+            del self.decoders[name]
+        for name, taxels in demand.decoders.items():
+            dec = self.decoders.get(name)
+            if dec is None or tuple(dec.taxels) != taxels:
+                self.decoders[name] = self._make_decoder(name, taxels)
+
     def _decode(self, upd: Update) -> list:
+        """Decoded outputs completed by this update: (name, taxels, step times (n,), values (n, taxels, outputs))."""
         out = []
-        for name, dec in self._decoders().items():
-            for t_us, values in dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us):
-                out.append((name, tuple(dec.taxels), np.array([t_us], np.uint64), values[None]))
+        for name, dec in self.decoders.items():
+            steps = dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us)
+            if steps:
+                t_us = np.array([t for t, _ in steps], np.uint64)
+                out.append((name, tuple(int(t) for t in dec.taxels), t_us,
+                            np.stack([v for _, v in steps])))
         return out
 
     # -- counters -------------------------------------------------------------------------------
