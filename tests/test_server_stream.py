@@ -329,3 +329,28 @@ def test_nan_and_inf_from_the_source_are_repaired_flagged_and_counted(tmp_path):
     assert any("source_gap" in f.header.flag_names() for f in _spikes(frames))
     data = np.concatenate([f.data for f in frames if isinstance(f, P.ChannelsFrame)])
     assert data.size and np.isfinite(data).all()
+
+
+def test_each_class_goes_out_as_soon_as_it_is_final(tmp_path):
+    """SA1 and RA on a 16 ms window are final ~100 ms before PC on 128 ms; the hello says so."""
+    params = default_params().model_copy(deep=True)
+    params.version = 3
+    for c in ("SA1", "RA"):
+        params.classes[c].window_ms = 16.0
+    path = tmp_path / "fast.json"
+    params.save(path)
+    with running_server(tmp_path / "state", params=path) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                hello, sub = await hello_and_subscribe(ws)
+                return hello, sub, _spikes(await collect(ws, 3.0))
+
+        hello, sub, frames = run(go())
+    lat = hello["latency_us"]
+    assert lat["SA1"] < 25000 and lat["RA"] < 25000 and lat["PC"] > 100000 and sub["latency_us"] == lat
+    assert hello["window_us"] == {"SA1": 16000, "RA": 16000, "PC": 128000}
+    # every frame: SA1's samples are complete far beyond PC's (final_us includes each class's delay)
+    shift = 1000 * (params.classes["SA1"].delay_ms - params.classes["PC"].delay_ms)
+    lead = [f.final_us["SA1"] - f.final_us["PC"] - shift for f in frames[10:]]
+    assert min(lead) > 60000
