@@ -6,7 +6,6 @@ import asyncio
 import json
 
 import httpx
-import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from server_harness import connect, hello_and_subscribe, running_server

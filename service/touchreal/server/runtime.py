@@ -119,7 +119,6 @@ class Runtime:
         self.update_no = 0
         self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
         self.error: str | None = None
-        self.first_output = threading.Event()
         self.chunk_log = ChunkLog()
         self.counters: dict[str, int] = {}  #: cumulative sanitizer + source fault counters
         self._enc_stats: dict[str, int] = {}
@@ -137,10 +136,6 @@ class Runtime:
         self.source.close()
         self._thread.join(timeout)
         self.state = "stopped"
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
 
     def _run(self) -> None:
         waits = getattr(self.source, "waits_for_demand", False)
@@ -253,7 +248,6 @@ class Runtime:
                      [], compute_s, latency)
         upd.decoded = self._decode(upd)
         self._publish(upd)
-        self.first_output.set()
         return upd
 
     def _follow_decoder_demand(self, demand: Demand) -> None:

@@ -19,7 +19,6 @@ from touchreal_client import protocol as P
 from .. import __version__
 from ..decoding.model import ModelStore, params_warning
 from ..params import EncoderParams
-from .demand import Demand
 from .hub import Hub
 from .metrics import Metrics
 from .params_store import ParamsStore
@@ -212,9 +211,6 @@ class Service:
             "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
         }
 
-    def live(self) -> bool:
-        return self.runtime is None or self.runtime.state != "failed" or self.source_error is not None
-
     def ready(self) -> tuple[bool, str]:
         rt = self.runtime
         if rt is None:
@@ -224,7 +220,7 @@ class Service:
         st = rt.source.status().get("state")
         if st != "streaming":
             return False, f"source {st}"
-        if rt.state == "starting" and not rt.first_output.is_set():
+        if rt.state == "starting":
             return False, "pipeline warming up"
         return True, "ok"
 
@@ -262,10 +258,3 @@ class Service:
     def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
         """Validated parameters become active at the start of the next update."""
         return self.store.put(params, origin)
-
-    def demand(self) -> Demand:
-        return self.hub.demand
-
-    @property
-    def state_dir(self) -> Path:
-        return self.settings.state_dir
