@@ -151,7 +151,7 @@ def test_non_finite_samples_pass_through_and_the_encoder_stays_finite(tmp_path):
     got, se, parts, status = stream_encoded(tmp_path / "ttyTR0", trial, n_taxels=1)
     assert np.array_equal(got.st[:, 0], trial.st, equal_nan=True)
     assert np.array_equal(got.pvdf[:, 0], trial.pvdf, equal_nan=True)
-    assert se.pre.stats["singletact"]["non_finite"] == 3 and se.pre.stats["pvdf"]["non_finite"] == 12
+    assert se.stats["singletact"]["non_finite"] == 3 and se.stats["pvdf"]["non_finite"] == 12
     finite, peak, _ = se.state_report()
     assert finite and np.isfinite(peak)
     events = SpikeEvents.concatenate(parts)

@@ -86,16 +86,17 @@ def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
         async def go():
             await asyncio.sleep(0.5)
             rt = svc.runtime
-            idle = rt.state, rt.encoder.active, rt.encoder.pre.sources
+            idle = rt.state, rt.encoder.active, rt.encoder.running
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, classes=["SA1"])
                 frames = _spikes(await collect(ws, 1.0))
                 busy = rt.state, rt.encoder.active
             await asyncio.sleep(0.5)
-            return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.pre.sources)
+            return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.running)
 
         idle, frames, busy, after = run(go())
-    assert idle == ("idle", {}, ()) and after == ("idle", {}, ())  # no branch runs: acquisition only
+    off = {"singletact": False, "pvdf_filter": False, "pvdf_windows": (), "blocks": 0}
+    assert idle == ("idle", {}, off) and after == ("idle", {}, off)  # no branch runs: acquisition only
     assert busy == ("running", {"SA1": (0,)})
     # a returning subscriber waits for no warm-up: SA1 is final to within its latency from the first frame
     assert frames[0].final_us["SA1"] > 0
