@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "touchreal.analysis.command",
     "touchreal.bench.command",
     "touchreal.server.command",
+    "touchreal.bridge.command",
 )
 
 
