@@ -8,8 +8,9 @@ subscribe to is forwarded to the publisher as demand (:mod:`.demand`).
 
 Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
 gateway's bounded pending buffer dropped) advances every spikes subscriber's ``seq`` and ``dropped``
-by the frames it lost (``Hub.skip``), exactly as if its own queue had dropped them. Only the spikes
-stream crosses the broker; channels and decoded outputs are the service's own ``/v1/stream``.
+by the frames it lost (``Hub.skip``), exactly as if its own queue had dropped them; the same holds
+for the channels subject and channels subscribers. Spikes and channels cross the broker; decoded
+outputs are the service's own ``/v1/stream``.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from ..server.hub import Hub
 from ..server.metrics import Metrics
 from ..server.runtime import wall_us
 from . import subjects
-from .demand import DEFAULT_TTL_S, announcement
+from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 
 log = logging.getLogger("touchreal.bridge")
@@ -78,7 +79,8 @@ class Gateway:
         self.m_slow = Counter("touchreal_gateway_nats_slow_consumer", "frames NATS dropped because this gateway's "
                               "pending buffer was full", registry=r)
         self.m_connected = Gauge("touchreal_gateway_nats_connected", "1 while connected to NATS", registry=r)
-        self.upstream = UpstreamTracker()
+        self.upstream = UpstreamTracker()  #: the spikes subject
+        self.upstream_channels = UpstreamTracker()
         self.upstream_hello: dict[str, Any] | None = None
         self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest frame
         self.last_frame_mono: float | None = None
@@ -100,7 +102,7 @@ class Gateway:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self.nc is not None and not self.nc.is_closed:
             try:  # tell the publisher at once that our demand is gone
-                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, {}))
+                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, Announced({})))
                 await asyncio.wait_for(self.nc.drain(), 5)
             except (asyncio.TimeoutError, NatsError, OSError):
                 await self.nc.close()
@@ -112,8 +114,9 @@ class Gateway:
             reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
-        await self.nc.subscribe(subjects.frames(self.sensor_id), cb=self._on_frame, pending_msgs_limit=s.pending_frames,
-                                pending_bytes_limit=s.pending_frames * 65536)
+        for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id)):
+            await self.nc.subscribe(subject, cb=self._on_frame, pending_msgs_limit=s.pending_frames,
+                                    pending_bytes_limit=s.pending_frames * 65536)
         self._tasks.append(asyncio.create_task(self._announce_demand(), name="touchreal-gateway-demand"))
         await self._fetch_hello()
 
@@ -147,16 +150,18 @@ class Gateway:
             self.bad_frames += 1
             log.warning("bad frame on %s: %s", msg.subject, exc)
             return
-        if not isinstance(frame, P.SpikesFrame):
+        if isinstance(frame, P.DecodedFrame):
             return
-        seen = self.upstream.observe((msg.headers or {}).get(subjects.SESSION_HEADER), frame.header.seq)
+        spikes = isinstance(frame, P.SpikesFrame)
+        tracker = self.upstream if spikes else self.upstream_channels
+        seen = tracker.observe((msg.headers or {}).get(subjects.SESSION_HEADER), frame.header.seq)
         if seen.new_session and self.upstream_hello is not None and \
-                self.upstream_hello.get("session") != self.upstream.session:
+                self.upstream_hello.get("session") != tracker.session:
             self._tasks.append(asyncio.create_task(self._fetch_hello()))  # the service restarted
         if seen.lost:
             self.m_lost.inc(seen.lost)
-            self.hub.skip(seen.lost)
-        upd = update_from_frame(frame)
+            self.hub.skip(seen.lost, ("spikes",) if spikes else ("channels",))
+        upd = update_from_frame(frame, self.hub.n_taxels)
         if upd.final_us:
             self.anchor = (max(upd.final_us.values()), upd.emit_us)
         self.last_frame_mono = time.monotonic()
@@ -176,8 +181,9 @@ class Gateway:
             self._demand_dirty.clear()
             ttl = max(DEFAULT_TTL_S, 3 * self.settings.demand_interval_s)
             try:
+                d = self.hub.demand
                 await self.nc.publish(subjects.demand(self.sensor_id),
-                                      announcement(self.id, dict(self.hub.demand.columns), ttl))
+                                      announcement(self.id, Announced(dict(d.columns), d.channel_taxels), ttl))
             except (NatsError, OSError) as exc:
                 log.debug("demand announcement failed: %r", exc)
 
@@ -192,15 +198,17 @@ class Gateway:
 
     # -- what ws.py and the routes read -----------------------------------------------------------
     def hello(self) -> dict[str, Any]:
-        """The publisher's hello, as this gateway serves it: spikes only, its own queue limits, a
-        fresh clock anchor. Before the publisher answered: no taxels, ``session`` null."""
+        """The publisher's hello, as this gateway serves it: spikes and channels (no decoded outputs),
+        its own queue limits, a fresh clock anchor. Before the publisher answered: no taxels,
+        ``session`` null."""
         up = self.upstream_hello or {"session": None, "taxels": [], "classes": [], "latency_us": {}, "window_us": {},
                                      "update_us": 0, "params": None, "units": {}}
         s = self.settings
         return {**up, "type": "hello", "protocol": P.PROTOCOL, "version": P.VERSION,
                 "versions": list(P.SUPPORTED_VERSIONS), "server": f"touchreal-gateway {__version__} (NATS {self.sensor_id})",
                 "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
-                "streams": {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}},
+                "streams": {k: v for k, v in up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}).items()
+                            if k != "decoded"},
                 "encodings": list(P.ENCODINGS), "default_encoding": "binary",
                 "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": s.queue_frames,
                            "slow_timeout_s": s.slow_timeout_s}}
@@ -220,8 +228,10 @@ class Gateway:
         return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats,
                 "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
+                             "channels_frames": self.upstream_channels.frames, "channels_lost": self.upstream_channels.lost,
                              "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get())},
-                "demand": {c: list(t) for c, t in self.hub.demand.columns.items()},
+                "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
+                           "channel_taxels": list(self.hub.demand.channel_taxels)},
                 "clients": [{"id": c.id, "seq": c.seq, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue)}
                             for c in self.hub.subscribers.values()]}
 

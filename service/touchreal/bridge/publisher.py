@@ -1,9 +1,9 @@
 """``touchreal serve --publish nats://HOST:PORT --sensor-id ID``: the service's frames onto NATS.
 
-The publisher is one more subscriber of the service's :class:`~touchreal.server.hub.Hub` (so the
-acquisition thread never sees it): its subscription is the demand the gateways forward
-(:mod:`.demand`), or every class and taxel with ``publish_all``. A task on the event loop drains its
-bounded queue into ``nc.publish`` (nats-py buffers writes and flushes them itself; while the broker
+The publisher is two more subscribers of the service's :class:`~touchreal.server.hub.Hub` (so the
+acquisition thread never sees it), one per subject: spikes for the demand the gateways forward
+(:mod:`.demand`; every class and taxel with ``publish_all``), and full-rate channels for the channel
+taxels they forward. A task on the event loop drains their bounded queues into ``nc.publish`` (nats-py buffers writes and flushes them itself; while the broker
 is unreachable it keeps up to ``pending_bytes`` and reconnects on its own; a publish it refuses is
 counted and dropped, the next frame's ``seq`` jump shows the loss downstream). If the loop ever lets
 the queue overflow, the hub drops frames for the publisher alone, again visible as a ``seq`` jump.
@@ -42,7 +42,7 @@ class NatsPublisher:
         self.publish_all, self.pending_bytes = publish_all, pending_bytes
         self.demand = ForwardedDemand()
         self.nc: nats.NATS | None = None
-        self.sub: Subscriber | None = None
+        self.lanes: dict[str, Subscriber] = {}  #: subject -> the hub subscriber feeding it
         self.published = 0
         self._announced: tuple | None = None
         self._task: asyncio.Task | None = None
@@ -54,7 +54,11 @@ class NatsPublisher:
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
 
     async def start(self) -> None:
-        self.sub = self.service.hub.add()
+        self.spikes_subject, self.channels_subject = subjects.frames(self.sensor_id), subjects.channels(self.sensor_id)
+        self.lanes = {self.spikes_subject: self.service.hub.add(), self.channels_subject: self.service.hub.add()}
+        self._wakeup = asyncio.Event()
+        for sub in self.lanes.values():
+            sub.wakeup = self._wakeup  # one drain task serves both
         self._apply_demand()
         self._task = asyncio.create_task(self._run(), name="touchreal-nats-publisher")
 
@@ -65,8 +69,8 @@ class NatsPublisher:
                 await self._task
             except (asyncio.CancelledError, Exception):
                 pass
-        if self.sub is not None:
-            self.service.hub.remove(self.sub)
+        for sub in self.lanes.values():
+            self.service.hub.remove(sub)
         if self.nc is not None and not self.nc.is_closed:
             try:
                 await asyncio.wait_for(self.nc.drain(), 5)
@@ -76,8 +80,10 @@ class NatsPublisher:
     def status(self) -> dict:
         return {"url": self.url, "sensor_id": self.sensor_id, "connected": bool(self.nc and self.nc.is_connected),
                 "published": self.published, "failures": int(self.m_failed._value.get()),
-                "dropped": self.sub.dropped if self.sub else 0, "gateways": self.demand.gateways,
-                "subscription": self.sub.subscription.to_json() if self.sub and self.sub.subscription else None}
+                "gateways": self.demand.gateways,
+                "lanes": {subject: {"seq": sub.seq, "dropped": sub.dropped,
+                                    "subscription": sub.subscription.to_json() if sub.subscription else None}
+                          for subject, sub in self.lanes.items()}}
 
     # -- the loop -------------------------------------------------------------------------------
     async def _run(self) -> None:
@@ -89,40 +95,39 @@ class NatsPublisher:
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
         log.info("publishing %s to %s", subjects.frames(self.sensor_id), self.url)
-        subject = subjects.frames(self.sensor_id)
         headers = {subjects.SESSION_HEADER: self.service.session}
-        sub = self.sub
         while True:
             try:
-                await asyncio.wait_for(sub.wakeup.wait(), EXPIRE_EVERY_S)
+                await asyncio.wait_for(self._wakeup.wait(), EXPIRE_EVERY_S)
             except asyncio.TimeoutError:
                 pass
-            sub.wakeup.clear()
+            self._wakeup.clear()
             self._expire()
-            if sub.kick is not None:  # the loop starved it for slow_timeout_s: keep publishing (losses are counted)
-                log.warning("publisher fell behind: %s", sub.kick[1])
-                sub.kick, sub.full_since = None, None
-                sub.kicked.clear()
-            while sub.queue:
-                item = sub.queue.popleft()
-                data, _ = sub.render(item)
-                await self._announce_if_changed(item.update.params_rev)
-                try:
-                    await self.nc.publish(subject, data, headers=headers)
-                    self.published += 1
-                    self.m_published.inc()
-                except (NatsError, OSError) as exc:
-                    self.m_failed.inc()
-                    log.debug("publish failed: %r", exc)
+            for subject, sub in self.lanes.items():
+                if sub.kick is not None:  # the loop starved it for slow_timeout_s: keep publishing (losses are counted)
+                    log.warning("publisher fell behind on %s: %s", subject, sub.kick[1])
+                    sub.kick, sub.full_since = None, None
+                    sub.kicked.clear()
+                while sub.queue:
+                    item = sub.queue.popleft()
+                    data, _ = sub.render(item)
+                    await self._announce_if_changed(item.update.params_rev)
+                    try:
+                        await self.nc.publish(subject, data, headers=headers)
+                        self.published += 1
+                        self.m_published.inc()
+                    except (NatsError, OSError) as exc:
+                        self.m_failed.inc()
+                        log.debug("publish failed: %r", exc)
 
     # -- demand and hello -----------------------------------------------------------------------
     async def _on_demand(self, msg) -> None:
         try:
-            gid, cols, ttl = parse_announcement(msg.data)
+            gid, announced, ttl = parse_announcement(msg.data)
         except ValueError as exc:
             log.warning("%s: %s", msg.subject, exc)
             return
-        self.demand.announce(gid, cols, ttl, time.monotonic())
+        self.demand.announce(gid, announced, ttl, time.monotonic())
         self._apply_demand()
 
     def _expire(self) -> None:
@@ -132,13 +137,14 @@ class NatsPublisher:
             self._apply_demand()
 
     def _apply_demand(self) -> None:
-        want: P.Subscription | None = P.Subscription() if self.publish_all else self.demand.subscription()
-        if not (want.taxels is None or want.taxels) or not want.classes:
-            want = None  # nobody downstream: no frames, and nothing computed on our account
+        """Subscribe each lane to what is wanted downstream (None: no frames, nothing computed for us)."""
         self.m_gateways.set(len(self.demand.gateways))
-        cur = self.sub.subscription
-        if (cur and (cur.taxels, cur.classes)) != (want and (want.taxels, want.classes)):
-            self.service.hub.subscribe(self.sub, want)
+        wants = {self.spikes_subject: P.Subscription() if self.publish_all else self.demand.spikes(),
+                 self.channels_subject: self.demand.channels()}
+        for subject, want in wants.items():
+            sub = self.lanes[subject]
+            if (sub.subscription and sub.subscription.to_json()) != (want and want.to_json()):
+                self.service.hub.subscribe(sub, want)
 
     async def _on_hello_request(self, msg) -> None:
         if msg.reply:  # our own announcements arrive here too: they have no reply subject

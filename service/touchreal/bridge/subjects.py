@@ -4,6 +4,8 @@
   and taxels; header ``seq`` = the publisher's sequence on this subject (a jump = frames lost),
   ``dropped`` = frames the publisher itself could not publish; NATS header :data:`SESSION_HEADER`
   = the service's session.
+* ``channels``: binary channels frames at full rate (decimation 1) for the taxels some gateway
+  wants, one per update, with their own ``seq``; only while demanded.
 * ``hello``: the service's ``hello`` JSON; a request (any payload, with a reply subject) is answered
   with the current one, and the publisher announces a new one here when it changes.
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
@@ -26,6 +28,10 @@ def check_sensor_id(sensor_id: str) -> str:
 
 def frames(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.frames"
+
+
+def channels(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.channels"
 
 
 def hello(sensor_id: str) -> str:

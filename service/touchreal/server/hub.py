@@ -163,7 +163,7 @@ class Hub:
     def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
         out: list[P.Frame] = []
         taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
-        if "spikes" in s.streams:
+        if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
             cls_idx = [P.CLASSES.index(c) for c in s.classes]
             sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
