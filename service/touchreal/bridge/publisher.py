@@ -34,7 +34,8 @@ EXPIRE_EVERY_S = 0.25  #: how often forwarded demand is checked for expiry (s)
 
 
 class NatsPublisher:
-    """Publishes one service's spikes frames under ``touchreal.<sensor_id>.`` (a Companion of the app)."""
+    """Publishes one service's frames under ``touchreal.<sensor_id>.`` (a Companion of the app). Its two
+    hub subscribers (lanes) show in the service's ``/v1/status`` clients like any other."""
 
     def __init__(self, service: Service, url: str, sensor_id: str, publish_all: bool = False,
                  pending_bytes: int = 8 << 20):
@@ -42,6 +43,7 @@ class NatsPublisher:
         self.publish_all, self.pending_bytes = publish_all, pending_bytes
         self.demand = ForwardedDemand()
         self.nc: nats.NATS | None = None
+        self.spikes_subject, self.channels_subject = subjects.frames(sensor_id), subjects.channels(sensor_id)
         self.lanes: dict[str, Subscriber] = {}  #: subject -> the hub subscriber feeding it
         self.published = 0
         self._announced: tuple | None = None
@@ -54,7 +56,6 @@ class NatsPublisher:
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
 
     async def start(self) -> None:
-        self.spikes_subject, self.channels_subject = subjects.frames(self.sensor_id), subjects.channels(self.sensor_id)
         self.lanes = {self.spikes_subject: self.service.hub.add(), self.channels_subject: self.service.hub.add()}
         self._wakeup = asyncio.Event()
         for sub in self.lanes.values():
