@@ -63,6 +63,18 @@ class GatewaySettings(BaseSettings):
     demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
 
 
+class AnnouncingHub(Hub):
+    """The gateway's hub: every change of its demand also wakes the demand announcer."""
+
+    def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event):
+        self.changed = changed
+        super().__init__(capacity, slow_timeout_s)
+
+    def refresh_demand(self) -> None:
+        super().refresh_demand()
+        self.changed.set()
+
+
 class Gateway:
     """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
     ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
@@ -71,7 +83,8 @@ class Gateway:
         self.settings = settings
         self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
         self.id = uuid.uuid4().hex[:12]
-        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, on_demand_change=self._demand_changed)
+        self._demand_dirty = asyncio.Event()
+        self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty)
         self.metrics = Metrics()
         r = self.metrics.registry
         self.m_lost = Counter("touchreal_gateway_upstream_lost_frames", "frames lost between publisher and gateway "
@@ -87,13 +100,11 @@ class Gateway:
         self.bad_frames = 0
         self.loop: asyncio.AbstractEventLoop | None = None
         self.nc: nats.NATS | None = None
-        self._demand_dirty = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        self._demand_dirty = asyncio.Event()
         self._tasks.append(asyncio.create_task(self._run(), name="touchreal-gateway-nats"))
 
     async def stop(self) -> None:
@@ -169,9 +180,6 @@ class Gateway:
         self.hub.publish(upd)
 
     # -- demand ---------------------------------------------------------------------------------
-    def _demand_changed(self) -> None:
-        self._demand_dirty.set()
-
     async def _announce_demand(self) -> None:
         while True:
             try:

@@ -112,7 +112,7 @@ class NatsPublisher:
                 while sub.queue:
                     item = sub.queue.popleft()
                     data, _ = sub.render(item)
-                    await self._announce_if_changed(item.update.params_rev)
+                    await self._announce_if_changed(P.decode_header(data).params_rev)
                     try:
                         await self.nc.publish(subject, data, headers=headers)
                         self.published += 1
