@@ -43,7 +43,8 @@ BENCH_SENSOR = "bench"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of each measurement (s)")
-    p.add_argument("--subscribers", default="1,10,100", help="subscriber counts for the fan-out part")
+    p.add_argument("--subscribers", default=None, help="subscriber counts for the fan-out part (default 1,10,100; "
+                   "with --nats the --nats-subscribers counts, so both paths are measured side by side)")
     p.add_argument("--soak-seconds", type=float, default=60.0, help="length of the largest fan-out run (s)")
     p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
@@ -140,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
                   + ", ".join(f"{c} {params.window_ms(c):g} ms" for c in params.classes)
                   + "; algorithmic latency " + ", ".join(f"{c} {v / 1000:.1f} ms" for c, v in svc.latency_us().items()))
             _part1(addr, args, log, compute)
-            _part2([addr], args, args.subscribers, "2. Fan-out, direct (receipt minus emission), all classes and taxels")
+            direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
+            _part2([addr], args, direct_counts, "2. Fan-out, direct (receipt minus emission), all classes and taxels")
             if nats_url:
                 gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
                 _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
