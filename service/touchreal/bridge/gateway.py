@@ -235,6 +235,7 @@ class Gateway:
         u = self.upstream
         return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats,
                 "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
+                "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
                              "channels_frames": self.upstream_channels.frames, "channels_lost": self.upstream_channels.lost,
                              "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get())},
