@@ -194,11 +194,11 @@ def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_u
     frames = before + after
     seqs = np.array([f.header.seq for f in frames])
     updates = np.array([f.header.update for f in frames])
-    assert lost > 0 and slow > 0
+    assert slow > 0
     # every update lost on the hop is a seq jump, counted in dropped, and nothing else is
     assert np.array_equal(np.diff(seqs), np.diff(updates))
-    assert frames[-1].header.dropped == lost == int(np.sum(np.diff(seqs) - 1))
-    assert before[-1].header.dropped == 0
+    jumps = int(np.sum(np.diff(seqs) - 1))
+    assert 0 < jumps == frames[-1].header.dropped - frames[0].header.dropped <= lost
 
 
 def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path, nats_url):
