@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "touchreal.bench.command",
     "touchreal.decoding.command",
     "touchreal.server.command",
+    "touchreal.bridge.command",
 )
 
 

@@ -11,6 +11,11 @@ Part 2 connects 1, 10 and 100 subscribers (client processes) and reports events/
 fan-out latency (receipt minus ``emit_us``) p50/p99 and frames dropped. ``--soak-seconds`` runs the
 last count for that long.
 
+With ``--nats`` (needs Debian's ``nats-server``), part 2 runs again through NATS: the service
+publishes (``--publish``), two ``touchreal gateway`` processes serve the subscribers (spread evenly
+over both), all on loopback; the latency is the same receipt minus ``emit_us`` (the publisher's
+encoder), so the broker hop and the gateway are included.
+
 Part 3 drives the pipeline directly and compares the compute time per update for what a demand
 needs: everything, one class, one taxel of many, a PVDF-free class, and nobody.
 """
@@ -19,8 +24,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import multiprocessing as mp
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -30,14 +38,19 @@ import numpy as np
 from ..params import EncoderParams, default_params
 from ..settings import CLASSES
 
+BENCH_SENSOR = "bench"
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of each measurement (s)")
-    p.add_argument("--subscribers", default="1,10,100", help="subscriber counts for the fan-out part")
+    p.add_argument("--subscribers", default=None, help="subscriber counts for the fan-out part (default 1,10,100; "
+                   "with --nats the --nats-subscribers counts, so both paths are measured side by side)")
     p.add_argument("--soak-seconds", type=float, default=60.0, help="length of the largest fan-out run (s)")
     p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
+    p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
+    p.add_argument("--nats-subscribers", default="1,100,300", help="subscriber counts through the gateways")
 
 
 # -- client side (runs in child processes) -------------------------------------------------------------
@@ -71,11 +84,14 @@ def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue)
     out.put(asyncio.run(main()))
 
 
-def _run_clients(addr: str, n: int, seconds: float, processes: int, sub: dict | None = None) -> list[np.ndarray]:
+def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None) -> list[np.ndarray]:
+    """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``."""
+    addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    counts = [len(part) for part in np.array_split(np.arange(n), min(processes, n))]
-    procs = [ctx.Process(target=_client_process, args=(addr, k, seconds, sub or {}, q)) for k in counts]
+    counts = [len(part) for part in np.array_split(np.arange(n), max(min(processes, n), min(len(addrs), n)))]
+    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q))
+             for i, k in enumerate(counts)]
     for p in procs:
         p.start()
     results = [arr for _ in procs for arr in q.get(timeout=seconds + 120)]
@@ -110,14 +126,27 @@ def run(args: argparse.Namespace) -> int:
             deliver(upd)
 
         svc._deliver = recording_deliver
-        with serving(svc) as addr:
+        with contextlib.ExitStack() as stack:
+            companions, nats_url = [], None
+            if args.nats:
+                from ..bridge.natsd import local_nats_server
+                from ..bridge.publisher import NatsPublisher
+
+                nats_url = stack.enter_context(local_nats_server())
+                companions.append(NatsPublisher(svc, nats_url, BENCH_SENSOR))
+            addr = stack.enter_context(serving(svc, companions=companions))
             time.sleep(1.0)
             print(f"TouchReal service benchmark: simulated e-skin, {args.taxels} taxel(s), update "
                   f"{params.preprocess.update_ms:g} ms ({1000 / params.preprocess.update_ms:.2f} Hz), windows "
                   + ", ".join(f"{c} {params.window_ms(c):g} ms" for c in params.classes)
                   + "; algorithmic latency " + ", ".join(f"{c} {v / 1000:.1f} ms" for c, v in svc.latency_us().items()))
             _part1(addr, args, log, compute)
-            _part2(addr, args)
+            direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
+            _part2([addr], args, direct_counts, "2. Fan-out, direct (receipt minus emission), all classes and taxels")
+            if nats_url:
+                gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
+                _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
+                       "the publisher's emission), all classes and taxels")
     _part3(params, args.taxels)
     return 0
 
@@ -141,13 +170,41 @@ def _part1(addr: str, args, log: dict, compute: list) -> None:
         print(f"   {c:>4}   {_stats_ms(sent_a):>26}   {_stats_ms(recv_a):>26}   {sent_a.size:6d}")
 
 
-def _part2(addr: str, args) -> None:
-    counts = [int(x) for x in args.subscribers.split(",") if x]
-    print("\n2. Fan-out (receipt minus emission), all classes and taxels")
+@contextlib.contextmanager
+def _gateway_process(nats_url: str):
+    """A ``touchreal gateway`` process on a free loopback port; yields its address once ready."""
+    import httpx
+
+    from ..bridge.natsd import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "touchreal", "gateway", "--nats", nats_url, "--sensor-id",
+                             BENCH_SENSOR, "--port", str(port)], stdout=subprocess.DEVNULL)
+    addr = f"127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"http://{addr}/v1/ready", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the gateway did not become ready")
+            time.sleep(0.2)
+        yield addr
+    finally:
+        proc.terminate()
+        proc.wait(15)
+
+
+def _part2(addrs: list[str], args, subscribers: str, title: str) -> None:
+    counts = [int(x) for x in subscribers.split(",") if x]
+    print(f"\n{title}")
     print("   subscribers  seconds  events/s/client  frames/s/client  p50 ms  p99 ms  max ms  dropped")
     for n in counts:
         seconds = args.soak_seconds if n == counts[-1] else args.seconds
-        res = _run_clients(addr, n, seconds, args.processes)
+        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)))
         fan = np.concatenate([(r[:, 3] - r[:, 1]) / 1000 for r in res if r.size])
         ev = np.mean([r[:, 4].sum() / seconds for r in res])
         fr = np.mean([r.shape[0] / seconds for r in res])

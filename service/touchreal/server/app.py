@@ -5,7 +5,8 @@ from __future__ import annotations
 import threading
 import time
 from contextlib import asynccontextmanager, contextmanager
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from typing import Protocol
 
 import uvicorn
 from fastapi import FastAPI
@@ -16,13 +17,26 @@ from . import rest, ws
 from .service import Service
 
 
-def create_app(service: Service) -> FastAPI:
+class Companion(Protocol):
+    """Something that runs beside the service on its event loop (e.g. the NATS publisher)."""
+
+    async def start(self) -> None: ...
+    async def stop(self) -> None: ...
+
+
+def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAPI:
+    """The service's app; ``companions`` start after the service and stop before it."""
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         await service.start()
+        for c in companions:
+            await c.start()
         try:
             yield
         finally:
+            for c in reversed(companions):
+                await c.stop()
             await service.stop()
 
     app = FastAPI(
@@ -48,12 +62,20 @@ def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning
 
 
 @contextmanager
-def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> Iterator[str]:
+def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
+            companions: Sequence[Companion] = ()) -> Iterator[str]:
     """Run the service's uvicorn server on its own thread; yields ``host:port`` once it accepts.
 
     For benchmarks and tests that need the real server next to their own code (``port=0``: a free port).
     """
-    config = uvicorn_config(create_app(service), host, port, log_level)
+    with serving_app(create_app(service, companions), host, port, log_level) as addr:
+        yield addr
+
+
+@contextmanager
+def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> Iterator[str]:
+    """Run any of our apps (the service, a gateway) under uvicorn on its own thread; yields ``host:port``."""
+    config = uvicorn_config(app, host, port, log_level)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="touchreal-uvicorn", daemon=True)
     thread.start()

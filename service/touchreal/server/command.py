@@ -18,6 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--state-dir", type=Path, default=None, help="parameter history + user models (TOUCHREAL_STATE_DIR)")
     p.add_argument("--params", type=Path, default=None, help="initial parameter file (default: last active, else shipped)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level")
+    p.add_argument("--publish", default=None, metavar="NATS_URL",
+                   help="also publish the frames to NATS (docs/scale-out.md), e.g. nats://127.0.0.1:4222")
+    p.add_argument("--sensor-id", default=None, help="with --publish: subjects touchreal.<ID>.frames/.hello/.demand")
+    p.add_argument("--publish-all", action="store_true",
+                   help="with --publish: every class and taxel, whatever the gateways forward as demand")
     p.set_defaults(func=run)
 
 
@@ -33,10 +38,18 @@ def run(args: argparse.Namespace) -> int:
     settings = ServeSettings(**overrides)
     config = RuntimeConfig(source=args.source, taxels=args.taxels, speed=args.speed, loop=args.loop)
     service = Service(settings, config)
-    app = create_app(service)
+    companions = []
+    if args.publish:
+        from ..bridge.publisher import NatsPublisher
+
+        if not args.sensor_id:
+            raise ValueError("--publish needs --sensor-id (the NATS subjects are touchreal.<ID>.*)")
+        companions.append(NatsPublisher(service, args.publish, args.sensor_id, publish_all=args.publish_all))
+    app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "
           f"stream ws://{base}/v1/stream · API http://{base}/docs · state {settings.state_dir}"
-          + (" · write endpoints need the token" if settings.token else ""), flush=True)
+          + (" · write endpoints need the token" if settings.token else "")
+          + (f" · publishing to {args.publish} as touchreal.{args.sensor_id}.*" if args.publish else ""), flush=True)
     uvicorn.Server(uvicorn_config(app, settings.host, settings.port, args.log_level)).run()
     return 0

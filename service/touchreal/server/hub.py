@@ -74,6 +74,12 @@ class Subscriber:
         self.queue.append(Queued(kind, payload, seq))
         self.wakeup.set()
 
+    def skip(self, n: int) -> None:
+        """``n`` frames meant for this subscriber were lost before they reached the hub (a broker hop):
+        its ``seq`` jumps and ``dropped`` counts them, exactly as for a frame its own queue dropped."""
+        self.seq += n
+        self.dropped += n
+
     def render(self, item: Queued) -> tuple[bytes | str, int]:
         """The frame as this connection sends it now, and its sent_us."""
         sent = wall_us()
@@ -108,7 +114,7 @@ class Hub:
         if self.subscribers.pop(sub.id, None) is not None and sub.subscription is not None:
             self.refresh_demand()
 
-    def subscribe(self, sub: Subscriber, subscription: P.Subscription) -> None:
+    def subscribe(self, sub: Subscriber, subscription: P.Subscription | None) -> None:
         sub.subscription = subscription
         self.refresh_demand()
 
@@ -139,10 +145,20 @@ class Hub:
             for kind, payload in frames:
                 sub.offer(kind, payload)
 
+    def skip(self, n_updates: int, streams: Sequence[str] = ("spikes",)) -> None:
+        """``n_updates`` updates carrying ``streams`` were lost upstream (a gateway's broker hop): every
+        subscriber to one of those streams is told, one frame per lost update and stream."""
+        for sub in self.subscribers.values():
+            s = sub.subscription
+            if s is not None and sub.kick is None:
+                n = n_updates * len(set(streams) & set(s.streams))
+                if n:
+                    sub.skip(n)
+
     def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
         out: list[P.Frame] = []
         taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
-        if "spikes" in s.streams:
+        if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
             cls_idx = [P.CLASSES.index(c) for c in s.classes]
             sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)

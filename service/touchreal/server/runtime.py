@@ -62,6 +62,7 @@ class Update:
     decoded: list[tuple[str, tuple[int, ...], np.ndarray, np.ndarray]] = field(default_factory=list)
     compute_s: float = 0.0
     latency_us: dict[str, np.ndarray] = field(default_factory=dict)  #: per class: emit - acquisition of the cause
+    spikes: bool = True  #: False for an update that carries only channels (a gateway's channels frame)
 
 
 class ChunkLog:

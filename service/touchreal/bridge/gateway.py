@@ -1,0 +1,286 @@
+"""``touchreal gateway --nats URL --sensor-id ID``: /v1/stream for many clients, fed from NATS.
+
+A gateway is stateless: it reads the publisher's hello (a NATS request), subscribes to the frames
+subject and feeds every frame, as an :class:`~touchreal.server.runtime.Update`, into the same
+:class:`~touchreal.server.hub.Hub` and ``/v1/stream`` WebSocket layer the service uses (so
+subscriptions, per-client queues, slow-consumer closes and stamping are one code). What its clients
+subscribe to is forwarded to the publisher as demand (:mod:`.demand`).
+
+Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
+gateway's bounded pending buffer dropped) advances every spikes subscriber's ``seq`` and ``dropped``
+by the frames it lost (``Hub.skip``), exactly as if its own queue had dropped them; the same holds
+for the channels subject and channels subscribers. Spikes and channels cross the broker; decoded
+outputs are the service's own ``/v1/stream``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+import uuid
+from contextlib import asynccontextmanager
+from typing import Any
+
+import nats
+from fastapi import APIRouter, FastAPI, Request, Response
+from fastapi.responses import JSONResponse
+from nats.errors import Error as NatsError
+from nats.errors import SlowConsumerError
+from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+from touchreal_client import protocol as P
+
+from .. import __version__
+from ..server import ws
+from ..server.hub import Hub
+from ..server.metrics import Metrics
+from ..server.runtime import wall_us
+from . import subjects
+from .demand import DEFAULT_TTL_S, Announced, announcement
+from .upstream import UpstreamTracker, update_from_frame
+
+log = logging.getLogger("touchreal.bridge")
+HELLO_RETRY_S = 0.5  #: how often a gateway asks for the hello until the publisher answers (s)
+
+
+class GatewaySettings(BaseSettings):
+    """``touchreal gateway`` settings (environment: ``TOUCHREAL_GATEWAY_<NAME>``)."""
+
+    model_config = SettingsConfigDict(env_prefix="TOUCHREAL_GATEWAY_", extra="ignore")
+
+    nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
+    sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
+    host: str = "127.0.0.1"
+    port: int = Field(default=8765, ge=0, le=65535)
+    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
+    max_clients: int = Field(default=1000, ge=1)
+    pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
+                                "dropping them (each loss becomes a gap its clients see)")
+    demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
+
+
+class AnnouncingHub(Hub):
+    """The gateway's hub: every change of its demand also wakes the demand announcer."""
+
+    def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event):
+        self.changed = changed
+        super().__init__(capacity, slow_timeout_s)
+
+    def refresh_demand(self) -> None:
+        super().refresh_demand()
+        self.changed.set()
+
+
+class Gateway:
+    """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
+    ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
+
+    def __init__(self, settings: GatewaySettings):
+        self.settings = settings
+        self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
+        self.id = uuid.uuid4().hex[:12]
+        self._demand_dirty = asyncio.Event()
+        self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty)
+        self.metrics = Metrics()
+        r = self.metrics.registry
+        self.m_lost = Counter("touchreal_gateway_upstream_lost_frames", "frames lost between publisher and gateway "
+                              "(seq jumps on the frames subject)", registry=r)
+        self.m_slow = Counter("touchreal_gateway_nats_slow_consumer", "frames NATS dropped because this gateway's "
+                              "pending buffer was full", registry=r)
+        self.m_connected = Gauge("touchreal_gateway_nats_connected", "1 while connected to NATS", registry=r)
+        self.upstream = UpstreamTracker()  #: the spikes subject
+        self.upstream_channels = UpstreamTracker()
+        self.upstream_hello: dict[str, Any] | None = None
+        self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest frame
+        self.last_frame_mono: float | None = None
+        self.bad_frames = 0
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.nc: nats.NATS | None = None
+        self._tasks: list[asyncio.Task] = []
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self._tasks.append(asyncio.create_task(self._run(), name="touchreal-gateway-nats"))
+
+    async def stop(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.nc is not None and not self.nc.is_closed:
+            try:  # tell the publisher at once that our demand is gone
+                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, Announced({})))
+                await asyncio.wait_for(self.nc.drain(), 5)
+            except (asyncio.TimeoutError, NatsError, OSError):
+                await self.nc.close()
+
+    async def _run(self) -> None:
+        s = self.settings
+        self.nc = await nats.connect(
+            s.nats.split(","), name=f"touchreal-gateway-{self.sensor_id}-{self.id}", max_reconnect_attempts=-1,
+            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
+        self.m_connected.set(1)
+        await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
+        for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id)):
+            await self.nc.subscribe(subject, cb=self._on_frame, pending_msgs_limit=s.pending_frames,
+                                    pending_bytes_limit=s.pending_frames * 65536)
+        self._tasks.append(asyncio.create_task(self._announce_demand(), name="touchreal-gateway-demand"))
+        await self._fetch_hello()
+
+    async def _fetch_hello(self) -> None:
+        while True:
+            try:
+                msg = await self.nc.request(subjects.hello(self.sensor_id), b"", timeout=HELLO_RETRY_S)
+                self._set_hello(json.loads(msg.data))
+                return
+            except (NatsError, asyncio.TimeoutError, ValueError) as exc:
+                log.debug("no hello from %s yet: %r", self.sensor_id, exc)
+                await asyncio.sleep(HELLO_RETRY_S)
+
+    def _set_hello(self, hello: dict[str, Any]) -> None:
+        self.upstream_hello = hello
+        self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)), {})
+
+    async def _on_hello(self, msg) -> None:
+        if msg.reply or not msg.data:  # a gateway's request, not an announcement
+            return
+        try:
+            self._set_hello(json.loads(msg.data))
+        except ValueError as exc:
+            log.warning("bad hello on %s: %s", msg.subject, exc)
+
+    # -- frames ---------------------------------------------------------------------------------
+    async def _on_frame(self, msg) -> None:
+        try:
+            frame = P.decode_frame(msg.data)
+        except P.ProtocolError as exc:
+            self.bad_frames += 1
+            log.warning("bad frame on %s: %s", msg.subject, exc)
+            return
+        if isinstance(frame, P.DecodedFrame):
+            return
+        spikes = isinstance(frame, P.SpikesFrame)
+        tracker = self.upstream if spikes else self.upstream_channels
+        seen = tracker.observe((msg.headers or {}).get(subjects.SESSION_HEADER), frame.header.seq)
+        if seen.new_session and self.upstream_hello is not None and \
+                self.upstream_hello.get("session") != tracker.session:
+            self._tasks.append(asyncio.create_task(self._fetch_hello()))  # the service restarted
+        if seen.lost:
+            self.m_lost.inc(seen.lost)
+            self.hub.skip(seen.lost, ("spikes",) if spikes else ("channels",))
+        upd = update_from_frame(frame, self.hub.n_taxels)
+        if upd.final_us:
+            self.anchor = (max(upd.final_us.values()), upd.emit_us)
+        self.last_frame_mono = time.monotonic()
+        self.metrics.updates.inc()
+        self.hub.publish(upd)
+
+    # -- demand ---------------------------------------------------------------------------------
+    async def _announce_demand(self) -> None:
+        while True:
+            try:
+                await asyncio.wait_for(self._demand_dirty.wait(), self.settings.demand_interval_s)
+            except asyncio.TimeoutError:
+                pass
+            self._demand_dirty.clear()
+            ttl = max(DEFAULT_TTL_S, 3 * self.settings.demand_interval_s)
+            try:
+                d = self.hub.demand
+                await self.nc.publish(subjects.demand(self.sensor_id),
+                                      announcement(self.id, Announced(dict(d.columns), d.channel_taxels), ttl))
+            except (NatsError, OSError) as exc:
+                log.debug("demand announcement failed: %r", exc)
+
+    async def _on_error(self, exc: Exception) -> None:
+        if isinstance(exc, SlowConsumerError):
+            self.m_slow.inc()  # the loss itself shows as the next frame's seq jump
+        else:
+            log.warning("nats: %r", exc)
+
+    async def _on_conn(self) -> None:
+        self.m_connected.set(1 if self.nc is not None and self.nc.is_connected else 0)
+
+    # -- what ws.py and the routes read -----------------------------------------------------------
+    def hello(self) -> dict[str, Any]:
+        """The publisher's hello, as this gateway serves it: spikes and channels (no decoded outputs),
+        its own queue limits, a fresh clock anchor. Before the publisher answered: no taxels,
+        ``session`` null."""
+        up = self.upstream_hello or {"session": None, "taxels": [], "classes": [], "latency_us": {}, "window_us": {},
+                                     "update_us": 0, "params": None, "units": {}}
+        s = self.settings
+        return {**up, "type": "hello", "protocol": P.PROTOCOL, "version": P.VERSION,
+                "versions": list(P.SUPPORTED_VERSIONS), "server": f"touchreal-gateway {__version__} (NATS {self.sensor_id})",
+                "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
+                "streams": {k: v for k, v in up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}).items()
+                            if k != "decoded"},
+                "encodings": list(P.ENCODINGS), "default_encoding": "binary",
+                "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": s.queue_frames,
+                           "slow_timeout_s": s.slow_timeout_s}}
+
+    def latency_us(self) -> dict[str, int]:
+        return dict((self.upstream_hello or {}).get("latency_us", {}))
+
+    def ready(self) -> tuple[bool, str]:
+        if self.nc is None or not self.nc.is_connected:
+            return False, f"not connected to NATS at {self.settings.nats}"
+        if self.upstream_hello is None:
+            return False, f"no hello from sensor {self.sensor_id!r} yet (is its publisher running?)"
+        return True, "ok"
+
+    def status(self) -> dict[str, Any]:
+        u = self.upstream
+        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats,
+                "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
+                "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
+                "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
+                             "channels_frames": self.upstream_channels.frames, "channels_lost": self.upstream_channels.lost,
+                             "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get())},
+                "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
+                           "channel_taxels": list(self.hub.demand.channel_taxels)},
+                "clients": [{"id": c.id, "seq": c.seq, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue)}
+                            for c in self.hub.subscribers.values()]}
+
+
+router = APIRouter()
+
+
+@router.get("/v1/health", tags=["health"])
+def health(request: Request) -> dict[str, str]:
+    return {"status": "ok", "gateway": request.app.state.service.id}
+
+
+@router.get("/v1/ready", tags=["health"])
+def ready(request: Request) -> Any:
+    ok, reason = request.app.state.service.ready()
+    return JSONResponse({"ready": ok, "reason": reason}, status_code=200 if ok else 503)
+
+
+@router.get("/v1/status", tags=["status"])
+def status(request: Request) -> dict[str, Any]:
+    return request.app.state.service.status()
+
+
+@router.get("/metrics", tags=["status"])
+def metrics(request: Request) -> Response:
+    return Response(generate_latest(request.app.state.service.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+def create_gateway_app(gateway: Gateway) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        await gateway.start()
+        try:
+            yield
+        finally:
+            await gateway.stop()
+
+    app = FastAPI(title="TouchReal gateway", version=__version__, lifespan=lifespan,
+                  summary="The /v1/stream spike stream of one sensor, served from NATS (docs/scale-out.md)")
+    app.state.service = gateway  # server/ws.py reads it under this name
+    app.include_router(router)
+    app.include_router(ws.router)
+    return app

@@ -1,0 +1,55 @@
+"""A local ``nats-server`` on 127.0.0.1 for the tests and ``touchreal bench serve --nats``.
+
+Production runs the broker as its own service (deploy/); this only starts Debian's binary on a free
+loopback port and stops it again.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+BINARY = "nats-server"
+
+
+def available() -> bool:
+    return shutil.which(BINARY) is not None
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def local_nats_server(port: int | None = None, timeout_s: float = 10.0) -> Iterator[str]:
+    """Run ``nats-server -a 127.0.0.1 -p PORT``; yields its URL once it accepts connections."""
+    if not available():
+        raise FileNotFoundError(f"{BINARY} is not installed (Debian: apt-get install nats-server)")
+    port = port or free_port()
+    proc = subprocess.Popen([BINARY, "-a", "127.0.0.1", "-p", str(port)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    err = proc.stderr.read().decode(errors="replace") if proc.poll() is not None else "timeout"
+                    raise RuntimeError(f"nats-server did not start on port {port}: {err}")
+                time.sleep(0.05)
+        yield f"nats://127.0.0.1:{port}"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,171 @@
+"""``touchreal serve --publish nats://HOST:PORT --sensor-id ID``: the service's frames onto NATS.
+
+The publisher is two more subscribers of the service's :class:`~touchreal.server.hub.Hub` (so the
+acquisition thread never sees it), one per subject: spikes for the demand the gateways forward
+(:mod:`.demand`; every class and taxel with ``publish_all``), and full-rate channels for the channel
+taxels they forward. A task on the event loop drains their bounded queues into ``nc.publish`` (nats-py buffers writes and flushes them itself; while the broker
+is unreachable it keeps up to ``pending_bytes`` and reconnects on its own; a publish it refuses is
+counted and dropped, the next frame's ``seq`` jump shows the loss downstream). If the loop ever lets
+the queue overflow, the hub drops frames for the publisher alone, again visible as a ``seq`` jump.
+
+It also answers ``hello`` requests with the service's current hello and announces a new one when
+the parameter revision, taxels or classes change.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+
+import nats
+from nats.errors import Error as NatsError
+from prometheus_client import Counter, Gauge
+from touchreal_client import protocol as P
+
+from ..server.hub import Subscriber
+from ..server.service import Service
+from . import subjects
+from .demand import ForwardedDemand, parse_announcement
+
+log = logging.getLogger("touchreal.bridge")
+EXPIRE_EVERY_S = 0.25  #: how often forwarded demand is checked for expiry (s)
+
+
+class NatsPublisher:
+    """Publishes one service's frames under ``touchreal.<sensor_id>.`` (a Companion of the app). Its two
+    hub subscribers (lanes) show in the service's ``/v1/status`` clients like any other."""
+
+    def __init__(self, service: Service, url: str, sensor_id: str, publish_all: bool = False,
+                 pending_bytes: int = 8 << 20):
+        self.service, self.url, self.sensor_id = service, url, subjects.check_sensor_id(sensor_id)
+        self.publish_all, self.pending_bytes = publish_all, pending_bytes
+        self.demand = ForwardedDemand()
+        self.nc: nats.NATS | None = None
+        self.spikes_subject, self.channels_subject = subjects.frames(sensor_id), subjects.channels(sensor_id)
+        self.lanes: dict[str, Subscriber] = {}  #: subject -> the hub subscriber feeding it
+        self.published = 0
+        self._announced: tuple | None = None
+        self._task: asyncio.Task | None = None
+        r = service.metrics.registry
+        self.m_published = Counter("touchreal_nats_published_frames", "frames published to NATS", registry=r)
+        self.m_failed = Counter("touchreal_nats_publish_failures", "frames NATS refused (disconnected and its "
+                                "buffer full, or closed)", registry=r)
+        self.m_connected = Gauge("touchreal_nats_connected", "1 while the publisher is connected to NATS", registry=r)
+        self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
+
+    async def start(self) -> None:
+        self.lanes = {self.spikes_subject: self.service.hub.add(), self.channels_subject: self.service.hub.add()}
+        self._wakeup = asyncio.Event()
+        for sub in self.lanes.values():
+            sub.wakeup = self._wakeup  # one drain task serves both
+        self._apply_demand()
+        self._task = asyncio.create_task(self._run(), name="touchreal-nats-publisher")
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):
+                pass
+        for sub in self.lanes.values():
+            self.service.hub.remove(sub)
+        if self.nc is not None and not self.nc.is_closed:
+            try:
+                await asyncio.wait_for(self.nc.drain(), 5)
+            except (asyncio.TimeoutError, NatsError, OSError):
+                await self.nc.close()
+
+    def status(self) -> dict:
+        return {"url": self.url, "sensor_id": self.sensor_id, "connected": bool(self.nc and self.nc.is_connected),
+                "published": self.published, "failures": int(self.m_failed._value.get()),
+                "gateways": self.demand.gateways,
+                "lanes": {subject: {"seq": sub.seq, "dropped": sub.dropped,
+                                    "subscription": sub.subscription.to_json() if sub.subscription else None}
+                          for subject, sub in self.lanes.items()}}
+
+    # -- the loop -------------------------------------------------------------------------------
+    async def _run(self) -> None:
+        self.nc = await nats.connect(
+            self.url, name=f"touchreal-publisher-{self.sensor_id}", max_reconnect_attempts=-1, reconnect_time_wait=1,
+            pending_size=self.pending_bytes, error_cb=self._on_error, disconnected_cb=self._on_conn,
+            reconnected_cb=self._on_conn)
+        self.m_connected.set(1)
+        await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello_request)
+        await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        log.info("publishing %s to %s", subjects.frames(self.sensor_id), self.url)
+        headers = {subjects.SESSION_HEADER: self.service.session}
+        while True:
+            try:
+                await asyncio.wait_for(self._wakeup.wait(), EXPIRE_EVERY_S)
+            except asyncio.TimeoutError:
+                pass
+            self._wakeup.clear()
+            self._expire()
+            for subject, sub in self.lanes.items():
+                if sub.kick is not None:  # the loop starved it for slow_timeout_s: keep publishing (losses are counted)
+                    log.warning("publisher fell behind on %s: %s", subject, sub.kick[1])
+                    sub.kick, sub.full_since = None, None
+                    sub.kicked.clear()
+                while sub.queue:
+                    item = sub.queue.popleft()
+                    data, _ = sub.render(item)
+                    await self._announce_if_changed(P.decode_header(data).params_rev)
+                    try:
+                        await self.nc.publish(subject, data, headers=headers)
+                        self.published += 1
+                        self.m_published.inc()
+                    except (NatsError, OSError) as exc:
+                        self.m_failed.inc()
+                        log.debug("publish failed: %r", exc)
+
+    # -- demand and hello -----------------------------------------------------------------------
+    async def _on_demand(self, msg) -> None:
+        try:
+            gid, announced, ttl = parse_announcement(msg.data)
+        except ValueError as exc:
+            log.warning("%s: %s", msg.subject, exc)
+            return
+        self.demand.announce(gid, announced, ttl, time.monotonic())
+        self._apply_demand()
+
+    def _expire(self) -> None:
+        before = self.demand.gateways
+        self.demand.expire(time.monotonic())
+        if self.demand.gateways != before:
+            self._apply_demand()
+
+    def _apply_demand(self) -> None:
+        """Subscribe each lane to what is wanted downstream (None: no frames, nothing computed for us)."""
+        self.m_gateways.set(len(self.demand.gateways))
+        wants = {self.spikes_subject: P.Subscription() if self.publish_all else self.demand.spikes(),
+                 self.channels_subject: self.demand.channels()}
+        for subject, want in wants.items():
+            sub = self.lanes[subject]
+            if (sub.subscription and sub.subscription.to_json()) != (want and want.to_json()):
+                self.service.hub.subscribe(sub, want)
+
+    async def _on_hello_request(self, msg) -> None:
+        if msg.reply:  # our own announcements arrive here too: they have no reply subject
+            await self.nc.publish(msg.reply, self._hello_bytes())
+
+    def _hello_bytes(self) -> bytes:
+        return json.dumps(self.service.hello(), separators=(",", ":")).encode()
+
+    async def _announce_if_changed(self, params_rev: int) -> None:
+        key = (params_rev, self.service.n_taxels, tuple(self.service.config.classes))
+        if key != self._announced:
+            if self._announced is not None:
+                try:
+                    await self.nc.publish(subjects.hello(self.sensor_id), self._hello_bytes())
+                except (NatsError, OSError):
+                    return  # try again with the next frame
+            self._announced = key
+
+    async def _on_error(self, exc: Exception) -> None:
+        log.warning("nats: %r", exc)
+
+    async def _on_conn(self) -> None:
+        self.m_connected.set(1 if self.nc is not None and self.nc.is_connected else 0)

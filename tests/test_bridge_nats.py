@@ -1,0 +1,262 @@
+"""Live fan-out through a real nats-server on 127.0.0.1: service -> publisher -> NATS -> gateways -> clients.
+
+Each test starts Debian's ``nats-server`` on a free loopback port (skips with the reason when the
+binary is missing; .ci/run installs it), the service under uvicorn with the publisher, and
+gateways under uvicorn, all on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+import websockets
+from server_harness import collect, connect, hello_and_subscribe
+from test_server_stream import _replay_dataset
+from touchreal_client import protocol as P
+
+from touchreal.bridge import natsd
+from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.bridge.publisher import NatsPublisher
+from touchreal.params import default_params
+from touchreal.server.app import serving, serving_app
+from touchreal.server.service import Service
+from touchreal.server.settings import RuntimeConfig, ServeSettings
+from touchreal.stream import encode_trial
+
+SENSOR = "lab-1"
+
+
+@pytest.fixture
+def nats_url() -> Iterator[str]:
+    if not natsd.available():
+        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+    with natsd.local_nats_server() as url:
+        yield url
+
+
+@contextmanager
+def publishing(state_dir: Path, url: str, config: RuntimeConfig | None = None, **settings):
+    """The service on a free loopback port, publishing to NATS as SENSOR; yields (addr, service, publisher)."""
+    svc = Service(ServeSettings(host="127.0.0.1", port=0, state_dir=state_dir, **settings), config or RuntimeConfig())
+    pub = NatsPublisher(svc, url, SENSOR)
+    with serving(svc, companions=[pub]) as addr:
+        yield addr, svc, pub
+
+
+@contextmanager
+def gateway(url: str, port: int = 0, **settings) -> Iterator[tuple[str, Gateway]]:
+    """A gateway on 127.0.0.1 that has the publisher's hello; yields (addr, gateway)."""
+    gw = Gateway(GatewaySettings(nats=url, sensor_id=SENSOR, host="127.0.0.1", port=port, **settings))
+    with serving_app(create_gateway_app(gw), port=port) as addr:
+        deadline = time.monotonic() + 10
+        while not gw.ready()[0]:
+            assert time.monotonic() < deadline, gw.ready()[1]
+            time.sleep(0.02)
+        yield addr, gw
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+def _spikes(frames):
+    return [f for f in frames if isinstance(f, P.SpikesFrame)]
+
+
+def _consecutive(frames) -> bool:
+    seqs = [f.header.seq for f in frames]
+    return seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
+def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url, RuntimeConfig(taxels=4)) as (addr, svc, pub), \
+            gateway(nats_url) as (ga, g1), gateway(nats_url) as (gb, g2):
+
+        async def go():
+            async with connect(ga) as w1, connect(gb) as w2, connect(addr) as direct:
+                h1, _ = await hello_and_subscribe(w1, taxels=[0, 2], classes=["SA1", "PC"])
+                h2, _ = await hello_and_subscribe(w2, streams=["spikes", "channels"])  # everything
+                await hello_and_subscribe(direct, streams=["spikes", "channels"])
+                await asyncio.sleep(0.3)
+                demand = dict(svc.hub.demand.columns)
+                f1, f2, fd = await asyncio.gather(collect(w1, 3.0), collect(w2, 3.0), collect(direct, 3.0))
+            await asyncio.sleep(1.0)  # the gateways withdraw their demand as soon as their clients leave: the
+            # publisher no longer subscribes (after == [None, None])
+            return h1, h2, demand, f1, f2, fd, [s.subscription for s in pub.lanes.values()]
+
+        h1, h2, demand, f1, f2, fd, after = run(go())
+    # channels (decimation 25 of the 5 kHz grid) through the gateway equal the service's own
+    ch_direct = {f.header.update: f for f in fd if isinstance(f, P.ChannelsFrame)}
+    ch_gw = [f for f in f2 if isinstance(f, P.ChannelsFrame) and f.header.update in ch_direct]
+    assert len(ch_gw) > 60
+    for f in ch_gw:
+        d = ch_direct[f.header.update]
+        assert (f.t0_us, f.period_us) == (d.t0_us, d.period_us) and np.array_equal(f.taxels, d.taxels)
+        assert np.array_equal(f.data, d.data)
+    assert _consecutive(f2)  # spikes and channels frames share the client's seq
+    f2, fd = _spikes(f2), _spikes(fd)
+    assert h1["session"] == h2["session"] == svc.session and len(h1["taxels"]) == 4
+    assert set(h1["streams"]) == {"spikes", "channels"} and "gateway" in h1["server"]
+    assert demand == {c: (0, 1, 2, 3) for c in P.CLASSES} and after == [None, None]
+    f1 = _spikes(f1)
+    assert _consecutive(f1)
+    for frames in (f1, f2):
+        assert len(frames) > 60 and frames[-1].header.dropped == 0
+        ups = [f.header.update for f in frames]
+        assert ups == list(range(ups[0], ups[0] + len(ups)))  # every update, in order
+        assert all(f.header.sent_us >= f.header.emit_us for f in frames)
+    assert all(set(f.cls.tolist()) <= {0, 2} and set(f.taxel.tolist()) <= {0, 2} for f in f1)
+    assert all(f.final_us["RA"] is None and f.final_us["SA1"] is not None for f in f1)
+    # the same update carries the same spikes whichever way it travelled
+    direct = {f.header.update: f for f in fd}
+    shared = [f for f in f2 if f.header.update in direct]
+    assert len(shared) > 60 and sum(f.t_us.size for f in shared) > 0
+    for f in shared:
+        d = direct[f.header.update]
+        assert np.array_equal(f.t_us, d.t_us) and np.array_equal(f.taxel, d.taxel) and np.array_equal(f.cls, d.cls)
+        assert f.final_us == d.final_us and f.header.emit_us == d.header.emit_us
+
+
+def test_replayed_trials_through_a_gateway_equal_touchreal_encode(tmp_path, nats_url):
+    ds, trials = _replay_dataset(tmp_path)
+    with publishing(tmp_path / "state", nats_url, RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc, _), \
+            gateway(nats_url) as (ga, _gw):
+        assert svc.runtime.state == "waiting"  # the replay holds still until a gateway forwards demand
+
+        async def go():
+            async with connect(ga) as ws:
+                await hello_and_subscribe(ws)
+                return _spikes(await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended"))
+
+        frames = run(go())
+        offsets = [0, svc.runtime.source.offset_us]
+    assert _consecutive(frames) and frames[-1].header.dropped == 0
+    t = np.concatenate([f.t_us for f in frames]).astype(np.int64)
+    c = np.concatenate([f.cls for f in frames])
+    for i, trial in enumerate(trials.values()):
+        lo, hi = offsets[i], (offsets[i + 1] if i + 1 < len(offsets) else np.iinfo(np.int64).max)
+        ref = encode_trial(trial, default_params())
+        for k, cls in enumerate(P.CLASSES):
+            want = np.round(ref[cls] * 1e6).astype(np.int64)
+            assert np.array_equal(t[(c == k) & (t >= lo) & (t < hi)] - lo, want[want >= 0]), (i, cls)
+
+
+def test_stalled_gateway_client_is_dropped_without_delaying_others(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url, RuntimeConfig(taxels=16)) as (addr, svc, _), \
+            gateway(nats_url, queue_frames=8, slow_timeout_s=0.5) as (ga, gw):
+
+        async def go():
+            host, port = ga.split(":")
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect((host, int(port)))
+            sub = {"streams": ["spikes", "channels"], "channels": {"decimation": 1}}  # 1.3 MB/s of channels
+            async with connect(ga, sock=sock, max_size=None) as stalled, connect(ga, max_size=None) as good:
+                await hello_and_subscribe(stalled, **sub)
+                stalled_id = min(gw.hub.subscribers)
+                await hello_and_subscribe(good, **sub)
+                frames = await collect(good, 10.0, lambda fs: gw.metrics.kicked._value.get() >= 1 and len(fs) > 100)
+                gone = stalled_id not in gw.hub.subscribers
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    while True:
+                        await asyncio.wait_for(stalled.recv(), 10)
+                return frames, closed.value.rcvd, gone
+
+        frames, rcvd, gone = run(go())
+        lost = gw.upstream.lost + gw.upstream_channels.lost
+    assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and gone
+    ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    assert len(frames) > 100 and _consecutive(frames) and frames[-1].header.dropped == lost == 0
+    assert ch and ch[0].period_us == 200 and ch[0].data.shape[1:] == (16, 4) and np.isfinite(ch[-1].data).all()
+
+
+def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url) as (addr, svc, pub), gateway(nats_url, pending_frames=2) as (ga, gw):
+
+        async def go():
+            async with connect(ga) as ws:
+                await hello_and_subscribe(ws)
+                before = _spikes(await collect(ws, 1.0))
+                gw.loop.call_soon_threadsafe(time.sleep, 0.8)  # the gateway stalls: ~25 frames pile up in NATS
+                after = _spikes(await collect(ws, 2.0))
+                return before, after
+
+        before, after = run(go())
+        lost, slow = gw.upstream.lost, gw.m_slow._value.get()
+    frames = before + after
+    seqs = np.array([f.header.seq for f in frames])
+    updates = np.array([f.header.update for f in frames])
+    assert slow > 0
+    # every update lost on the hop is a seq jump, counted in dropped, and nothing else is
+    assert np.array_equal(np.diff(seqs), np.diff(updates))
+    jumps = int(np.sum(np.diff(seqs) - 1))
+    assert 0 < jumps == frames[-1].header.dropped - frames[0].header.dropped <= lost
+
+
+def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url) as (addr, svc, pub), gateway(nats_url) as (gb, _g2):
+        port = natsd.free_port()
+
+        async def first_life():
+            with gateway(nats_url, port=port) as (ga, _g1):
+                async with connect(ga) as ws:
+                    hello, _ = await hello_and_subscribe(ws)
+                    return hello, _spikes(await collect(ws, 1.5))
+
+        async def go():
+            async with connect(gb) as steady:
+                await hello_and_subscribe(steady)
+                collecting = asyncio.create_task(collect(steady, 6.0))
+                h1, f1 = await first_life()  # the gateway goes away with its client...
+                await asyncio.sleep(0.5)
+                with gateway(nats_url, port=port) as (ga, _g1):  # ...and comes back on the same address
+                    async with connect(ga) as ws:
+                        h2, _ = await hello_and_subscribe(ws)
+                        f2 = _spikes(await collect(ws, 1.5))
+                return h1, f1, h2, f2, _spikes(await collecting)
+
+        h1, f1, h2, f2, steady = run(go())
+    assert h1["session"] == h2["session"] == svc.session  # same sensor clock: the client carries on
+    assert f1 and f2 and _consecutive(f2) and f2[0].header.seq == 0
+    assert f2[0].header.update > f1[-1].header.update
+    assert f2[0].final_us["SA1"] >= f1[-1].final_us["SA1"]
+    assert len(steady) > 150 and _consecutive(steady) and steady[-1].header.dropped == 0
+    ups = [f.header.update for f in steady]
+    assert ups == list(range(ups[0], ups[0] + len(ups)))  # upstream never paused for the restart
+
+
+def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored(tmp_path, nats_url):
+    import httpx
+    import nats
+
+    gw = Gateway(GatewaySettings(nats=nats_url, sensor_id="nobody", host="127.0.0.1", port=0))
+    with serving_app(create_gateway_app(gw)) as ga:
+        time.sleep(0.3)
+        r = httpx.get(f"http://{ga}/v1/ready")
+    assert r.status_code == 503 and "no hello" in r.json()["reason"]
+
+    with publishing(tmp_path, nats_url) as (addr, svc, pub):
+
+        async def go():
+            nc = await nats.connect(nats_url)
+            for bad in (b"{", b'{"gateway": "x", "ttl_ms": 1000, "columns": {"XX": [0]}}', b'[]'):
+                await nc.publish(f"touchreal.{SENSOR}.demand", bad)
+            await nc.publish(f"touchreal.{SENSOR}.demand", json.dumps(
+                {"gateway": "rec", "ttl_ms": 1000, "columns": {"RA": [0]}}).encode())
+            await nc.flush()
+            await asyncio.sleep(0.3)
+            live = dict(svc.hub.demand.columns)
+            await asyncio.sleep(1.2)  # its ttl runs out
+            await nc.close()
+            return live, dict(svc.hub.demand.columns)
+
+        live, expired = run(go())
+    assert live == {"RA": (0,)} and expired == {}
