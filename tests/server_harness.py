@@ -27,9 +27,11 @@ def free_port() -> int:
 
 
 @contextmanager
-def running_server(state_dir: Path, config: RuntimeConfig | None = None, **settings) -> Iterator[tuple[str, Service]]:
-    """Yields (``host:port``, the service) of a server that is up; stops it afterwards (bounded)."""
-    port = free_port()
+def running_server(state_dir: Path, config: RuntimeConfig | None = None, port: int | None = None,
+                   **settings) -> Iterator[tuple[str, Service]]:
+    """Yields (``host:port``, the service) of a server that is up (on ``port``, default a free one);
+    stops it afterwards (bounded)."""
+    port = port or free_port()
     svc = Service(ServeSettings(host="127.0.0.1", port=port, state_dir=state_dir, **settings), config or RuntimeConfig())
     server = uvicorn.Server(uvicorn_config(create_app(svc), "127.0.0.1", port))
     th = threading.Thread(target=server.run, daemon=True)
