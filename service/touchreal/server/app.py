@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import uvicorn
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
 from . import rest, ws
 from .service import Service
+
+#: The live dashboard: plain static files (no build step), package data of the wheel.
+DASHBOARD_DIR = Path(__file__).with_name("dashboard")
 
 
 def create_app(service: Service) -> FastAPI:
@@ -33,6 +38,8 @@ def create_app(service: Service) -> FastAPI:
     app.state.service = service
     app.include_router(rest.router)
     app.include_router(ws.router)
+    # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed
+    app.mount("/", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")
     return app
 
 
