@@ -5,51 +5,39 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import uvicorn
 import websockets
 from touchreal_client import protocol as P
 
-from touchreal.server.app import create_app, uvicorn_config
+from touchreal.server.app import serving
 from touchreal.server.service import Service
 from touchreal.server.settings import RuntimeConfig, ServeSettings
 
 
 def free_port() -> int:
+    """A loopback port free right now (for a server that must come back on the same port)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
 @contextmanager
-def running_server(state_dir: Path, config: RuntimeConfig | None = None, port: int | None = None,
+def running_server(state_dir: Path, config: RuntimeConfig | None = None, port: int = 0,
                    **settings) -> Iterator[tuple[str, Service]]:
-    """Yields (``host:port``, the service) of a server that is up (on ``port``, default a free one);
-    stops it afterwards (bounded)."""
-    port = port or free_port()
+    """Yields (``host:port``, the service) of a real server on a loopback port (0: a free one);
+    stops it afterwards."""
     svc = Service(ServeSettings(host="127.0.0.1", port=port, state_dir=state_dir, **settings), config or RuntimeConfig())
-    server = uvicorn.Server(uvicorn_config(create_app(svc), "127.0.0.1", port))
-    th = threading.Thread(target=server.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        if time.monotonic() > deadline or not th.is_alive():
-            raise RuntimeError("server did not start")
-        time.sleep(0.05)
-    try:
-        yield f"127.0.0.1:{port}", svc
-    finally:
-        server.should_exit = True
-        th.join(15)
+    with serving(svc, port=port) as addr:
+        yield addr, svc
 
 
 def connect(addr: str, **kw):
-    return websockets.connect(f"ws://{addr}/v1/stream", compression=None, open_timeout=10, **kw)
+    """A client that, like ours, does not offer permessage-deflate unless asked (``compression=...``)."""
+    return websockets.connect(f"ws://{addr}/v1/stream", **{"compression": None, "open_timeout": 10, **kw})
 
 
 async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:

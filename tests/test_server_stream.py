@@ -85,16 +85,20 @@ def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
 
         async def go():
             await asyncio.sleep(0.5)
-            idle = svc.runtime.state, svc.runtime.encoder
+            rt = svc.runtime
+            idle = rt.state, rt.encoder.active, rt.encoder.pre.sources
             async with connect(addr) as ws:
-                await hello_and_subscribe(ws)
-                await collect(ws, 1.0)
-                busy = svc.runtime.state, svc.runtime.encoder is not None
+                await hello_and_subscribe(ws, classes=["SA1"])
+                frames = _spikes(await collect(ws, 1.0))
+                busy = rt.state, rt.encoder.active
             await asyncio.sleep(0.5)
-            return idle, busy, (svc.runtime.state, svc.runtime.encoder)
+            return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.pre.sources)
 
-        idle, busy, after = run(go())
-    assert idle == ("idle", None) and busy == ("running", True) and after == ("idle", None)
+        idle, frames, busy, after = run(go())
+    assert idle == ("idle", {}, ()) and after == ("idle", {}, ())  # no branch runs: acquisition only
+    assert busy == ("running", {"SA1": (0,)})
+    # a returning subscriber waits for no warm-up: SA1 is final to within its latency from the first frame
+    assert frames[0].final_us["SA1"] > 0
 
 
 def _replay_dataset(tmp_path):
@@ -287,3 +291,66 @@ def test_parameter_upload_while_streaming_swaps_between_updates(tmp_path):
     first_new = next(f for f in after if f.header.params_rev == 2)
     assert "params_changed" in first_new.header.flag_names()
     assert sum("params_changed" in f.header.flag_names() for f in before + after) == 1
+
+
+def test_permessage_deflate_only_when_the_client_asks(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            out = []
+            for compression in (None, "deflate"):
+                async with connect(addr, compression=compression) as ws:
+                    out.append(ws.response.headers.get("Sec-WebSocket-Extensions"))
+                    await hello_and_subscribe(ws)
+            return out
+
+        plain, deflate = run(go())
+    assert plain is None and deflate is not None and "permessage-deflate" in deflate
+
+
+def test_nan_and_inf_from_the_source_are_repaired_flagged_and_counted(tmp_path):
+    trial = synthetic_trial(seed=3)
+    trial.st[40:45] = np.nan
+    trial.pvdf[500:520] = np.inf
+    trial.pvdf[900] = -np.inf
+    entries = [{"id": "bad", "protocol": "ramp", "condition": "c", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.05}]
+    write_dataset(tmp_path / "ds", {"name": "t", "trials": entries}, {"bad": trial})
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{tmp_path / 'ds'}", speed=4.0)) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 5})
+                return await collect(ws, 20.0, lambda fs: svc.runtime.state == "ended")
+
+        frames = run(go())
+        faults = httpx.get(f"http://{addr}/v1/status").json()["faults"]
+        assert httpx.get(f"http://{addr}/v1/health").status_code == 200
+    assert faults["singletact_non_finite"] == 5 and faults["pvdf_non_finite"] == 21
+    assert any("source_gap" in f.header.flag_names() for f in _spikes(frames))
+    data = np.concatenate([f.data for f in frames if isinstance(f, P.ChannelsFrame)])
+    assert data.size and np.isfinite(data).all()
+
+
+def test_each_class_goes_out_as_soon_as_it_is_final(tmp_path):
+    """SA1 and RA on a 16 ms window are final ~100 ms before PC on 128 ms; the hello says so."""
+    params = default_params().model_copy(deep=True)
+    params.version = 3
+    for c in ("SA1", "RA"):
+        params.classes[c].window_ms = 16.0
+    path = tmp_path / "fast.json"
+    params.save(path)
+    with running_server(tmp_path / "state", params=path) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                hello, sub = await hello_and_subscribe(ws)
+                return hello, sub, _spikes(await collect(ws, 3.0))
+
+        hello, sub, frames = run(go())
+    lat = hello["latency_us"]
+    assert lat["SA1"] < 25000 and lat["RA"] < 25000 and lat["PC"] > 100000 and sub["latency_us"] == lat
+    assert hello["window_us"] == {"SA1": 16000, "RA": 16000, "PC": 128000}
+    # every frame: SA1's samples are complete far beyond PC's (final_us includes each class's delay)
+    shift = 1000 * (params.classes["SA1"].delay_ms - params.classes["PC"].delay_ms)
+    lead = [f.final_us["SA1"] - f.final_us["PC"] - shift for f in frames[10:]]
+    assert min(lead) > 60000

@@ -14,11 +14,13 @@ import sys
 COMMAND_MODULES = (
     "touchreal.commands.demo",
     "touchreal.commands.encode",
+    "touchreal.commands.mcu_emulate",
     "touchreal.reference.command",
     "touchreal.sensing.command",
     "touchreal.fitting.command",
     "touchreal.analysis.command",
     "touchreal.bench.command",
+    "touchreal.decoding.command",
     "touchreal.server.command",
 )
 

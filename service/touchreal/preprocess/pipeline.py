@@ -2,19 +2,29 @@
 
 ::
 
-    SingleTact -> sanitize -> Butterworth low-pass -> alpha-beta -> (ST [N], dST [N/s]) -+
-                                                                                        +-> PCHIP -> 5 kHz
-    PVDF -> sanitize -> low-pass + mains notches -> STFT gate (OLA) -> (PVDF [V],      |
-                                                           dPVDF = backward diff [V/s]) -+
+    SingleTact -> sanitize -> Butterworth low-pass -> alpha-beta -> PCHIP -> (ST [N], dST [N/s])      --+
+                                                                                                          +-> source
+    PVDF -> sanitize -> low-pass + mains notches -+-> STFT gate (window w1) -> PCHIP -> (PVDF, dPVDF) --+   (4 ch, 5 kHz)
+                                                  +-> STFT gate (window w2) -> ...
 
-:class:`Preprocessor` is a sans-I/O state machine: ``process(...)`` takes whatever raw samples
-arrived (any chunk size, any number of taxels) and returns the newly final 5 kHz samples, aligned
-on the absolute grid ``k / 5000`` s of the recording clock; ``finish()`` flushes at end of stream.
-Offline processing of a whole recording is the same two calls (:func:`preprocess_trial`).
+A *source* is what one group of encoder columns reads: the SingleTact channels with the PVDF
+channels of one causal window (``window_ms``), or the SingleTact channels alone (``None``: PVDF and
+dPVDF are zero, for classes whose PVDF and dPVDF weights are all zero). Each distinct window is
+computed once and shared; each source has its own read cursor, so a short window (or the
+SingleTact alone) is not held back by a long one.
+
+:class:`Preprocessor` is a sans-I/O state machine: ``feed(...)`` takes whatever raw samples arrived
+(any chunk size, any number of taxels), ``take(source)`` returns that source's newly final 5 kHz
+samples, aligned on the absolute grid ``k / 5000`` s of the recording clock; ``flush()`` ends the
+stream. Only the branches the active sources need run (``set_sources``); acquisition (sanitizers
+and a short raw history) always runs, and a branch that (re)starts is rebuilt from that history
+(see :meth:`Preprocessor.set_sources`). Offline processing of a whole recording is the same calls
+(:func:`preprocess_trial`, :func:`preprocess_trial_windows`). The branches are in :mod:`.branches`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,13 +32,16 @@ import numpy as np
 from ..params import PreprocessParams
 from ..recording import Trial
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N
-from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, prime_with_hum
-from .gate import gate_thresholds, pvdf_filter
-from .resample import CausalPchip
+from .branches import History, PvdfFilter, PvdfWindowBranch, SingleTactBranch
+from .filters import HUM_PRIME_S
+from .resample import first_grid_index
 from .sanitize import Sanitizer
-from .stft_gate import StftGate, frame_length
+from .stft_gate import frame_length
 
-_ST_LP_ORDER = 2
+Source = float | None  #: a consumer of the preprocessing: its PVDF window (ms), or None = SingleTact only
+
+ST_HISTORY_S = 0.5  #: raw SingleTact history kept for a restart of its branch (s; > 5x the alpha-beta settling)
+ST_LOOKAHEAD_KNOTS = 2  #: PCHIP needs the knot after the next one: up to 2 knot intervals of look-ahead
 
 
 @dataclass
@@ -65,164 +78,292 @@ class Channels:
         return Channels(blocks[0].k0, np.concatenate([b.data for b in blocks], axis=0))
 
 
-class _Aligner:
-    """Holds each branch's 5 kHz output until the other branch has covered the same grid points."""
-
-    def __init__(self, n_taxels: int):
-        self.parts: list[tuple[int, np.ndarray]] = [(0, np.zeros((0, n_taxels, 2)))] * 2
-        self.started = [False, False]
-        self.next_k: int | None = None
-
-    def add(self, branch: int, k0: int, block: np.ndarray) -> None:
-        if block.shape[0] == 0:
-            return
-        start, held = self.parts[branch]
-        if not self.started[branch]:
-            self.parts[branch], self.started[branch] = (k0, block), True
-        else:
-            self.parts[branch] = (start, np.concatenate((held, block), axis=0))
-
-    def pop(self) -> tuple[int, np.ndarray] | None:
-        if not all(self.started):
-            return None
-        (s0, a), (s1, b) = self.parts
-        start = max(s0, s1) if self.next_k is None else self.next_k
-        end = min(s0 + a.shape[0], s1 + b.shape[0])
-        if end <= start:
-            return None
-        out = np.concatenate((a[start - s0 : end - s0], b[start - s1 : end - s1]), axis=2)
-        self.parts = [(end, a[end - s0 :]), (end, b[end - s1 :])]
-        self.next_k = end
-        return start, out
+def check_raw(st_t, st, pvdf_t, pvdf, n_taxels: int) -> None:
+    """Raise ValueError unless each sensor's values are (n, n_taxels) (or (n,) for one taxel) for
+    its n timestamps."""
+    for name, t, x in (("SingleTact", st_t, st), ("PVDF", pvdf_t, pvdf)):
+        if t is not None and len(t):
+            shape = np.shape(x)
+            if shape not in ((len(t), n_taxels),) + (((len(t),),) if n_taxels == 1 else ()):
+                raise ValueError(f"{name}: expected values of shape ({len(t)}, {n_taxels}), got {shape}")
 
 
-class Preprocessor:
-    """Causal, chunk-wise, stateful preprocessing of N taxels (see the module docstring)."""
+class Acquisition:
+    """What always runs, for all N taxels: the sanitizers of both sensors (input policy, counters)
+    and the raw history rings that a (re)starting branch is rebuilt from (the last
+    :data:`ST_HISTORY_S` of SingleTact; the hum estimate plus two frames of ``max_window_ms`` of PVDF).
+    Several :class:`Preprocessor` s (taxel blocks) can share one."""
 
-    def __init__(self, params: PreprocessParams | None = None, n_taxels: int = 1, dtype: type = np.float64):
-        self.params = params = params or PreprocessParams()
+    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0):
         self.n_taxels = n_taxels
-        self.dtype = dt = np.dtype(dtype)  # arithmetic of the filters and the STFT gate
-        # SingleTact branch (100 Hz)
         self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
-        self.st_lp = butter_lowpass(params.st_lowpass_hz, ST_FS_HZ, _ST_LP_ORDER, n_taxels, dt)
-        self.st_ab = AlphaBeta(params.st_alpha, params.st_beta, ST_FS_HZ, n_taxels)
-        self.st_rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
-        # PVDF branch (2 kHz)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
-        self.pv_filter = pvdf_filter(params, PVDF_FS_HZ, n_taxels, dt)  # low-pass + mains notch comb, one cascade
-        self.hum_hz = mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ)
-        self.pv_held: list[np.ndarray] | None = []  # raw PVDF of the stream start, until the filter is primed
-        n = frame_length(params.window_ms, PVDF_FS_HZ)
-        gate = StftGate(n, n_taxels, dtype=dt)
-        if params.gate is not None:
-            thresholds = gate_thresholds(params.gate, gate.window.astype(np.float64), PVDF_FS_HZ)
-            gate = StftGate(n, n_taxels, thresholds, params.gate.attenuation, dtype=dt)
-        self.pv_gate = gate
-        self.pv_slot = 0  # PVDF grid slot of the next gate output sample
-        self.pv_prev: np.ndarray | None = None  # last reconstructed PVDF sample (for the derivative)
-        self.pv_rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
-        self.align = _Aligner(n_taxels)
+        self.n_pv = int(round(HUM_PRIME_S * PVDF_FS_HZ)) + 2 * frame_length(max_window_ms, PVDF_FS_HZ) + 16
+        self.st_hist = History(int(round(ST_HISTORY_S * ST_FS_HZ)), n_taxels)
+        self.pv_hist = History(self.n_pv, n_taxels)
 
-    @property
-    def latency_s(self) -> float:
-        """Algorithmic latency: PVDF frame plus one PCHIP knot interval of SingleTact."""
-        return self.pv_gate.n / PVDF_FS_HZ + 2.0 / ST_FS_HZ
+    def push(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> tuple[tuple[int, np.ndarray] | None, ...]:
+        """Sanitize raw samples (both parts checked before either is used, so a malformed chunk
+        raises ValueError and changes nothing); return (first slot, (n, N) samples) or None per sensor."""
+        check_raw(st_t, st, pvdf_t, pvdf, self.n_taxels)
+        out: list[tuple[int, np.ndarray] | None] = [None, None]
+        for j, (san, hist, t, x) in enumerate(((self.st_in, self.st_hist, st_t, st), (self.pv_in, self.pv_hist, pvdf_t, pvdf))):
+            if t is not None and len(t):
+                first, clean = san.push(t, x)
+                hist.push(first, clean)
+                out[j] = (first, clean)
+        return tuple(out)
+
+    def restart_index(self) -> int | None:
+        """First grid index after the newest raw sample of either sensor (None before any data)."""
+        newest = [float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in) if s.t0 is not None]
+        return first_grid_index(max(newest), OUT_FS_HZ) if newest else None
+
+    def first_index(self) -> int | None:
+        """First grid index both sensors cover (the stream start of every source), once known."""
+        if self.st_in.t0 is None or self.pv_in.t0 is None:
+            return None
+        return max(first_grid_index(float(s.slot_time(1)), OUT_FS_HZ) for s in (self.st_in, self.pv_in))
+
+    def until_s(self) -> float | None:
+        """Time of the last sample both sensors delivered (s; None before both started)."""
+        if self.st_in.t0 is None or self.pv_in.t0 is None:
+            return None
+        return min(float(s.slot_time(s.next_slot - 1)) for s in (self.st_in, self.pv_in))
 
     @property
     def stats(self) -> dict[str, dict[str, int]]:
         return {"singletact": self.st_in.stats.as_dict(), "pvdf": self.pv_in.stats.as_dict()}
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """Every numeric state variable of the stages (for stability checks and monitoring)."""
-        out = {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_ab_v": self.st_ab.v}
-        for name, f in (("st_lp", self.st_lp), ("pv_filter", self.pv_filter)):
-            if f.zi is not None:
-                out[name] = f.zi
-        if self.st_ab.x is not None:
-            out["st_ab_x"] = self.st_ab.x
-        out["pv_gate_buf"], out["pv_gate_acc"] = self.pv_gate._buf, self.pv_gate._acc
-        for name, rs in (("st_rs", self.st_rs), ("pv_rs", self.pv_rs)):
-            out[name] = rs._y
-        for b, (_, held) in enumerate(self.align.parts):
-            out[f"align_{b}"] = held
-        if self.pv_prev is not None:
-            out["pv_prev"] = self.pv_prev
-        if self.pv_held:
-            out["pv_held"] = np.concatenate(self.pv_held)
+        return {"st_last": self.st_in.last, "pv_last": self.pv_in.last, "st_hist": self.st_hist.buf, "pv_hist": self.pv_hist.buf}
+
+
+class Preprocessor:
+    """Causal, chunk-wise, stateful preprocessing of N taxels for a set of sources (module docstring).
+
+    ``sources`` are the initially active sources (default: ``params.window_ms``); ``max_window_ms``
+    sizes the raw history kept for restarts (default: the longest window of ``sources``). With a
+    shared ``acquisition``, the preprocessor serves its ``taxels`` (a block of the acquisition's
+    taxels) and is fed by :meth:`consume` after the owner's :meth:`Acquisition.push`.
+    """
+
+    def __init__(
+        self,
+        params: PreprocessParams | None = None,
+        n_taxels: int = 1,
+        dtype: type = np.float64,
+        sources: Iterable[Source] | None = None,
+        max_window_ms: float | None = None,
+        acquisition: Acquisition | None = None,
+        taxels: range | None = None,
+    ):
+        self.params = params = params or PreprocessParams()
+        self.dtype = np.dtype(dtype)  # arithmetic of the filters and the STFT gate
+        sources = [params.window_ms] if sources is None else list(sources)
+        if max_window_ms is None:
+            max_window_ms = max((s for s in sources if s is not None), default=params.window_ms)
+        self._owns_acquisition = acquisition is None
+        if acquisition is None:
+            acquisition, taxels = Acquisition(n_taxels, max_window_ms), range(n_taxels)
+        elif taxels is None or taxels.step != 1 or not 0 <= taxels.start < taxels.stop <= acquisition.n_taxels:
+            raise ValueError("a preprocessor on a shared acquisition needs a contiguous block of its taxels")
+        self.acq = acquisition
+        self.taxels = taxels
+        self.n_taxels = len(taxels)
+        self._cols = slice(taxels.start, taxels.stop)
+        self.pv_filtered = History(acquisition.n_pv, self.n_taxels)  # the running PVDF filter's output (window restarts)
+        self.st: SingleTactBranch | None = None
+        self.pv_filter: PvdfFilter | None = None
+        self.pv_windows: dict[float, PvdfWindowBranch] = {}
+        self.cursor: dict[Source, int | None] = {}  # per active source: next grid index to deliver
+        self.set_sources(sources)
+
+    # -- demand ---------------------------------------------------------------------------------
+    @property
+    def sources(self) -> tuple[Source, ...]:
+        return tuple(self.cursor)
+
+    def set_sources(self, sources: Iterable[Source]) -> None:
+        """Make ``sources`` the active ones: branches no active source needs stop (their state is
+        dropped); a branch that (re)starts is rebuilt from the raw history the acquisition keeps
+        (SingleTact: the last :data:`ST_HISTORY_S`; PVDF: the hum estimate plus two frames of the
+        longest window): a restarted PVDF filter is primed on the hum of that history's first
+        100 ms as at stream start, and a restarted window's gate replays the filtered history, so
+        its output from one frame after the history start on is the one of a branch that never
+        stopped (exactly so when the PVDF filter kept running). A source that (re)starts delivers
+        from the first grid index after the newest raw sample received
+        (:meth:`Acquisition.restart_index`), or from the stream start before any data."""
+        sources = list(dict.fromkeys(float(s) if s is not None else None for s in sources))
+        acq, cols = self.acq, self._cols
+        k_r = acq.restart_index()
+        self.cursor = {s: self.cursor[s] if s in self.cursor else k_r for s in sources}
+        windows = {s for s in sources if s is not None}
+        if not sources:
+            self.st = None
+        elif self.st is None:
+            self.st = SingleTactBranch(self.params, self.n_taxels, self.dtype, acq.st_in.slot_time)
+            first = acq.st_hist.first
+            if first is not None:
+                slot, x = acq.st_hist.since(first)
+                self.st.process(slot, x[:, cols])
+        if not windows:
+            self.pv_filter = None
+            self.pv_filtered.clear()
+        elif self.pv_filter is None:
+            first = acq.pv_hist.first
+            self.pv_filter = PvdfFilter(self.params, self.n_taxels, self.dtype, acq.pv_in.next_slot if first is None else first)
+            self.pv_filtered.clear()
+            if first is not None:
+                self.pv_filtered.push(*self.pv_filter.process(acq.pv_hist.since(first)[1][:, cols]))
+        self.pv_windows = {w: b for w, b in self.pv_windows.items() if w in windows}
+        for w in windows - set(self.pv_windows):
+            first = self.pv_filtered.first
+            start = self.pv_filter.slot if first is None else first
+            branch = PvdfWindowBranch(self.params, w, self.n_taxels, self.dtype, acq.pv_in.slot_time, start)
+            if first is not None:
+                branch.process(*self.pv_filtered.since(first))
+            self.pv_windows[w] = branch
+        self._trim()
+
+    def restart_index(self) -> int | None:
+        """First grid index after the newest raw sample of either sensor (None before any data)."""
+        return self.acq.restart_index()
+
+    # -- data -----------------------------------------------------------------------------------
+    def feed(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> None:
+        """Feed raw samples (either sensor may be absent in a call). Both parts are checked before
+        either is used, so a malformed chunk raises ValueError and changes nothing."""
+        if not self._owns_acquisition:
+            raise RuntimeError("a preprocessor on a shared acquisition is fed by consume()")
+        self.consume(*self.acq.push(st_t, st, pvdf_t, pvdf))
+
+    def consume(self, st_new: tuple[int, np.ndarray] | None, pv_new: tuple[int, np.ndarray] | None) -> None:
+        """Run the branches on newly sanitized samples (:meth:`Acquisition.push`'s result)."""
+        if st_new is not None and self.st is not None:
+            self.st.process(st_new[0], st_new[1][:, self._cols])
+        if pv_new is not None and self.pv_filter is not None:
+            self._pv_windows(*self.pv_filter.process(pv_new[1][:, self._cols]))
+
+    def _pv_windows(self, first: int, y: np.ndarray) -> None:
+        self.pv_filtered.push(first, y)
+        for branch in self.pv_windows.values():
+            branch.process(first, y)
+
+    def flush(self) -> None:
+        """End of stream: finish every running branch up to the last sample both sensors delivered."""
+        until = self.acq.until_s()
+        if until is None:
+            return
+        if self.pv_filter is not None:
+            self._pv_windows(*self.pv_filter.process(np.zeros((0, self.n_taxels)), final=True))
+        for branch in self.pv_windows.values():
+            branch.finish(until)
+        if self.st is not None:
+            self.st.finish(until)
+
+    def take(self, source: Source) -> Channels:
+        """The newly final 5 kHz channels of an active ``source`` (PVDF and dPVDF zero for None)."""
+        source = float(source) if source is not None else None
+        if source not in self.cursor:
+            raise KeyError(f"source {source} is not active")
+        k_first = self.acq.first_index()
+        if k_first is None or self.st is None:
+            return Channels(self.cursor[source] or 0, np.zeros((0, self.n_taxels, 4)))
+        start = max(k_first, self.cursor[source] if self.cursor[source] is not None else k_first)
+        grids = [self.st.out] if source is None else [self.st.out, self.pv_windows[source].out]
+        ends = [g.end for g in grids]
+        end = None if None in ends else min(ends)
+        start = max([start] + [g.k0 for g in grids if g.k0 is not None])
+        if end is None or end <= start:
+            self.cursor[source] = start
+            return Channels(start, np.zeros((0, self.n_taxels, 4)))
+        pv = np.zeros((end - start, self.n_taxels, 2)) if source is None else grids[1].read(start, end)
+        out = Channels(start, np.concatenate((grids[0].read(start, end), pv), axis=2))
+        self.cursor[source] = end
+        self._trim()
         return out
 
+    def _trim(self) -> None:
+        """Drop branch output every active source has read."""
+        cursors = [k for k in self.cursor.values() if k is not None]
+        if self.st is not None and cursors and len(cursors) == len(self.cursor):
+            self.st.out.drop_before(min(cursors))
+        for w, branch in self.pv_windows.items():
+            if self.cursor.get(w) is not None:
+                branch.out.drop_before(self.cursor[w])
+
+    # -- single-source use (one window, as before) ----------------------------------------------
     def process(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> Channels:
-        """Feed raw samples (either sensor may be absent in a call); return new 5 kHz channels."""
-        if st_t is not None and len(st_t):
-            first, x = self.st_in.push(st_t, st)
-            self._st_branch(self.st_in.slot_time(np.arange(first, first + x.shape[0])), x)
-        if pvdf_t is not None and len(pvdf_t):
-            _, x = self.pv_in.push(pvdf_t, pvdf)
-            self._pv_filter(x)
-        return self._pop()
+        """Feed raw samples and return the newly final channels of the single active source."""
+        self.feed(st_t, st, pvdf_t, pvdf)
+        return self.take(self._only_source())
 
     def finish(self) -> Channels:
-        """End of stream: flush the buffered tail up to the last sample both sensors delivered."""
-        if self.st_in.t0 is None or self.pv_in.t0 is None:
-            return self._pop()
-        until = min(
-            float(self.st_in.slot_time(self.st_in.next_slot - 1)),
-            float(self.pv_in.slot_time(self.pv_in.next_slot - 1)),
-        )
-        self._pv_filter(np.zeros((0, self.n_taxels)), final=True)
-        self._pv_branch(self.pv_gate.process(np.zeros((self.pv_gate.n, self.n_taxels))))
-        self.align.add(0, *self._split(self.st_rs.finish(until)))
-        self.align.add(1, *self._split(self.pv_rs.finish(until)))
-        return self._pop()
+        """End of stream for the single active source: flush and return its last channels."""
+        self.flush()
+        return self.take(self._only_source())
 
-    # -- branches -------------------------------------------------------------------------------
-    def _st_branch(self, t: np.ndarray, x: np.ndarray) -> None:
-        force, rate = self.st_ab.process(self.st_lp.process(x))
-        self.align.add(0, *self._split(self.st_rs.process(t, np.concatenate((force, rate), axis=1))))
+    def _only_source(self) -> Source:
+        if len(self.cursor) != 1:
+            raise ValueError(f"process()/finish() need exactly one active source, have {list(self.cursor)}")
+        return next(iter(self.cursor))
 
-    def _pv_filter(self, x: np.ndarray, final: bool = False) -> None:
-        """Low-pass + notches, then the gate. The first :data:`HUM_PRIME_S` of the stream are held
-        and the filter is primed with the hum fitted to them (no notch ringing at stream start); the
-        gate's first frame needs at least as long, so with windows >= 100 ms no output is later."""
-        if self.pv_held is not None:
-            self.pv_held.append(x)
-            n_prime = int(round(HUM_PRIME_S * PVDF_FS_HZ))
-            held = np.concatenate(self.pv_held)
-            if held.shape[0] < n_prime and not final:
-                return
-            self.pv_held = None
-            if held.shape[0] == 0:
-                return
-            prime_with_hum(self.pv_filter, held[:n_prime], PVDF_FS_HZ, self.hum_hz)
-            x = held
-        self._pv_branch(self.pv_gate.process(self.pv_filter.process(x)))
+    # -- reporting ------------------------------------------------------------------------------
+    @staticmethod
+    def latency_s(source: Source) -> float:
+        """Algorithmic latency (s) of a source: the longest look-ahead of the branches it reads, i.e.
+        the time from a grid point to the arrival of the last raw sample it needs. The branches run
+        side by side, so a source waits for the slower one, not for their sum. SingleTact: PCHIP
+        needs up to :data:`ST_LOOKAHEAD_KNOTS` knot intervals (20 ms); a window of N PVDF samples:
+        the gate finalises a sample once the last frame covering it is complete (up to N - 1
+        samples later) and PCHIP needs up to 2 more samples: (N + 1) / 2 kHz."""
+        st = ST_LOOKAHEAD_KNOTS / ST_FS_HZ
+        if source is None:
+            return st
+        return max(st, (frame_length(float(source), PVDF_FS_HZ) + 1) / PVDF_FS_HZ)
 
-    def _pv_branch(self, y: np.ndarray) -> None:
-        if y.shape[0] == 0:
-            return
-        prev = y[:1] if self.pv_prev is None else self.pv_prev[None, :]
-        dy = np.diff(np.concatenate((prev, y), axis=0), axis=0) * PVDF_FS_HZ
-        self.pv_prev = y[-1].copy()
-        slots = np.arange(self.pv_slot, self.pv_slot + y.shape[0])
-        self.pv_slot += y.shape[0]
-        self.align.add(1, *self._split(self.pv_rs.process(self.pv_in.slot_time(slots), np.concatenate((y, dy), axis=1))))
+    @property
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Input-policy counters of the acquisition (all its taxels)."""
+        return self.acq.stats
 
-    def _split(self, emitted: tuple[int, np.ndarray]) -> tuple[int, np.ndarray]:
-        k0, v = emitted
-        return k0, v.reshape(v.shape[0], 2, self.n_taxels).transpose(0, 2, 1)
+    @property
+    def running(self) -> dict[str, bool | tuple[float, ...]]:
+        """Which branches run: SingleTact, the PVDF filter, the PVDF windows (ms)."""
+        return {"singletact": self.st is not None, "pvdf_filter": self.pv_filter is not None, "pvdf_windows": tuple(sorted(self.pv_windows))}
 
-    def _pop(self) -> Channels:
-        got = self.align.pop()
-        if got is None:
-            k = self.align.next_k or 0
-            return Channels(k, np.zeros((0, self.n_taxels, 4)))
-        return Channels(got[0], got[1])
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Every numeric state variable of the running stages and buffers (stability checks, monitoring;
+        the acquisition's too when this preprocessor owns it)."""
+        out = self.acq.state_arrays() if self._owns_acquisition else {}
+        if self.st is not None:
+            out.update(self.st.state_arrays())
+            out.update({f"st_out_{i}": a for i, a in enumerate(self.st.out.arrays())})
+        if self.pv_filter is not None:
+            out.update(self.pv_filter.state_arrays())
+            out["pv_filtered"] = self.pv_filtered.buf
+        for w, branch in self.pv_windows.items():
+            name = f"pv{w:g}ms"
+            out.update(branch.state_arrays(name))
+            out.update({f"{name}_out_{i}": a for i, a in enumerate(branch.out.arrays())})
+        return out
 
 
 def preprocess_trial(trial: Trial, params: PreprocessParams | None = None) -> Channels:
-    """Whole-recording preprocessing of one taxel: the online pipeline fed everything at once."""
+    """Whole-recording preprocessing of one taxel at ``params.window_ms``: the online pipeline fed everything at once."""
     pre = Preprocessor(params, n_taxels=1)
     head = pre.process(trial.st_t, trial.st, trial.pvdf_t, trial.pvdf)
     tail = pre.finish()
     return Channels.concatenate([head, tail], 1)
+
+
+def preprocess_trial_windows(trial: Trial, params: PreprocessParams, sources: Iterable[Source]) -> dict[Source, Channels]:
+    """Whole-recording preprocessing of one taxel for several sources at once (each window once;
+    each result equals :func:`preprocess_trial` at that window)."""
+    sources = list(dict.fromkeys(float(s) if s is not None else None for s in sources))
+    pre = Preprocessor(params, n_taxels=1, sources=sources)
+    pre.feed(trial.st_t, trial.st, trial.pvdf_t, trial.pvdf)
+    heads = {s: pre.take(s) for s in sources}
+    pre.flush()
+    return {s: Channels.concatenate([heads[s], pre.take(s)], 1) for s in sources}

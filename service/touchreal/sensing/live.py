@@ -24,7 +24,10 @@ import numpy as np
 from ..recording import Dataset, Trial
 from .raw import RawChunk
 from .replay import ReplaySource
-from .scene import SceneSource, taxel_grid
+from .scene import SceneSource, default_scene, taxel_grid
+
+
+SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 
 
 class LiveSource(Protocol):
@@ -73,7 +76,9 @@ class _Paced:
 
 class SimLiveSource:
     """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
-    taxels (a grid of 10 mm pitch) in real time, looping forever."""
+    taxels (a grid of 10 mm pitch) in real time, looping forever. With several taxels the script is
+    played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
+    feel each touch differently (the skin's spatial response)."""
 
     segment = 0
 
@@ -81,7 +86,8 @@ class SimLiveSource:
         self.positions_mm = taxel_grid(n_taxels)
         self.n_taxels = n_taxels
         self.update_s = update_s
-        self.scene = SceneSource(taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
+        spots = [(0.0, 0.0)] + ([tuple(self.positions_mm[0]), tuple(self.positions_mm[-1])] if n_taxels > 1 else [])
+        self.scene = SceneSource(default_scene(spots), taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
         self.offset_us = 0
         self._pace = _Paced(update_s)
         self._chunks = 0
@@ -102,8 +108,9 @@ class SimLiveSource:
 class ReplayLiveSource:
     """Recorded trials played back to back, each a segment on its own clock, in real time x ``speed``.
 
-    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations (rounded
-    up to whole ms) so the stream's clock keeps increasing. ``loop`` replays the list forever.
+    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations, each
+    rounded up to :data:`SEGMENT_GRID_US`, so the stream's clock keeps increasing and every grid the
+    stream is cut on (10 ms decoder bins, 32 ms steps) falls on the same instants of a trial. ``loop`` replays the list forever.
     A replay waits for demand (``waits_for_demand``): it starts, and resumes, only while somebody
     subscribes, so nobody misses the beginning of a trial.
     """
@@ -143,7 +150,8 @@ class ReplayLiveSource:
         trial: Trial = self.dataset.load(entry)
         self.segment, self.trial_id = i, entry["id"]
         self.offset_us = self._next_offset_us
-        self._next_offset_us += int(math.ceil(trial.duration_s * 1000.0 + 1.0)) * 1000
+        span = trial.duration_s * 1e6 + 1000.0
+        self._next_offset_us += int(math.ceil(span / SEGMENT_GRID_US)) * SEGMENT_GRID_US
         self._player = ReplaySource(trial)
         return True
 

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from contextlib import asynccontextmanager
+import threading
+import time
+from contextlib import asynccontextmanager, contextmanager
+from collections.abc import Iterator
 from pathlib import Path
 
 import uvicorn
@@ -49,3 +52,27 @@ def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning
     permessage-deflate only for clients that offer it."""
     return uvicorn.Config(app, host=host, port=port, ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
                           ws_per_message_deflate=True, log_level=log_level, lifespan="on")
+
+
+@contextmanager
+def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> Iterator[str]:
+    """Run the service's uvicorn server on its own thread; yields ``host:port`` once it accepts.
+
+    For benchmarks and tests that need the real server next to their own code (``port=0``: a free port).
+    """
+    config = uvicorn_config(create_app(service), host, port, log_level)
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, name="touchreal-uvicorn", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60.0
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            server.should_exit = True
+            raise RuntimeError("the server did not start (see its log)")
+        time.sleep(0.02)
+    bound = server.servers[0].sockets[0].getsockname()
+    try:
+        yield f"{bound[0]}:{bound[1]}"
+    finally:
+        server.should_exit = True
+        thread.join(15.0)

@@ -32,8 +32,6 @@ class Queued:
     kind: int  #: P.KIND_*
     payload: bytes | str  #: binary frame, or the JSON body text
     seq: int
-    acq_us: int  #: wall time the update's chunk was acquired
-    update: Update
 
 
 class Subscriber:
@@ -60,7 +58,7 @@ class Subscriber:
         self.control.append(text)
         self.wakeup.set()
 
-    def offer(self, kind: int, payload: bytes | str, update: Update) -> None:
+    def offer(self, kind: int, payload: bytes | str) -> None:
         seq, self.seq = self.seq, self.seq + 1
         if len(self.queue) >= self.capacity:
             self.dropped += 1
@@ -73,7 +71,7 @@ class Subscriber:
                 self.kicked.set()
             return
         self.full_since = None
-        self.queue.append(Queued(kind, payload, seq, update.acq_us, update))
+        self.queue.append(Queued(kind, payload, seq))
         self.wakeup.set()
 
     def render(self, item: Queued) -> tuple[bytes | str, int]:
@@ -88,7 +86,7 @@ class Subscriber:
 class Hub:
     """All subscribers of one service; lives on the event loop."""
 
-    def __init__(self, capacity: int, slow_timeout_s: float, on_demand_change: Callable[[], None] | None = None):
+    def __init__(self, capacity: int, slow_timeout_s: float):
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
         self.subscribers: dict[int, Subscriber] = {}
@@ -99,7 +97,6 @@ class Hub:
         self.decoder_classes: Mapping[str, Sequence[str]] = {}
         self.decoder_names: list[str] = []
         self.frames_rendered = 0
-        self._on_demand_change = on_demand_change
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
@@ -124,8 +121,6 @@ class Hub:
     def refresh_demand(self) -> None:
         subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
         self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes)
-        if self._on_demand_change:
-            self._on_demand_change()
 
     # -- fan-out --------------------------------------------------------------------------------
     def publish(self, upd: Update) -> None:
@@ -142,7 +137,7 @@ class Hub:
                 frames = cache[key] = self._render(upd, s)
                 self.frames_rendered += len(frames)
             for kind, payload in frames:
-                sub.offer(kind, payload, upd)
+                sub.offer(kind, payload)
 
     def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
         out: list[P.Frame] = []

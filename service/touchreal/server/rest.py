@@ -10,11 +10,12 @@ import secrets
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
+from ..decoding.model import DecoderModelError, params_warning
 from ..params import EncoderParams
 from .params_store import params_sha256
 from .settings import ConfigPatch
@@ -127,6 +128,34 @@ def rollback(body: Rollback, request: Request) -> ParamsInfo:
     except KeyError as exc:
         raise HTTPException(404, str(exc.args[0])) from exc
     return ParamsInfo(rev=rev, sha256=store.info().sha256)
+
+
+@router.get("/v1/decoders", tags=["decoders"])
+def decoders(request: Request) -> list[dict[str, Any]]:
+    """Installed decoder models (shipped with the package, plus the state directory's models/):
+    metadata, and a warning where the active parameters differ from the ones it was trained on."""
+    svc = service_of(request)
+    params = svc.store.active
+    return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in svc.models.list()]
+
+
+@router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})
+def decoder(name: str, request: Request) -> dict[str, Any]:
+    for m in decoders(request):
+        if m["name"] == name:
+            return m
+    raise HTTPException(404, f"no decoder model named {name!r}")
+
+
+@router.get("/v1/decoders/{name}/model.onnx", tags=["decoders"], response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}, 404: {"description": "no such decoder"}})
+def decoder_onnx(name: str, request: Request) -> FileResponse:
+    """The ONNX file (metadata embedded): run it with onnxruntime on binned spike counts (docs/decoders.md)."""
+    try:
+        path = service_of(request).models.path(name)
+    except DecoderModelError as exc:
+        raise HTTPException(404, str(exc)) from exc
+    return FileResponse(path, media_type="application/octet-stream", filename=f"{name}.onnx")
 
 
 @router.get("/metrics", tags=["health"], response_class=Response)

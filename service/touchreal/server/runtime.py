@@ -6,9 +6,9 @@ speed, or the serial device), looks at the current :class:`~.demand.Demand`, run
 ``publish`` (which must not block: the service posts it to the event loop). The network side can
 therefore never stall acquisition, and compute never stalls the network side.
 
-What runs follows the demand: nothing beyond acquisition while nobody wants anything (the encoder
-is dropped and restarts from rest, flagged, when demand returns); otherwise only the demanded
-(taxel, class) columns, and the PVDF branches they need (``StreamEncoder.set_active``). A new
+What runs follows the demand (``StreamEncoder.set_active``): only the demanded (taxel, class)
+columns and the branches they read; while nobody wants anything, only acquisition (the input
+policy and the raw history a branch restarts from, so a returning subscriber waits for no warm-up). A new
 parameter revision is swapped in between two updates: every update is made by one revision, which
 its frames carry (``params_rev``).
 """
@@ -106,11 +106,12 @@ class Runtime:
         demand: Callable[[], Demand],
         params: Callable[[], tuple[int, EncoderParams]],
         publish: Callable[[Update], None],
-        decoders: Callable[[], dict[str, object]] | None = None,
+        make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
     ):
         self.source = source
         self._demand, self._params, self._publish = demand, params, publish
-        self._decoders = decoders or (lambda: {})
+        self._make_decoder = make_decoder
+        self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
         self.encoder: StreamEncoder | None = None
         self.enc_rev = 0
         self.enc_segment = source.segment
@@ -118,7 +119,6 @@ class Runtime:
         self.update_no = 0
         self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
         self.error: str | None = None
-        self.first_output = threading.Event()
         self.chunk_log = ChunkLog()
         self.counters: dict[str, int] = {}  #: cumulative sanitizer + source fault counters
         self._enc_stats: dict[str, int] = {}
@@ -136,10 +136,6 @@ class Runtime:
         self.source.close()
         self._thread.join(timeout)
         self.state = "stopped"
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
 
     def _run(self) -> None:
         waits = getattr(self.source, "waits_for_demand", False)
@@ -170,28 +166,32 @@ class Runtime:
         tail = None
         if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
             tail = self._finish_encoder()
+            self.decoders = {}
             self.enc_segment = self.source.segment
             self.chunk_log.clear()
             self.chunk_log.add(chunk, acq_us)
             flags |= FLAG_RESTARTED
         demand = self._demand()
         rev, params = self._params()
-        if demand.empty:
-            if tail is not None:
-                self._emit(tail, flags, acq_us, 0.0, None)
-            self.encoder, self.active, self.state = None, None, "idle"
-            self._pending_flags = FLAG_RESTARTED
-            return None
         if self.encoder is not None and rev != self.enc_rev:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
         if self.encoder is None:
             self.encoder = StreamEncoder(params, self.source.n_taxels)
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
+            self.decoders = {}
+        self._follow_decoder_demand(demand)
         columns = dict(demand.columns)
         if columns != self.active:
             self.encoder.set_active(columns)
             self.active = columns
+        if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
+            self.encoder.process(chunk)
+            flags |= self._count_sanitizer()
+            if tail is not None:
+                self._emit(tail, flags, acq_us, 0.0, None)
+            self.state = "idle"
+            return None
         t0 = time.perf_counter()
         if demand.channel_taxels:
             ch, ev = self.encoder.process_channels(chunk)
@@ -234,7 +234,7 @@ class Runtime:
         t_us = np.round(ev.t_s * 1e6).astype(np.int64) + offset_us
         keep = t_us >= 0  # a negative class delay can stamp the very first spikes before the clock's zero
         t_us, taxel, cls = t_us[keep].astype(np.uint64), ev.taxel[keep].astype(np.uint16), ev.cls[keep].astype(np.uint8)
-        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) for c, v in final_s.items()}
+        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) if np.isfinite(v) else 0 for c, v in final_s.items()}
         self.update_no += 1
         emit = wall_us()
         latency = {}
@@ -248,14 +248,29 @@ class Runtime:
                      [], compute_s, latency)
         upd.decoded = self._decode(upd)
         self._publish(upd)
-        self.first_output.set()
         return upd
 
+    def _follow_decoder_demand(self, demand: Demand) -> None:
+        """Keep one streaming decoder per demanded model, for its demanded taxels (a decoder whose
+        taxels change starts afresh; one nobody wants is dropped)."""
+        if self._make_decoder is None:
+            return
+        for name in [n for n in self.decoders if n not in demand.decoders]:
+            del self.decoders[name]
+        for name, taxels in demand.decoders.items():
+            dec = self.decoders.get(name)
+            if dec is None or tuple(dec.taxels) != taxels:
+                self.decoders[name] = self._make_decoder(name, taxels)
+
     def _decode(self, upd: Update) -> list:
+        """Decoded outputs completed by this update: (name, taxels, step times (n,), values (n, taxels, outputs))."""
         out = []
-        for name, dec in self._decoders().items():
-            for t_us, values in dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us):
-                out.append((name, tuple(dec.taxels), np.array([t_us], np.uint64), values[None]))
+        for name, dec in self.decoders.items():
+            steps = dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us)
+            if steps:
+                t_us = np.array([t for t, _ in steps], np.uint64)
+                out.append((name, tuple(int(t) for t in dec.taxels), t_us,
+                            np.stack([v for _, v in steps])))
         return out
 
     # -- counters -------------------------------------------------------------------------------
@@ -272,15 +287,16 @@ class Runtime:
         return flag
 
     def _count_sanitizer(self) -> int:
-        """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing."""
+        """Accumulate the encoder's sanitizer counters; FLAG_SOURCE_GAP when samples were missing or
+        non-finite (repaired by the input policy)."""
         flag = 0
-        for sensor, stats in self.encoder.pre.stats.items():
+        for sensor, stats in self.encoder.stats.items():
             for k in _SANITIZER_FAULTS:
                 key = f"{sensor}_{k}"
                 v = int(stats.get(k, 0))
                 delta = v - self._enc_stats.get(key, 0)
                 if delta > 0:
                     self.counters[key] = self.counters.get(key, 0) + delta
-                    flag |= FLAG_SOURCE_GAP if k == "gaps" else 0
+                    flag |= FLAG_SOURCE_GAP if k in ("gaps", "non_finite") else 0
                 self._enc_stats[key] = v
         return flag

@@ -17,8 +17,8 @@ from typing import Any
 from touchreal_client import protocol as P
 
 from .. import __version__
+from ..decoding.model import ModelStore, params_warning
 from ..params import EncoderParams
-from .demand import Demand
 from .hub import Hub
 from .metrics import Metrics
 from .params_store import ParamsStore
@@ -51,6 +51,7 @@ class Service:
         self.session = uuid.uuid4().hex
         self.started_us = wall_us()
         self.store = ParamsStore(settings.state_dir, settings.params)
+        self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
         self.runtime: Runtime | None = None
@@ -80,8 +81,8 @@ class Service:
             log.error("cannot open source %s: %s", self.config.source, exc)
             return
         self.source_error = None
-        self.hub.configure(source.n_taxels, self.config.classes, {})
-        self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post)
+        self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
+        self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder)
         self.runtime.start()
 
     async def restart_source(self) -> None:
@@ -109,6 +110,13 @@ class Service:
         for c, lat in upd.latency_us.items():
             for v in lat:
                 m.latency.labels(c).observe(float(v))
+        if self.runtime is not None:
+            for kind, v in self.runtime.counters.items():
+                m.faults.labels(kind).set(v)
+            state = str(self.runtime.source.status().get("state"))
+            for s in ("connecting", "streaming", "disconnected", "closed", "ended"):
+                m.source_state.labels(s).set(1.0 if s == state else 0.0)
+        m.ready.set(1.0 if self.ready()[0] else 0.0)
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
@@ -161,8 +169,31 @@ class Service:
                        "slow_timeout_s": self.settings.slow_timeout_s},
         }
 
+    def decoder_classes(self) -> dict[str, list[str]]:
+        """Usable installed decoders (name -> the classes they read), in the hello's order."""
+        return {m["name"]: list(m["classes"]) for m in self.models.list() if "error" not in m}
+
     def decoder_list(self) -> list[dict[str, Any]]:
-        return []
+        """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
+        params = self.store.active
+        out = []
+        for m in self.models.list():
+            if "error" in m:
+                continue
+            out.append({"name": m["name"], "task": m["task"], "outputs": m["output_names"], "classes": m["classes"],
+                        "window_us": int(round(m["window_ms"] * 1000)), "step_us": int(round(m["step_ms"] * 1000)),
+                        "warning": params_warning(m, params)})
+        return out
+
+    def _make_decoder(self, name: str, taxels: tuple[int, ...]):
+        """Called on the acquisition thread when a decoder becomes demanded."""
+        from ..decoding.streaming import StreamingDecoder
+
+        model = self.models.load(name)
+        warning = params_warning(model.meta, self.store.active)
+        if warning:
+            log.warning(warning)
+        return StreamingDecoder(model, taxels, threads=1)
 
     def status(self) -> dict[str, Any]:
         rt = self.runtime
@@ -180,9 +211,6 @@ class Service:
             "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
         }
 
-    def live(self) -> bool:
-        return self.runtime is None or self.runtime.state != "failed" or self.source_error is not None
-
     def ready(self) -> tuple[bool, str]:
         rt = self.runtime
         if rt is None:
@@ -192,7 +220,7 @@ class Service:
         st = rt.source.status().get("state")
         if st != "streaming":
             return False, f"source {st}"
-        if rt.state == "starting" and not rt.first_output.is_set():
+        if rt.state == "starting":
             return False, "pipeline warming up"
         return True, "ok"
 
@@ -224,16 +252,9 @@ class Service:
             await self.restart_source()
             restarted.append("source")
         elif "classes" in changes:
-            self.hub.configure(self.n_taxels, cfg.classes, self.hub.decoder_classes)
+            self.hub.configure(self.n_taxels, cfg.classes, self.decoder_classes())
         return {"config": self.config_view(), "restarted": restarted}
 
     def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
         """Validated parameters become active at the start of the next update."""
         return self.store.put(params, origin)
-
-    def demand(self) -> Demand:
-        return self.hub.demand
-
-    @property
-    def state_dir(self) -> Path:
-        return self.settings.state_dir

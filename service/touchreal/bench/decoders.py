@@ -1,0 +1,102 @@
+"""Decoders: onnxruntime time per update for 1 and 256 taxels, and run time against accuracy per window.
+
+Per model, one update = one ``session.run`` on a batch of (taxels, n_bins, n_classes) Poisson
+counts (what :class:`~touchreal.decoding.streaming.StreamingDecoder` sends every 32 ms), one
+intra-op thread; ``push`` adds the decoder's binning of one update's spike events (about 40
+spikes/s per taxel and class) to that. Accuracy columns are the held-out metrics recorded in each
+model's metadata by ``touchreal decoders train`` (R^2 for force, accuracy for texture).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", help="models folder with sweep/ (default: the installed models)")
+    parser.add_argument("--updates", type=int, default=400, help="timed updates per case (default 400)")
+    parser.add_argument("--taxels", type=int, nargs="+", default=[1, 256], help="taxel counts (default 1 256)")
+    parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
+
+
+def _times_ms(fn, n: int) -> tuple[float, float]:
+    for _ in range(min(20, n)):
+        fn()
+    t = np.empty(n)
+    for i in range(n):
+        t0 = time.perf_counter()
+        fn()
+        t[i] = time.perf_counter() - t0
+    return float(t.mean() * 1e3), float(np.percentile(t, 99) * 1e3)
+
+
+def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float]:
+    sess = model.session(threads)
+    shape = [n_taxels] + model.meta["input"]["shape"][1:]
+    x = rng.poisson(0.4, shape).astype(np.float32)
+    name, out = model.meta["input"]["name"], model.meta["outputs"][0]
+    return _times_ms(lambda: sess.run([out], {name: x}), updates)
+
+
+def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float]:
+    from touchreal.decoding.streaming import StreamingDecoder
+    from touchreal_client.features import CLASSES
+
+    dec = StreamingDecoder(model, range(n_taxels), threads, start_us=0)
+    step = dec.step_us
+    per = max(1, int(round(40 * step / 1e6 * n_taxels)))  # spikes per class per update
+    state = {"t": 0}
+
+    def one() -> None:
+        t0 = state["t"]
+        t = np.sort(rng.integers(t0, t0 + step, per * 3)).astype(np.uint64)
+        dec.push(t, rng.integers(0, n_taxels, t.size), np.repeat(np.arange(3), per)[rng.permutation(t.size)],
+                 {c: t0 + step for c in CLASSES})
+        state["t"] = t0 + step
+
+    return _times_ms(one, updates)
+
+
+def run(args: argparse.Namespace) -> int:
+    from touchreal.decoding.model import ModelStore, load_model
+
+    if args.models is None:
+        store = ModelStore()
+        models = [store.load(m["name"]) for m in store.list() if "error" not in m]
+    else:
+        root = Path(args.models)
+        models = [load_model(p) for p in sorted(root.glob("*.onnx")) + sorted((root / "sweep").glob("*.onnx"))]
+    if not models:
+        raise ValueError("no decoder models to benchmark")
+    rng = np.random.default_rng(0)
+    product = [m for m in models if m.meta["training"].get("folder", "") == ""]
+    print("time per update (ms), onnxruntime run and the whole StreamingDecoder.push, threads =", args.threads)
+    print(f"{'model':<18} {'taxels':>6} {'ort mean':>9} {'ort p99':>8} {'push mean':>10} {'push p99':>9}")
+    for m in product:
+        for n in args.taxels:
+            om, op = _ort_ms(m, n, args.updates, args.threads, rng)
+            pm, pp = _push_ms(m, n, args.updates, args.threads, rng)
+            print(f"{m.name:<18} {n:>6d} {om:>9.3f} {op:>8.3f} {pm:>10.3f} {pp:>9.3f}")
+    print()
+    print("run time against accuracy across decoding windows (held-out metrics from the metadata)")
+    big = max(args.taxels)
+    print(f"{'model':<30} {'window ms':>9} {'ort ms (1)':>10} {f'ort ms ({big})':>11} {'metric':>10} {'value':>7}")
+    rows = []
+    for m in models:
+        meta = m.meta
+        if meta["params"].get("pvdf_window_ms") is not None:
+            continue  # the preprocessing-window sweep is not a decoding-window cost
+        if meta["task"] == "force" and meta["classes"] != ["SA1", "RA"]:
+            continue
+        key, label = ("r2", "R^2") if meta["task"] == "force" else ("acc", f"acc {meta['features']['set']}")
+        rows.append((meta["task"], meta["features"]["set"], meta["window_ms"], m, label, meta["metrics"].get(key)))
+    for task, fs, w, m, label, value in sorted(rows, key=lambda r: r[:3]):
+        one, _ = _ort_ms(m, 1, max(50, args.updates // 4), args.threads, rng)
+        many, _ = _ort_ms(m, big, max(50, args.updates // 4), args.threads, rng)
+        v = f"{value:.3f}" if isinstance(value, float) else "-"
+        print(f"{m.name:<30} {w:>9g} {one:>10.3f} {many:>11.3f} {label:>10} {v:>7}")
+    return 0

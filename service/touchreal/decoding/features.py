@@ -1,0 +1,144 @@
+"""Decoder features computed from binned counts, twice from one definition: numpy (training, the
+scikit-learn side of the parity tests) and ONNX operators (inside the exported graph).
+
+Every feature is a fixed linear map of the counts or a simple elementwise function of one, so the
+constant matrices built here are the single definition both sides use.
+
+* ``counts``: the flattened input, bins oldest -> newest, classes innermost (force models).
+* ``temporal``: Gaussian-smoothed PSTH (sigma 20 ms, truncated at 3 sigma, each row renormalised
+  inside the window so the edges are not attenuated), one value per bin.
+* ``rate``: rate (Hz), variance of the bin counts, fraction of non-empty bins (the bin-level
+  stand-ins for the paper's ISI statistics: a model input of 10 ms counts carries no exact ISI)
+  and the mean DFT magnitude of the count sequence per 10 Hz band, (0, 10] ... (40, 50] Hz,
+  normalised by the number of bins.
+* ``both``: ``temporal`` then ``rate``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+FEATURE_SETS = ("counts", "temporal", "rate", "both")
+SMOOTH_SIGMA_MS = 20.0
+BANDS_HZ = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 50.0))
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """What turns a ``(batch, n_bins, n_classes)`` counts tensor into a feature matrix."""
+
+    kind: str  #: one of FEATURE_SETS
+    n_bins: int
+    n_classes: int
+    bin_ms: float
+    window_ms: float
+
+    def __post_init__(self) -> None:
+        if self.kind not in FEATURE_SETS:
+            raise ValueError(f"unknown feature set {self.kind!r}; expected one of {FEATURE_SETS}")
+        if self.kind != "counts" and self.n_classes != 1:
+            raise ValueError(f"feature set {self.kind!r} takes one class")
+
+    # ---------------------------------------------------------------- constant matrices
+    def smoothing(self) -> np.ndarray:
+        """(n_bins, n_bins) row-normalised Gaussian kernel: ``temporal = counts @ S.T``."""
+        sigma = SMOOTH_SIGMA_MS / self.bin_ms
+        i = np.arange(self.n_bins)
+        d = i[:, None] - i[None, :]
+        g = np.where(np.abs(d) <= 3 * sigma, np.exp(-0.5 * (d / sigma) ** 2), 0.0)
+        return g / g.sum(axis=1, keepdims=True)
+
+    def dft(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cos, sin, band) matrices: ``|X_k| = hypot(c @ cos, c @ sin) / n``, ``bands = |X| @ band``."""
+        n = self.n_bins
+        k = np.arange(1, n // 2 + 1)
+        j = np.arange(n)
+        arg = 2 * np.pi * np.outer(j, k) / n
+        freq = k * (1000.0 / self.bin_ms) / n
+        band = np.zeros((k.size, len(BANDS_HZ)))
+        for b, (lo, hi) in enumerate(BANDS_HZ):
+            sel = (freq > lo) & (freq <= hi)
+            if sel.any():
+                band[sel, b] = 1.0 / sel.sum()
+        return np.cos(arg) / n, np.sin(arg) / n, band
+
+    # ---------------------------------------------------------------------- names
+    def names(self) -> list[str]:
+        """Feature order of the matrix fed to the estimator."""
+        if self.kind == "counts":
+            return [f"count[bin{b}][c{c}]" for b in range(self.n_bins) for c in range(self.n_classes)]
+        temporal = [f"psth[bin{b}]" for b in range(self.n_bins)]
+        rate = ["rate_hz", "count_var", "frac_nonempty"] + [f"dft_{lo:g}_{hi:g}Hz" for lo, hi in BANDS_HZ]
+        return {"temporal": temporal, "rate": rate, "both": temporal + rate}[self.kind]
+
+    # ---------------------------------------------------------------------- numpy
+    def transform(self, counts: np.ndarray) -> np.ndarray:
+        """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph."""
+        c = np.asarray(counts, dtype=np.float32)
+        if c.ndim != 3 or c.shape[1:] != (self.n_bins, self.n_classes):
+            raise ValueError(f"counts must be (batch, {self.n_bins}, {self.n_classes}), got {c.shape}")
+        x = c.reshape(c.shape[0], -1)
+        if self.kind == "counts":
+            return x
+        parts = []
+        if self.kind in ("temporal", "both"):
+            parts.append(x @ self.smoothing().T.astype(np.float32))
+        if self.kind in ("rate", "both"):
+            cos, sin, band = (m.astype(np.float32) for m in self.dft())
+            mean = x @ np.full((self.n_bins, 1), 1.0 / self.n_bins, np.float32)
+            mean_sq = (x * x) @ np.full((self.n_bins, 1), 1.0 / self.n_bins, np.float32)
+            frac = np.minimum(x, np.float32(1.0)) @ np.full((self.n_bins, 1), 1.0 / self.n_bins, np.float32)
+            re, im = x @ cos, x @ sin
+            mag = np.sqrt(re * re + im * im)
+            rate = mean * np.float32(1000.0 / self.bin_ms)
+            parts += [rate, mean_sq - mean * mean, frac, mag @ band.astype(np.float32)]
+        return np.concatenate(parts, axis=1)
+
+    # ----------------------------------------------------------------------- ONNX
+    def graph(self, opset: int, ir_version: int, input_name: str = "counts", output_name: str = "features") -> onnx.ModelProto:
+        """The same transform as an ONNX model ``counts -> features`` (default-domain operators)."""
+        nodes: list[onnx.NodeProto] = []
+        inits: list[onnx.TensorProto] = []
+
+        def const(name: str, value: np.ndarray) -> str:
+            inits.append(numpy_helper.from_array(np.asarray(value, np.float32), name))
+            return name
+
+        def node(op: str, inputs: list[str], out: str, **attrs) -> str:
+            nodes.append(helper.make_node(op, inputs, [out], **attrs))
+            return out
+
+        flat = node("Flatten", [input_name], "flat" if self.kind != "counts" else output_name, axis=1)
+        if self.kind != "counts":
+            parts = []
+            if self.kind in ("temporal", "both"):
+                parts.append(node("MatMul", [flat, const("smooth_T", self.smoothing().T)], "psth"))
+            if self.kind in ("rate", "both"):
+                cos, sin, band = self.dft()
+                avg = const("avg", np.full((self.n_bins, 1), 1.0 / self.n_bins))
+                mean = node("MatMul", [flat, avg], "mean")
+                sq = node("Mul", [flat, flat], "sq")
+                mean_sq = node("MatMul", [sq, avg], "mean_sq")
+                clip = node("Min", [flat, const("one", np.ones(1))], "occupied")
+                frac = node("MatMul", [clip, avg], "frac")
+                re = node("MatMul", [flat, const("dft_cos", cos)], "re")
+                im = node("MatMul", [flat, const("dft_sin", sin)], "im")
+                power = node("Add", [node("Mul", [re, re], "re2"), node("Mul", [im, im], "im2")], "power")
+                mag = node("Sqrt", [power], "mag")
+                bands = node("MatMul", [mag, const("band", band)], "bands")
+                rate = node("Mul", [mean, const("per_s", np.full(1, 1000.0 / self.bin_ms))], "rate")
+                var = node("Sub", [mean_sq, node("Mul", [mean, mean], "mean2")], "var")
+                parts += [rate, var, frac, bands]
+            node("Concat", parts, output_name, axis=1)
+        g = helper.make_graph(
+            nodes,
+            f"features_{self.kind}",
+            [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [None, self.n_bins, self.n_classes])],
+            [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [None, len(self.names())])],
+            inits,
+        )
+        return helper.make_model(g, opset_imports=[helper.make_opsetid("", opset)], ir_version=ir_version)

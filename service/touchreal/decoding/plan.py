@@ -1,0 +1,86 @@
+"""Which decoders ``touchreal decoders train`` makes, and the metric keys each one reports under.
+
+Product models (top folder, installed and served): ``force`` (SA1 + RA, 128 ms), ``force_sa1``,
+``force_ra``, ``texture`` (temporal features, 500 ms), ``texture_rate``, ``texture_both``.
+Sweep models (``sweep/``): force SA1 + RA per other decoding window, texture per feature set and
+other inference window (the product models are the sweeps' 128 ms and 500 ms points), and texture (temporal, 500 ms) per PC causal preprocessing window (the paper's
+Fig. 16: the spikes are re-encoded with that causal PVDF window).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+FORCE_CONFIGS: dict[str, tuple[str, ...]] = {"SA1": ("SA1",), "RA": ("RA",), "SA1+RA": ("SA1", "RA")}
+FORCE_WINDOW_MS = 128.0
+FORCE_SWEEP_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 96.0, 128.0, 256.0)
+TEXTURE_SETS = ("rate", "temporal", "both")
+TEXTURE_WINDOW_MS = 500.0
+TEXTURE_SWEEP_MS = (100.0, 200.0, 300.0, 400.0, 500.0, 750.0)
+PRE_WINDOW_SWEEP_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0)
+TASKS = ("force", "texture")
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One decoder to train: what it reads and where its metrics go."""
+
+    name: str
+    task: str  #: force | texture
+    classes: tuple[str, ...]
+    window_ms: float
+    features: str  #: counts (force) or a texture feature set
+    folder: str = ""  #: "" (product) or "sweep"
+    pvdf_window_ms: float | None = None  #: spikes re-encoded with this causal PVDF window (Fig. 16)
+
+    def metric_keys(self, metrics: dict) -> dict:
+        """This model's metrics under their METRICS.json keys (e.g. ``force.SA1+RA.r2``,
+        ``force.window.64ms.SA1+RA.r2``, ``texture.temporal.acc_500ms``)."""
+        out: dict = {}
+        if self.task == "force":
+            config = "+".join(self.classes)
+            if self.window_ms == FORCE_WINDOW_MS:
+                out.update({f"force.{config}.{k}": v for k, v in metrics.items()})
+            # the sweep's entry: scalars only (the per-trial list is under force.<config> once)
+            out.update({f"force.window.{self.window_ms:g}ms.{config}.{k}": v for k, v in metrics.items() if not isinstance(v, list)})
+            return out
+        pre = f"texture.prewindow.{self.pvdf_window_ms:g}ms." if self.pvdf_window_ms is not None else "texture."
+        head = f"{pre}{self.features}.acc_{self.window_ms:g}ms"
+        return {head: metrics["acc"], f"{head}_fold_mean": metrics["acc_fold_mean"], f"{head}_fold_std": metrics["acc_fold_std"],
+                f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"],
+                f"{head}_trials_without_window": metrics["n_trials_without_window"]}
+
+
+def _ms(x: float) -> str:
+    return f"{x:g}ms"
+
+
+def plan(tasks: Sequence[str] = TASKS, sweeps: bool = True) -> list[ModelSpec]:
+    """The models to train for ``tasks``; ``sweeps`` adds the window sweeps."""
+    specs: list[ModelSpec] = []
+    if "force" in tasks:
+        for config, classes in FORCE_CONFIGS.items():
+            name = "force" if config == "SA1+RA" else f"force_{config.lower()}"
+            specs.append(ModelSpec(name, "force", classes, FORCE_WINDOW_MS, "counts"))
+        if sweeps:
+            for w in (w for w in FORCE_SWEEP_MS if w != FORCE_WINDOW_MS):
+                specs.append(ModelSpec(f"force_w{_ms(w)}", "force", FORCE_CONFIGS["SA1+RA"], w, "counts", "sweep"))
+    if "texture" in tasks:
+        for fs in TEXTURE_SETS:
+            name = "texture" if fs == "temporal" else f"texture_{fs}"
+            specs.append(ModelSpec(name, "texture", ("PC",), TEXTURE_WINDOW_MS, fs))
+        if sweeps:
+            for fs in TEXTURE_SETS:
+                for w in (w for w in TEXTURE_SWEEP_MS if w != TEXTURE_WINDOW_MS):
+                    specs.append(ModelSpec(f"texture_{fs}_w{_ms(w)}", "texture", ("PC",), w, fs, "sweep"))
+            for pw in PRE_WINDOW_SWEEP_MS:
+                specs.append(ModelSpec(f"texture_temporal_w{_ms(TEXTURE_WINDOW_MS)}_pre{_ms(pw)}", "texture", ("PC",),
+                                       TEXTURE_WINDOW_MS, "temporal", "sweep", pw))
+    return specs
+
+
+def spec_from_meta(meta: dict) -> ModelSpec:
+    """The spec a model was trained from (its metadata records it)."""
+    return ModelSpec(meta["name"], meta["task"], tuple(meta["classes"]), float(meta["window_ms"]), meta["features"]["set"],
+                     meta["training"].get("folder", ""), meta["params"].get("pvdf_window_ms"))

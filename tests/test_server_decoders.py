@@ -1,0 +1,71 @@
+"""Decoders on the running service: REST listing and ONNX download, decoded outputs on the stream,
+and a client running the downloaded model on the streamed spikes gets the service's outputs."""
+
+from __future__ import annotations
+
+import asyncio
+
+import httpx
+import numpy as np
+import onnx
+import onnxruntime as ort
+from server_harness import collect, connect, hello_and_subscribe, running_server
+from touchreal_client import protocol as P
+from touchreal_client.features import StreamBinner
+
+
+def test_decoder_endpoints_list_describe_and_serve_onnx(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+        with httpx.Client(base_url=f"http://{addr}") as http:
+            listed = http.get("/v1/decoders").json()
+            names = [m["name"] for m in listed]
+            assert {"force", "texture"} <= set(names)
+            force = http.get("/v1/decoders/force").json()
+            assert force["classes"] == ["SA1", "RA"] and force["output_names"] == ["force_N"]
+            assert force["warning"] is None  # the shipped models were trained on the shipped parameters
+            assert http.get("/v1/decoders/nope").status_code == 404
+            assert http.get("/v1/decoders/nope/model.onnx").status_code == 404
+            blob = http.get("/v1/decoders/force/model.onnx").content
+    model = onnx.load_from_string(blob)
+    sess = ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
+    shape = [d if isinstance(d, int) else 1 for d in sess.get_inputs()[0].shape]
+    (out,) = sess.run(None, {sess.get_inputs()[0].name: np.zeros(shape, np.float32)})
+    assert model.graph.input and np.isfinite(out).all()
+
+
+def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_spikes(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+        blob = httpx.get(f"http://{addr}/v1/decoders/force/model.onnx").content
+        meta = httpx.get(f"http://{addr}/v1/decoders/force").json()
+
+        async def go():
+            async with connect(addr) as ws:
+                hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
+                                                     decoders=["force", "texture"])
+                return hello, await collect(ws, 6.0)
+
+        hello, frames = asyncio.run(asyncio.wait_for(go(), 30))
+    names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
+    decoded = [f for f in frames if isinstance(f, P.DecodedFrame)]
+    force = [f for f in decoded if names[f.decoder] == "force"]
+    texture = [f for f in decoded if names[f.decoder] == "texture"]
+    assert len(force) > 100 and texture
+    steps = np.concatenate([f.t_us for f in force]).astype(np.int64)
+    assert np.all(np.diff(steps) == 32000) and steps[0] % 32000 == 0
+    values = np.concatenate([f.values for f in force])[:, 0, 0]
+    assert np.isfinite(values).all() and values.max() > 0.5  # the scene presses to several newtons
+    probs = np.concatenate([f.values for f in texture])[:, 0, :]
+    ok = ~np.isnan(probs).any(axis=1)
+    assert np.allclose(probs[ok].sum(axis=1), 1.0, atol=1e-4)
+    # the client side of the contract: its own binner + the downloaded ONNX on the spikes it received
+    binner = StreamBinner.from_metadata(meta, [0], start_us=int(steps[0]))
+    sess = ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
+    mine = {}
+    for f in frames:
+        if isinstance(f, P.SpikesFrame):
+            final = {c: v for c, v in f.final_us.items() if v is not None}
+            for t, counts, _ in binner.push(f.t_us, f.taxel, f.cls, final):
+                mine[t] = sess.run(None, {sess.get_inputs()[0].name: counts})[0].reshape(-1)[0]
+    common = [i for i, t in enumerate(steps) if t in mine]
+    assert len(common) > 100
+    assert np.allclose([mine[steps[i]] for i in common], values[common], rtol=1e-5, atol=1e-6)

@@ -1,0 +1,69 @@
+"""The fan-out hub and demand, sans-I/O: rendering once per subscription, drops, slow consumers."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+from touchreal_client import protocol as P
+
+from touchreal.server.demand import build_demand
+from touchreal.server.hub import Hub, Subscriber
+from touchreal.server.runtime import Update
+
+
+def _update(n: int = 1) -> Update:
+    t = np.arange(3, dtype=np.uint64) + 1000 * n
+    return Update(n, 1, 0, 0, 5, t, np.array([0, 1, 2], np.uint16), np.array([0, 1, 2], np.uint8),
+                  {"SA1": 2000 * n, "RA": 2000 * n, "PC": 1000 * n})
+
+
+def test_demand_is_the_union_limited_to_allowed_classes_and_existing_taxels():
+    subs = [P.Subscription(taxels=[0, 9], classes=["SA1"]), P.Subscription(taxels=None, classes=["RA", "PC"]),
+            P.Subscription(taxels=[2], streams=["channels"]), P.Subscription(taxels=[1], streams=["decoded"], decoders=["force"])]
+    d = build_demand(subs, 4, ["SA1", "RA"], {"force": ["SA1", "RA"], "texture": ["PC"]})
+    assert d.columns == {"SA1": (0, 1), "RA": (0, 1, 2, 3)}
+    assert d.channel_taxels == (2,) and d.decoders == {"force": (1,)}
+    assert build_demand([], 4, ["SA1"], {}).empty
+
+
+def test_publish_renders_once_per_distinct_subscription_and_filters():
+    async def go():
+        hub = Hub(capacity=4, slow_timeout_s=1.0)
+        hub.configure(3, P.CLASSES, {})
+        subs = [hub.add() for _ in range(5)]
+        for s in subs[:4]:
+            hub.subscribe(s, P.Subscription())
+        hub.subscribe(subs[4], P.Subscription(taxels=[1], classes=["RA"], encoding="json"))
+        hub.publish(_update())
+        return hub, subs
+
+    hub, subs = asyncio.run(go())
+    assert hub.frames_rendered == 2
+    full = P.decode_frame(subs[0].queue[0].payload)
+    assert full.t_us.tolist() == [1000, 1001, 1002] and full.final_us["PC"] == 1000
+    text, _ = subs[4].render(subs[4].queue[0])
+    one = P.frame_from_json(json.loads(text))
+    assert one.taxel.tolist() == [1] and one.final_us == {"SA1": None, "RA": 2000, "PC": None}
+
+
+def test_a_full_queue_drops_counts_and_finally_kicks_the_subscriber():
+    now = [0.0]
+
+    async def go():
+        sub = Subscriber(1, capacity=2, slow_timeout_s=1.0, clock=lambda: now[0])
+        for i in range(4):
+            sub.offer(P.KIND_SPIKES, b"x")
+        assert (len(sub.queue), sub.dropped, sub.seq, sub.kick) == (2, 2, 4, None)
+        sub.queue.popleft()
+        sub.offer(P.KIND_SPIKES, b"y")  # room again: accepted, the full period ends
+        assert sub.full_since is None and [q.seq for q in sub.queue] == [1, 4]
+        sub.offer(P.KIND_SPIKES, b"z")
+        now[0] = 1.5
+        sub.offer(P.KIND_SPIKES, b"z")
+        return sub
+
+    sub = asyncio.run(go())
+    assert sub.kick is not None and sub.kick[0] == P.CLOSE_SLOW_CONSUMER and sub.kicked.is_set()
+    assert sub.dropped == 4

@@ -1,0 +1,60 @@
+"""`touchreal serve --source serial:PORT` end to end: the real `touchreal mcu-emulate` process on a pty,
+the service reading it, a WebSocket client; faults and an unplug show as flagged gaps, never a crash."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+import time
+
+import httpx
+from helpers import synthetic_trial
+from server_harness import collect, connect, hello_and_subscribe, running_server
+from touchreal_client import protocol as P
+
+from touchreal.recording import write_dataset
+from touchreal.server.settings import RuntimeConfig
+
+
+def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an_unplug(tmp_path):
+    trials = {"a": synthetic_trial(duration_s=2.0, seed=0)}
+    entries = [{"id": "a", "protocol": "ramp", "condition": "c", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.05}]
+    root = tmp_path / "ds"
+    write_dataset(root, {"name": "t", "trials": entries}, trials)
+    port = tmp_path / "ttyTR0"
+    cmd = [sys.executable, "-m", "touchreal", "mcu-emulate", str(root), "--port", str(port), "--loop",
+           "--corrupt-rate", "0.01", "--drop-rate", "0.01", "--unplug-after", "2.5", "--replug-after", "0.5",
+           "--seed", "1"]  # fmt: skip
+    emu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not port.exists():
+            assert time.monotonic() < deadline and emu.poll() is None, "emulator did not create its port"
+            time.sleep(0.05)
+        with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{port}")) as (addr, svc):
+
+            async def go():
+                async with connect(addr) as ws:
+                    await hello_and_subscribe(ws, streams=["spikes", "channels"])
+                    return await collect(ws, 8.0)
+
+            frames = asyncio.run(asyncio.wait_for(go(), 40))
+            status = httpx.get(f"http://{addr}/v1/status").json()
+            metrics = httpx.get(f"http://{addr}/metrics").text
+    finally:
+        emu.terminate()
+        emu.wait(10)
+    spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
+    channels = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    assert len(spikes) > 100 and sum(f.t_us.size for f in spikes) > 0
+    gap_frames = [f for f in spikes if "source_gap" in f.header.flag_names()]
+    assert gap_frames, "faults and the unplug must be flagged"
+    assert any(f.header.update > gap_frames[-1].header.update for f in spikes), "the stream goes on after a gap"
+    finals = [f.final_us["SA1"] for f in spikes]
+    assert finals == sorted(finals)  # the sensor clock never runs backwards, unplug included
+    assert all(f.data.size and (f.data == f.data).all() for f in channels)  # finite (no NaN) channels
+    faults = status["faults"]
+    assert faults["source_reconnects"] >= 1 and faults["source_crc_errors"] >= 1 and faults["source_gaps"] >= 1
+    assert status["source"]["state"] in ("streaming", "connecting", "disconnected")
+    assert 'touchreal_input_faults{kind="source_reconnects"}' in metrics
