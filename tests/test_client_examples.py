@@ -70,3 +70,24 @@ def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
     live = {c: trial.reference[c].train(0, 0) for c in P.CLASSES}
     again = encode_trial(trial, default_params())  # what `touchreal encode` runs on each trial
     assert sum(v.size for v in live.values()) > 0 and sum(np.asarray(v).size for v in again.values()) > 0
+
+
+def test_grasp_example_runs_the_downloaded_force_model_like_the_service(tmp_path):
+    pytest.importorskip("onnxruntime")
+    import grasp_force as gf
+
+    ctl = gf.GripController(target_n=1.5, tolerance_n=0.1, gain_mm_s_per_n=4.0, max_speed_mm_s=10.0)
+    assert ctl.command(1.0) == 2.0 and ctl.command(1.45) == 0.0 and ctl.command(9.0) == -10.0
+    assert ctl.command(float("nan")) == 0.0
+    with running_server(tmp_path) as (addr, _):
+        run = subprocess.run([sys.executable, EXAMPLES / "grasp_force.py", "--url", f"http://{addr}", "--seconds", "5",
+                              "--check"], capture_output=True, text=True, timeout=120)
+        wrong = subprocess.run([sys.executable, EXAMPLES / "grasp_force.py", "--url", f"http://{addr}", "--model",
+                                "texture", "--seconds", "1"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert lines[0] == "t_us,taxel,force_N,command_mm_s" and len(lines) > 60  # ~31 steps per second
+    steps = [int(ln.split(",")[0]) for ln in lines[1:]]
+    assert all(b - a == 32_000 for a, b in zip(steps, steps[1:]))
+    assert "max |local - service| = 0 N" in run.stderr
+    assert wrong.returncode != 0 and "pick a force model" in wrong.stderr

@@ -78,6 +78,9 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         wait_for(browser, "return window.touchreal && window.touchreal.connected")
         # spikes drawn on the raster, the force trace filled from the channels stream
         wait_for(browser, "const s = window.touchreal; return s.drawnSpikes > 20 && s.frames > 60 && s.force.size === 3")
+        # the decoded force (the shipped force model, run by the service) is drawn and shown in N
+        wait_for(browser, "return window.touchreal.decodedForce.size > 0 && "
+                          "document.getElementById('decoded-force').textContent.includes(' N (force')")
         shot = tmp_path / "dashboard.png"
         time.sleep(3.0)  # a little more history on the canvases
         browser.save_screenshot(str(shot))
@@ -85,11 +88,11 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
                                        "document.getElementById('delivery').textContent]")
         assert stats[0] > 20 and stats[1] == 0 and stats[2] == svc.session and stats[3].endswith("ms")
 
-        # subscription control: PC of taxels 1 and 2 only -> exactly that is computed
+        # subscription control: PC spikes of taxels 1 and 2, no decoders -> exactly that is computed
         browser.find_element(By.ID, "taxels").clear()
         browser.find_element(By.ID, "taxels").send_keys("1,2")
-        for cls in ("SA1", "RA"):
-            browser.find_element(By.CSS_SELECTOR, f"input[name=cls][value={cls}]").click()
+        for name, value in (("cls", "SA1"), ("cls", "RA"), ("stream", "decoded")):
+            browser.find_element(By.CSS_SELECTOR, f"input[name={name}][value={value}]").click()
         browser.find_element(By.ID, "subscribe").click()
         wait_for(browser, "const s = window.touchreal.subscribed; return s && s.classes.join() === 'PC'")
         deadline = time.monotonic() + 10

@@ -85,7 +85,10 @@ def test_dockerfile_is_multi_stage_non_root_with_healthcheck_volumes_and_a_valid
     assert {k for k in env if k.startswith("TOUCHREAL_")} <= setting_names()
     port = int(env["TOUCHREAL_PORT"])
     assert [r for w, r in steps if w == "EXPOSE"] == [str(port)]
-    assert json.loads([r for w, r in steps if w == "VOLUME"][0]) == [env["TOUCHREAL_STATE_DIR"], env["TOUCHREAL_MODELS_DIR"]]
+    state = env["TOUCHREAL_STATE_DIR"]
+    svc = Service(ServeSettings(state_dir=tmp_path / "state"), RuntimeConfig())  # where the service looks for models
+    models = Path(state) / svc.models.user_dir.relative_to(tmp_path / "state")
+    assert json.loads([r for w, r in steps if w == "VOLUME"][0]) == [state, str(models)]
     health = [r for w, r in steps if w == "HEALTHCHECK"][0]
     assert "/v1/health" in health and "/v1/health" in routes(tmp_path)
     entry, cmd = exec_form("ENTRYPOINT"), exec_form("CMD")
@@ -107,7 +110,7 @@ def test_compose_and_kubernetes_manifests_reference_the_real_ports_paths_setting
     svc = compose["services"]["touchreal"]
     assert (DEPLOY / svc["build"]["context"] / svc["build"]["dockerfile"]).resolve() == DEPLOY / "Dockerfile"
     assert svc["ports"] == [f"127.0.0.1:{port}:{port}"]
-    assert {v.split(":")[1] for v in svc["volumes"]} == {env["TOUCHREAL_STATE_DIR"], env["TOUCHREAL_MODELS_DIR"]}
+    assert {v.split(":")[1] for v in svc["volumes"]} == {env["TOUCHREAL_STATE_DIR"], env["TOUCHREAL_STATE_DIR"] + "/models"}
     assert serve_parser().parse_args(["serve", *svc["command"]]).source == "sim"
     assert set(svc["environment"]) <= setting_names()
     serial = [ln.lstrip("# ") for ln in (DEPLOY / "compose.yaml").read_text().splitlines() if "serial:/dev/" in ln]
@@ -143,7 +146,7 @@ def test_compose_and_kubernetes_manifests_reference_the_real_ports_paths_setting
     assert settings_env <= setting_names()
     env_values = {e["name"]: e["value"] for e in c["env"]}
     mounts = {m["mountPath"] for m in c["volumeMounts"]}
-    assert {env_values["TOUCHREAL_STATE_DIR"], env_values["TOUCHREAL_MODELS_DIR"]} == mounts
+    assert {env_values["TOUCHREAL_STATE_DIR"]} == mounts
     assert env_values["TOUCHREAL_STATE_DIR"] == env["TOUCHREAL_STATE_DIR"] and int(env_values["TOUCHREAL_PORT"]) == port
     claim = pod["volumes"][0]["persistentVolumeClaim"]["claimName"]
     assert claim == docs["PersistentVolumeClaim"]["metadata"]["name"]
@@ -168,7 +171,7 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
         port = free_port()
         env = {**{k: v for k, v in os.environ.items() if not k.startswith("TOUCHREAL_")}, **image_env()}
         env.update(TOUCHREAL_HOST="127.0.0.1", TOUCHREAL_PORT=str(port),  # loopback only in tests
-                   TOUCHREAL_STATE_DIR=str(tmp_path / "state"), TOUCHREAL_MODELS_DIR=str(tmp_path / "models"),
+                   TOUCHREAL_STATE_DIR=str(tmp_path / "state"),
                    NUMBA_CACHE_DIR=str(tmp_path / "numba"))
         entry = exec_form("ENTRYPOINT")
         proc = subprocess.Popen([venv / "bin" / entry[0], *entry[1:], *exec_form("CMD")], env=env, cwd=tmp_path,

@@ -14,7 +14,7 @@
     finalUs: 0,            // latest sensor time that is final for some class
     force: new Map(),      // taxel -> [[t_us, N], ...] measured ST
     decodedForce: new Map(),  // taxel -> [[t_us, N], ...]
-    texture: null, decodedNames: [], labels: {},
+    texture: null, decodedNames: [],
     frames: 0, events: 0, drawnSpikes: 0, nextSeq: null, gaps: 0, missed: 0, serverDropped: 0, sourceGaps: 0,
     offsetUs: 0, bestRtt: Infinity, delivery: [], rate: { t: performance.now(), frames: 0, events: 0 },
   };
@@ -37,8 +37,10 @@
       if (taxels.some((t) => !Number.isInteger(t) || t < 0)) throw new Error("taxels: 'all' or a list of ids such as 0,1,4");
     }
     const picked = (name) => [...document.querySelectorAll(`input[name=${name}]:checked`)].map((e) => e.value);
+    // the decoded panel shows one force and one texture model (each decoder costs the service an inference per step)
+    const names = state.decodedNames.map((d) => d.name), decoders = ["force", "texture"].filter((n) => names.includes(n));
     return { type: "subscribe", version: 1, taxels, classes: picked("cls"), streams: picked("stream"),
-             encoding: "binary", channels: { decimation: 50 } };
+             encoding: "binary", channels: { decimation: 50 }, decoders };
   }
 
   function sendSubscription() {
@@ -68,7 +70,6 @@
       const fresh = !state.hello || state.hello.session !== m.session;
       state.hello = m; state.connected = true; state.retryMs = 500;
       state.decodedNames = (m.streams.decoded && m.streams.decoded.decoders) || [];
-      if (state.decodedNames.length) loadDecoderLabels();
       $("conn").textContent = `${m.server} · ${m.taxels.length} taxel(s) · session ${m.session.slice(0, 8)}`;
       $("conn").className = "pill on";
       if (fresh) { state.spikes = []; state.force.clear(); state.decodedForce.clear(); state.finalUs = 0; }
@@ -133,7 +134,7 @@
 
   function onDecoded(f) {
     const d = state.decodedNames[f.decoder] || { name: `#${f.decoder}`, outputs: [] };
-    const nt = f.taxels.length, nv = f.n_values, labels = d.labels || state.labels[d.name];
+    const nt = f.taxels.length, nv = f.n_values, labels = d.task === "texture" ? d.outputs : null;  // one probability per label
     for (let s = 0; s < f.t_us.length; s++) {
       for (let i = 0; i < nt; i++) {
         const row = f.values.subarray((s * nt + i) * nv, (s * nt + i + 1) * nv);
@@ -244,15 +245,6 @@
     if (r.ok) log(`window ${body.config.window_ms} ms (restarted: ${body.restarted.join(", ") || "nothing"})`);
     else log(`window not changed: HTTP ${r.status}: ${typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail)}`, true);
     await loadConfig();
-  }
-
-  async function loadDecoderLabels() {
-    try {
-      const r = await fetch("/v1/decoders");
-      if (!r.ok) return;
-      const body = await r.json();
-      for (const d of body.decoders || body) if (d.labels) state.labels[d.name] = d.labels;
-    } catch (e) { /* no decoders on this service */ }
   }
 
   $("sub-form").addEventListener("submit", (ev) => { ev.preventDefault(); sendSubscription(); });
