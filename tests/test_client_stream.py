@@ -4,6 +4,7 @@ changes, clock sync and latency, JSON encoding, reconnect after a server restart
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 
 import numpy as np
@@ -120,3 +121,25 @@ def test_fatal_close_ends_iteration_and_unreachable_service_is_a_clear_error(tmp
     assert closed.code == P.CLOSE_TOO_BIG
     with pytest.raises(ServiceUnavailable, match="cannot open"):
         run(AsyncClient(f"http://127.0.0.1:{free_port()}").stream().open())
+
+
+def test_a_malformed_frame_from_a_peer_ends_iteration_with_the_protocol_error():
+    """A loopback WebSocket peer that says hello and then sends a frame with a bad magic."""
+    from websockets.asyncio.server import serve
+
+    async def peer(ws):
+        await ws.send(json.dumps({"type": "hello", "versions": [1], "session": "x", "latency_us": {}}))
+        await ws.recv()  # the subscribe
+        await ws.send(json.dumps({"type": "subscribed"}))
+        await ws.send(b"XX" + bytes(60))
+        await ws.wait_closed()
+
+    async def go():
+        async with serve(peer, "127.0.0.1", 0) as server:
+            port = server.sockets[0].getsockname()[1]
+            async with AsyncClient(f"http://127.0.0.1:{port}").stream() as s:
+                with pytest.raises(P.ProtocolError, match="bad magic"):
+                    async for _ in s.frames():
+                        pass
+
+    run(go())

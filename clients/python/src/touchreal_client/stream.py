@@ -5,7 +5,9 @@ counts them (:class:`~.stats.StreamStats`, :class:`~.stats.LatencyEstimator`) an
 bounded queue that :meth:`AsyncStream.frames` drains; control replies (``subscribed``, ``time``,
 ``error``) resolve the request that asked for them, in order (the server answers in order). When
 the consumer falls behind, the queue fills, the reader stops reading and the server's flow control
-drops frames for this client (seen as ``seq`` gaps in :attr:`AsyncStream.stats`).
+drops frames for this client (seen as ``seq`` gaps in :attr:`AsyncStream.stats`). A malformed
+frame from the server (:class:`~touchreal_client.protocol.ProtocolError`) ends the iteration with
+that error.
 
 When the connection drops, the reader reconnects with :class:`~.backoff.Backoff`, reads the new
 ``hello`` and sends the current subscription again; iteration just continues. Closes that
@@ -200,6 +202,11 @@ class AsyncStream:
                 await self._reconnect(code, reason)
         except StreamClosed as exc:
             await self._queue.put(exc)
+        except Exception as exc:  # a malformed frame or message: the consumer sees it, never a silent hang
+            self._fail_pending(exc)
+            await self._queue.put(exc)
+            if self._ws is not None:
+                await self._ws.close()
 
     def _close_info(self) -> tuple[int | None, str]:
         ws = self._ws
