@@ -143,3 +143,20 @@ def test_a_malformed_frame_from_a_peer_ends_iteration_with_the_protocol_error():
                         pass
 
     run(go())
+
+
+def test_decoded_outputs_come_named_from_the_hello(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=2)) as (addr, _):
+        with Client(f"http://{addr}") as tr:
+            tr.wait_ready(30)
+            sub = Subscription(taxels=[1], streams=["decoded"], decoders=["force", "texture"])
+            with tr.stream(sub) as s:
+                outs = take(s.decoded(), 12)
+                names = [d["name"] for d in s.hello["streams"]["decoded"]["decoders"]]
+    assert {"force", "texture"} <= {o.name for o in outs} and {"force", "texture"} <= set(names)
+    force = [o for o in outs if o.name == "force"]
+    assert all(o.outputs == ["force_N"] and o.values.shape[1:] == (1, 1) and o.taxels.tolist() == [1] for o in force)
+    steps = np.concatenate([o.t_us for o in force])
+    assert steps.size and np.all(steps % 32_000 == 0) and np.isfinite(np.concatenate([o.values.ravel() for o in force])).all()
+    texture = [o for o in outs if o.name == "texture"]
+    assert all(len(o.outputs) == o.values.shape[2] >= 2 for o in texture)  # one probability per label

@@ -292,6 +292,8 @@ class AsyncStream:
                 yield self.name_decoded(f)
 
     def name_decoded(self, f: P.DecodedFrame) -> DecodedOutput:
-        decoders = self.hello.get("streams", {}).get("decoded", {}).get("decoders", [])
-        d = decoders[f.decoder] if f.decoder < len(decoders) else {"name": f"#{f.decoder}", "outputs": []}
-        return DecodedOutput(d["name"], list(d.get("outputs", [])), f.taxels, f.t_us, f.values, f.header)
+        """A decoded frame with its decoder's name and output names (``#i`` for an index the hello lacks)."""
+        decoders: list[dict[str, Any]] = self.hello.get("streams", {}).get("decoded", {}).get("decoders", [])
+        d = decoders[f.decoder] if f.decoder < len(decoders) else {}
+        return DecodedOutput(str(d.get("name", f"#{f.decoder}")), [str(o) for o in d.get("outputs", [])],
+                             f.taxels, f.t_us, f.values, f.header)
