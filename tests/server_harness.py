@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -17,11 +18,20 @@ from touchreal.server.service import Service
 from touchreal.server.settings import RuntimeConfig, ServeSettings
 
 
+def free_port() -> int:
+    """A loopback port free right now (for a server that must come back on the same port)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 @contextmanager
-def running_server(state_dir: Path, config: RuntimeConfig | None = None, **settings) -> Iterator[tuple[str, Service]]:
-    """Yields (``host:port``, the service) of a real server on a free loopback port; stops it afterwards."""
-    svc = Service(ServeSettings(host="127.0.0.1", port=0, state_dir=state_dir, **settings), config or RuntimeConfig())
-    with serving(svc) as addr:
+def running_server(state_dir: Path, config: RuntimeConfig | None = None, port: int = 0,
+                   **settings) -> Iterator[tuple[str, Service]]:
+    """Yields (``host:port``, the service) of a real server on a loopback port (0: a free one);
+    stops it afterwards."""
+    svc = Service(ServeSettings(host="127.0.0.1", port=port, state_dir=state_dir, **settings), config or RuntimeConfig())
+    with serving(svc, port=port) as addr:
         yield addr, svc
 
 

@@ -6,15 +6,20 @@ import threading
 import time
 from contextlib import asynccontextmanager, contextmanager
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Protocol
 
 import uvicorn
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
 from . import rest, ws
 from .service import Service
+
+#: The live dashboard: plain static files (no build step), package data of the wheel.
+DASHBOARD_DIR = Path(__file__).with_name("dashboard")
 
 
 class Companion(Protocol):
@@ -50,6 +55,8 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
     app.state.service = service
     app.include_router(rest.router)
     app.include_router(ws.router)
+    # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed
+    app.mount("/", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")
     return app
 
 

@@ -8,7 +8,7 @@ definition. Nothing here touches a socket; docs/stream-protocol.md is the normat
   All integers little-endian; times are integer microseconds, ``*_us`` on the sensor clock except
   ``emit_us`` / ``sent_us`` (server wall clock, Unix epoch).
 * JSON messages (WebSocket text messages): ``hello``, ``subscribe``, ``subscribed``, ``time``,
-  ``status``, ``error``, and the JSON encoding of the three frame kinds.
+  ``error``, and the JSON encoding of the three frame kinds.
 
 Per-connection fields (``seq``, ``dropped``, ``sent_us``) sit at fixed offsets of the header so a
 frame rendered once can be stamped for each connection (:func:`stamp`) without re-encoding.

@@ -1,0 +1,141 @@
+"""Stream statistics and latency from the frame clocks (sans-I/O: the stream feeds it, tests too).
+
+Counters (:class:`StreamStats`): frames and spike events received, sequence gaps (frames the server
+dropped for this client: a jump in the per-connection ``seq``), the server's own ``dropped`` counter,
+frames flagged ``source_gap`` / ``restarted`` / ``params_changed``, reconnects and session changes.
+
+Latency (:class:`LatencyEstimator`): every frame carries two server wall-clock stamps (``emit_us``,
+the update left the encoder; ``sent_us``, the frame was handed to this client's socket). With the
+client's receive time mapped onto the server clock by the NTP-style ``time`` exchange
+(:meth:`LatencyEstimator.add_time_sample`; offset 0 until then, right when both clocks are
+synchronised, e.g. on one machine) they give
+
+* ``queue_us = sent_us - emit_us`` (waiting in the server's per-client queue),
+* ``network_us = receive - sent_us`` (socket, network, client read),
+* ``delivery_us = receive - emit_us`` (their sum),
+* per class ``total_us[c] = latency_us[c] + delivery_us``: the algorithmic latency the server
+  states in ``hello`` / ``subscribed`` (stamp to emission, an upper bound) plus the measured delivery.
+
+All times are integer microseconds; receive times are the client's wall clock (Unix epoch).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_SOURCE_GAP, Header, clock_offset
+
+
+@dataclass
+class StreamStats:
+    """Counters of one stream (all connections of one client, across reconnects)."""
+
+    frames: int = 0  #: frames received
+    spike_events: int = 0  #: spike events received
+    decoded_steps: int = 0  #: decoded-output steps received
+    gaps: int = 0  #: jumps in ``seq`` (each one = a run of frames dropped for this client)
+    missed_frames: int = 0  #: frames missing by ``seq`` (dropped by the server's flow control)
+    server_dropped: int = 0  #: the server's ``dropped`` counter of the current connection
+    source_gaps: int = 0  #: frames flagged ``source_gap`` (samples missing or repaired)
+    restarts: int = 0  #: frames flagged ``restarted`` (pipeline started again from rest)
+    params_changes: int = 0  #: frames flagged ``params_changed``
+    connections: int = 0  #: connections opened (1 + reconnects)
+    session_changes: int = 0  #: reconnects that found a new server session (seq and clock restart)
+    _next_seq: int | None = field(default=None, repr=False)
+
+    def on_connect(self, new_session: bool) -> None:
+        """A connection delivered its hello: ``seq`` restarts at 0 per connection."""
+        self.connections += 1
+        self.session_changes += int(new_session and self.connections > 1)
+        self._next_seq = None
+        self.server_dropped = 0
+
+    def on_frame(self, header: Header, n_events: int = 0, n_steps: int = 0) -> int:
+        """Count one frame; returns how many frames were missed just before it (0 normally)."""
+        missed = 0
+        if self._next_seq is not None and header.seq != self._next_seq:
+            missed = (header.seq - self._next_seq) & 0xFFFFFFFF  # seq is a u32 on the wire
+            self.gaps += 1
+            self.missed_frames += missed
+        self._next_seq = (header.seq + 1) & 0xFFFFFFFF
+        self.frames += 1
+        self.spike_events += n_events
+        self.decoded_steps += n_steps
+        self.server_dropped = header.dropped
+        self.source_gaps += bool(header.flags & FLAG_SOURCE_GAP)
+        self.restarts += bool(header.flags & FLAG_RESTARTED)
+        self.params_changes += bool(header.flags & FLAG_PARAMS_CHANGED)
+        return missed
+
+    @property
+    def reconnects(self) -> int:
+        return max(self.connections - 1, 0)
+
+
+@dataclass(frozen=True)
+class Latency:
+    """One frame's delivery figures (us); ``total_us[c]`` adds the server's algorithmic latency."""
+
+    queue_us: int
+    network_us: int
+    delivery_us: int
+    total_us: dict[str, int]
+
+
+@dataclass(frozen=True)
+class LatencySummary:
+    """Median and 99th percentile of the recent frames' delivery, and the clock offset in use."""
+
+    frames: int
+    delivery_median_us: float
+    delivery_p99_us: float
+    total_median_us: dict[str, float]
+    offset_us: float
+    offset_uncertainty_us: float | None  #: half the best round trip; None = no time exchange yet
+
+
+class LatencyEstimator:
+    """Latency of the frames of one stream from their clocks (see the module docstring)."""
+
+    def __init__(self, window: int = 512):
+        self.offset_us = 0.0  #: server clock minus client clock
+        self.uncertainty_us: float | None = None
+        self.algorithmic_us: dict[str, int] = {}
+        self.last: Latency | None = None
+        self._recent: deque[Latency] = deque(maxlen=window)
+
+    def set_algorithmic(self, latency_us: dict[str, int]) -> None:
+        """The per-class latency the server states (``hello`` / ``subscribed``: ``latency_us``)."""
+        self.algorithmic_us = {c: int(v) for c, v in latency_us.items()}
+
+    def add_time_sample(self, t0_us: int, t1_us: int, t2_us: int, t3_us: int) -> None:
+        """One ``time`` exchange; the sample with the smallest round trip wins (least asymmetry)."""
+        offset, delay = clock_offset(t0_us, t1_us, t2_us, t3_us)
+        half = max(delay, 0.0) / 2.0
+        if self.uncertainty_us is None or half <= self.uncertainty_us:
+            self.offset_us, self.uncertainty_us = offset, half
+
+    def on_frame(self, header: Header, recv_us: int) -> Latency:
+        """Latency of a frame received at ``recv_us`` (client wall clock)."""
+        recv_server = recv_us + self.offset_us
+        delivery = int(round(recv_server - header.emit_us))
+        lat = Latency(
+            queue_us=int(header.sent_us - header.emit_us),
+            network_us=int(round(recv_server - header.sent_us)),
+            delivery_us=delivery,
+            total_us={c: a + delivery for c, a in self.algorithmic_us.items()},
+        )
+        self.last = lat
+        self._recent.append(lat)
+        return lat
+
+    def summary(self) -> LatencySummary | None:
+        if not self._recent:
+            return None
+        d = np.array([x.delivery_us for x in self._recent], float)
+        total = {c: float(np.median(d) + a) for c, a in self.algorithmic_us.items()}
+        return LatencySummary(len(d), float(np.median(d)), float(np.percentile(d, 99)), total,
+                              self.offset_us, self.uncertainty_us)

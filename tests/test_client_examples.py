@@ -1,0 +1,93 @@
+"""clients/examples/: the stimulation mapping (sans-I/O) and each example run as a program against a
+real service on 127.0.0.1; the recorder's output read back by touchreal's own recording reader."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from server_harness import running_server
+from touchreal_client import protocol as P
+
+from touchreal.params import default_params
+from touchreal.recording import Dataset
+from touchreal.server.settings import RuntimeConfig
+from touchreal.stream import encode_trial
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "clients" / "examples"
+sys.path.insert(0, str(EXAMPLES))
+import prosthesis_feedback as pf  # noqa: E402
+
+
+def _frame(t_us, taxel, cls, final_us):
+    return P.SpikesFrame(P.Header(P.KIND_SPIKES), np.array(t_us, np.uint64), np.array(taxel, np.uint16),
+                         np.array(cls, np.uint8), final_us)
+
+
+def test_spike_rate_modulates_pulse_rate_or_amplitude_per_class():
+    m = pf.StimulationMapper({"RA": pf.ChannelMap(mode="rate"), "SA1": pf.ChannelMap(mode="amplitude")})
+    m.push(_frame([], [], [], {"SA1": 0, "RA": 0, "PC": None}))
+    ra = list(range(0, 100_000, 5_000))  # 200 Hz on taxel 0: the top of the rate range
+    sa = list(range(0, 100_000, 10_000))  # 100 Hz on taxel 1: half the amplitude range
+    t = ra + sa
+    order = np.argsort(t, kind="stable")
+    f = _frame(np.array(t)[order], np.array([0] * 20 + [1] * 10)[order], np.array([1] * 20 + [0] * 10)[order],
+               {"SA1": 100_000, "RA": 100_000, "PC": None})
+    pulses = m.push(f)
+    ra_p = [p for p in pulses if p[2] == "RA"]
+    sa_p = [p for p in pulses if p[2] == "SA1"]
+    assert [p[0] for p in ra_p] == list(range(0, 100_000, 5_000)) and {p[3] for p in ra_p} == {500.0}
+    assert [p[0] for p in sa_p] == list(range(0, 100_000, 20_000)) and {p[3] for p in sa_p} == {550.0}
+    assert {p[1] for p in ra_p} == {0} and {p[1] for p in sa_p} == {1}
+    # silence: the rate window empties, the channel stops
+    assert m.push(_frame([], [], [], {"SA1": 300_000, "RA": 300_000, "PC": None})) == []
+    with pytest.raises(ValueError):
+        pf.StimulationMapper({"XX": pf.ChannelMap()})
+
+
+def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=2)) as (addr, _):
+        url = f"http://{addr}"
+        run = [sys.executable, EXAMPLES / "prosthesis_feedback.py", "--url", url, "--seconds", "4",
+               "--out", tmp_path / "pulses.csv", "--map", "RA=rate,PC=rate"]
+        pros = subprocess.run(run, capture_output=True, text=True, timeout=120)
+        rec = subprocess.run([sys.executable, EXAMPLES / "record_session.py", "--url", url, "--seconds", "3",
+                              "--out", tmp_path / "ds"], capture_output=True, text=True, timeout=120)
+    assert pros.returncode == 0, pros.stderr
+    rows = list(csv.DictReader((tmp_path / "pulses.csv").open()))
+    assert rows and {r["class"] for r in rows} <= {"RA", "PC"} and {r["taxel"] for r in rows} <= {"0", "1"}
+    assert all(float(r["amplitude_uA"]) == 500.0 for r in rows)
+
+    assert rec.returncode == 0, rec.stderr
+    ds = Dataset.open(tmp_path / "ds")  # touchreal's reader validates rates, lengths and references
+    assert [e["id"] for e in ds.entries()] == ["live-taxel0", "live-taxel1"]
+    trial = ds.load("live-taxel0")
+    assert trial.duration_s > 2.0 and trial.st.size > 200 and trial.pvdf.size > 4000
+    live = {c: trial.reference[c].train(0, 0) for c in P.CLASSES}
+    again = encode_trial(trial, default_params())  # what `touchreal encode` runs on each trial
+    assert sum(v.size for v in live.values()) > 0 and sum(np.asarray(v).size for v in again.values()) > 0
+
+
+def test_grasp_example_runs_the_downloaded_force_model_like_the_service(tmp_path):
+    pytest.importorskip("onnxruntime")
+    import grasp_force as gf
+
+    ctl = gf.GripController(target_n=1.5, tolerance_n=0.1, gain_mm_s_per_n=4.0, max_speed_mm_s=10.0)
+    assert ctl.command(1.0) == 2.0 and ctl.command(1.45) == 0.0 and ctl.command(9.0) == -10.0
+    assert ctl.command(float("nan")) == 0.0
+    with running_server(tmp_path) as (addr, _):
+        run = subprocess.run([sys.executable, EXAMPLES / "grasp_force.py", "--url", f"http://{addr}", "--seconds", "5",
+                              "--check"], capture_output=True, text=True, timeout=120)
+        wrong = subprocess.run([sys.executable, EXAMPLES / "grasp_force.py", "--url", f"http://{addr}", "--model",
+                                "texture", "--seconds", "1"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert lines[0] == "t_us,taxel,force_N,command_mm_s" and len(lines) > 60  # ~31 steps per second
+    steps = [int(ln.split(",")[0]) for ln in lines[1:]]
+    assert all(b - a == 32_000 for a, b in zip(steps, steps[1:]))
+    assert "max |local - service| = 0 N" in run.stderr
+    assert wrong.returncode != 0 and "pick a force model" in wrong.stderr

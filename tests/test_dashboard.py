@@ -1,0 +1,122 @@
+"""The live dashboard (static files served at /) in a real headless Chromium driven by Selenium,
+against a real service on 127.0.0.1 with the simulated source.
+
+Needs Debian's chromium and chromium-driver (/usr/bin/chromium, /usr/bin/chromedriver; `.ci/run`
+installs them); skips with that reason where they are missing. Set TOUCHREAL_DASHBOARD_SCREENSHOT to
+a path to keep the screenshot (docs/img/dashboard.png is made that way).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import running_server
+
+from touchreal.server.settings import RuntimeConfig
+
+CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+
+
+def test_dashboard_is_served_without_shadowing_the_api(tmp_path):
+    with running_server(tmp_path) as (addr, _):
+        with httpx.Client(base_url=f"http://{addr}", timeout=10) as http:
+            page = http.get("/")
+            js = http.get("/dashboard.js")
+            assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+            assert '<canvas id="raster"' in page.text and js.status_code == 200
+            assert http.get("/protocol.js").status_code == 200 and http.get("/style.css").status_code == 200
+            assert http.get("/v1/health").json()["status"] == "ok"
+            assert http.get("/openapi.json").json()["info"]["title"] == "TouchReal"
+            assert "swagger" in http.get("/docs").text.lower()
+            assert "touchreal_" in http.get("/metrics").text
+            assert http.get("/v1/nothing").status_code == 404 and http.get("/nothing.js").status_code == 404
+
+
+@pytest.fixture
+def browser(tmp_path):
+    if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
+        pytest.skip("no browser: install Debian's chromium and chromium-driver "
+                    "(apt-get install chromium chromium-driver) to run the dashboard test")
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium (test extra) is not installed")
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--disable-dev-shm-usage", "--window-size=1280,1000", f"--user-data-dir={tmp_path / 'chromium'}"):
+        opts.add_argument(flag)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+    driver.set_page_load_timeout(30)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def wait_for(driver, script: str, seconds: float = 30.0):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        value = driver.execute_script(script)
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for: {script}")
+
+
+def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser, tmp_path):
+    from selenium.webdriver.common.by import By
+
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=3), token="tok") as (addr, svc):
+        browser.get(f"http://{addr}/")
+        wait_for(browser, "return window.touchreal && window.touchreal.connected")
+        # spikes drawn on the raster, the force trace filled from the channels stream
+        wait_for(browser, "const s = window.touchreal; return s.drawnSpikes > 20 && s.frames > 60 && s.force.size === 3")
+        # the decoded force (the shipped force model, run by the service) is drawn and shown in N
+        wait_for(browser, "return window.touchreal.decodedForce.size > 0 && "
+                          "document.getElementById('decoded-force').textContent.includes(' N (force')")
+        shot = tmp_path / "dashboard.png"
+        time.sleep(3.0)  # a little more history on the canvases
+        browser.save_screenshot(str(shot))
+        stats = browser.execute_script("const s = window.touchreal; return [s.events, s.gaps, s.hello.session, "
+                                       "document.getElementById('delivery').textContent]")
+        assert stats[0] > 20 and stats[1] == 0 and stats[2] == svc.session and stats[3].endswith("ms")
+
+        # subscription control: PC spikes of taxels 1 and 2, no decoders -> exactly that is computed
+        browser.find_element(By.ID, "taxels").clear()
+        browser.find_element(By.ID, "taxels").send_keys("1,2")
+        for name, value in (("cls", "SA1"), ("cls", "RA"), ("stream", "decoded")):
+            browser.find_element(By.CSS_SELECTOR, f"input[name={name}][value={value}]").click()
+        browser.find_element(By.ID, "subscribe").click()
+        wait_for(browser, "const s = window.touchreal.subscribed; return s && s.classes.join() === 'PC'")
+        deadline = time.monotonic() + 10
+        while dict(svc.hub.demand.columns) != {"PC": (1, 2)} and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert dict(svc.hub.demand.columns) == {"PC": (1, 2)}
+
+        # causal window: refused without the token (logged, nothing changes), applied with it
+        win = browser.find_element(By.ID, "window-ms")
+        win.clear()
+        win.send_keys("64")
+        browser.find_element(By.ID, "apply-window").click()
+        wait_for(browser, "return document.getElementById('log').textContent.includes('HTTP 401')")
+        assert svc.config_view()["window_ms"] == 128
+        browser.find_element(By.ID, "token").send_keys("tok")
+        win = browser.find_element(By.ID, "window-ms")
+        win.clear()
+        win.send_keys("64")
+        browser.find_element(By.ID, "apply-window").click()
+        wait_for(browser, "return document.getElementById('config').textContent.includes('window 64 ms')")
+        assert svc.config_view()["window_ms"] == 64
+
+        errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE" and "401" not in e["message"]]
+    assert errors == []
+    assert shot.stat().st_size > 10_000
+    if os.environ.get("TOUCHREAL_DASHBOARD_SCREENSHOT"):
+        shutil.copyfile(shot, os.environ["TOUCHREAL_DASHBOARD_SCREENSHOT"])
