@@ -24,7 +24,7 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
     write_dataset(root, {"name": "t", "trials": entries}, trials)
     port = tmp_path / "ttyTR0"
     cmd = [sys.executable, "-m", "touchreal", "mcu-emulate", str(root), "--port", str(port), "--loop",
-           "--corrupt-rate", "0.01", "--drop-rate", "0.01", "--unplug-after", "2.5", "--replug-after", "0.5",
+           "--corrupt-rate", "0.003", "--drop-rate", "0.003", "--unplug-after", "2.5", "--replug-after", "0.5",
            "--seed", "1"]  # fmt: skip
     emu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
@@ -50,7 +50,8 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
     assert len(spikes) > 100 and sum(f.t_us.size for f in spikes) > 0
     gap_frames = [f for f in spikes if "source_gap" in f.header.flag_names()]
     assert gap_frames, "faults and the unplug must be flagged"
-    assert any(f.header.update > gap_frames[-1].header.update for f in spikes), "the stream goes on after a gap"
+    after = [f for f in spikes if f.header.update > gap_frames[0].header.update and "source_gap" not in f.header.flag_names()]
+    assert len(after) > 50, "the stream goes on, clean, after the gaps"
     finals = [f.final_us["SA1"] for f in spikes]
     assert finals == sorted(finals)  # the sensor clock never runs backwards, unplug included
     assert all(f.data.size and (f.data == f.data).all() for f in channels)  # finite (no NaN) channels
