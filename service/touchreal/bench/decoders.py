@@ -47,7 +47,7 @@ def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[flo
     from touchreal_client.features import CLASSES
 
     dec = StreamingDecoder(model, range(n_taxels), threads, start_us=0)
-    step = dec.step_us
+    step = model.step_us
     per = max(1, int(round(40 * step / 1e6 * n_taxels)))  # spikes per class per update
     state = {"t": 0}
 
