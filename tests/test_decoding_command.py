@@ -77,3 +77,10 @@ def test_bad_model_files_are_clear_errors(trained, datasets, tmp_path, capsys):
     rc = main(["decoders", "evaluate", str(datasets[1]), "--models", str(folder), "--out", str(tmp_path / "m.json"), "--split", "all"])
     assert rc == 2 and "does not match the one embedded" in capsys.readouterr().err
     assert not (tmp_path / "m.json").exists()
+
+
+def test_bench_decoders_runs_on_the_installed_models(capsys):
+    """Smoke test only (figures are printed by the bench, never asserted)."""
+    assert main(["bench", "decoders", "--updates", "3", "--taxels", "1", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "force" in out and "texture" in out and "run time against accuracy" in out

@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
 
 
-def _times_ms(fn, n: int) -> tuple[float, float]:
+def _times_ms(fn, n: int) -> tuple[float, float, float]:
+    """(mean, p99, median) of ``n`` timed calls after a warm-up (ms)."""
     for _ in range(min(20, n)):
         fn()
     t = np.empty(n)
@@ -31,10 +32,10 @@ def _times_ms(fn, n: int) -> tuple[float, float]:
         t0 = time.perf_counter()
         fn()
         t[i] = time.perf_counter() - t0
-    return float(t.mean() * 1e3), float(np.percentile(t, 99) * 1e3)
+    return float(t.mean() * 1e3), float(np.percentile(t, 99) * 1e3), float(np.median(t) * 1e3)
 
 
-def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float]:
+def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
     sess = model.session(threads)
     shape = [n_taxels] + model.meta["input"]["shape"][1:]
     x = rng.poisson(0.4, shape).astype(np.float32)
@@ -42,12 +43,12 @@ def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[floa
     return _times_ms(lambda: sess.run([out], {name: x}), updates)
 
 
-def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float]:
+def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
     from touchreal.decoding.streaming import StreamingDecoder
     from touchreal_client.features import CLASSES
 
     dec = StreamingDecoder(model, range(n_taxels), threads, start_us=0)
-    step = dec.step_us
+    step = model.step_us
     per = max(1, int(round(40 * step / 1e6 * n_taxels)))  # spikes per class per update
     state = {"t": 0}
 
@@ -78,13 +79,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'model':<18} {'taxels':>6} {'ort mean':>9} {'ort p99':>8} {'push mean':>10} {'push p99':>9}")
     for m in product:
         for n in args.taxels:
-            om, op = _ort_ms(m, n, args.updates, args.threads, rng)
-            pm, pp = _push_ms(m, n, args.updates, args.threads, rng)
+            om, op, _ = _ort_ms(m, n, args.updates, args.threads, rng)
+            pm, pp, _ = _push_ms(m, n, args.updates, args.threads, rng)
             print(f"{m.name:<18} {n:>6d} {om:>9.3f} {op:>8.3f} {pm:>10.3f} {pp:>9.3f}")
     print()
     print("run time against accuracy across decoding windows (held-out metrics from the metadata)")
     big = max(args.taxels)
-    print(f"{'model':<30} {'window ms':>9} {'ort ms (1)':>10} {f'ort ms ({big})':>11} {'metric':>10} {'value':>7}")
+    print(f"median onnxruntime ms per update for 1 and {big} taxels")
+    print(f"{'model':<34} {'window ms':>9} {'ort ms (1)':>10} {f'ort ms ({big})':>12} {'metric':>13} {'value':>7}")
     rows = []
     for m in models:
         meta = m.meta
@@ -95,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
         key, label = ("r2", "R^2") if meta["task"] == "force" else ("acc", f"acc {meta['features']['set']}")
         rows.append((meta["task"], meta["features"]["set"], meta["window_ms"], m, label, meta["metrics"].get(key)))
     for task, fs, w, m, label, value in sorted(rows, key=lambda r: r[:3]):
-        one, _ = _ort_ms(m, 1, max(50, args.updates // 4), args.threads, rng)
-        many, _ = _ort_ms(m, big, max(50, args.updates // 4), args.threads, rng)
+        one = _ort_ms(m, 1, max(50, args.updates // 4), args.threads, rng)[2]
+        many = _ort_ms(m, big, max(50, args.updates // 4), args.threads, rng)[2]
         v = f"{value:.3f}" if isinstance(value, float) else "-"
-        print(f"{m.name:<30} {w:>9g} {one:>10.3f} {many:>11.3f} {label:>10} {v:>7}")
+        print(f"{m.name:<34} {w:>9g} {one:>10.3f} {many:>12.3f} {label:>13} {v:>7}")
     return 0

@@ -77,13 +77,12 @@ def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads:
 
 
 def flat_metrics(spec: ModelSpec, metrics: dict[str, Any]) -> dict[str, Any]:
-    """One model's metrics under their METRICS.json keys (texture adds the chance levels)."""
+    """One model's metrics under their METRICS.json keys (texture adds the chance level 1/labels)."""
     if metrics.get("n_windows", 0) == 0:
         return {f"{spec.name}.n_windows": 0}
     flat = spec.metric_keys(metrics)
     if spec.task == "texture":
         flat["texture.chance"] = metrics["chance"]
-        flat["texture.chance_majority"] = metrics["chance_majority"]
     return flat
 
 

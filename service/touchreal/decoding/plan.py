@@ -49,7 +49,8 @@ class ModelSpec:
         head = f"{pre}{self.features}.acc_{self.window_ms:g}ms"
         return {head: metrics["acc"], f"{head}_fold_mean": metrics["acc_fold_mean"], f"{head}_fold_std": metrics["acc_fold_std"],
                 f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"],
-                f"{head}_trials_without_window": metrics["n_trials_without_window"]}
+                f"{head}_trials_without_window": metrics["n_trials_without_window"],
+                f"{head}_chance_majority": metrics["chance_majority"]}
 
 
 def _ms(x: float) -> str:
