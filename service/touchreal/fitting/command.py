@@ -20,7 +20,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="dataset folder (manifest.json + trials/)")
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json", help="parameter file to write")
     p.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to fit (default: all)")
-    p.add_argument("--window-ms", type=float, default=DEFAULT_WINDOW_MS, help="causal PVDF window (ms, default 128)")
+    p.add_argument("--window-ms", type=parse_windows, default=(DEFAULT_WINDOW_MS, {}), metavar="W|CLS=W,...",
+                   help="causal PVDF window (ms) of every class (default 128), or per class, e.g. SA1=16,RA=16,PC=128 "
+                   "(classes not named take a bare number given in the list, else 128)")
+    p.add_argument("--no-pvdf-classes", default="", metavar="CLS,...",
+                   help="classes fitted on the SingleTact channels alone (PVDF and dPVDF weights held at 0)")
+    p.add_argument("--no-holdout", action="store_true",
+                   help="train on every ramp/sine trial (no held-out half; evaluate on a separate recording)")
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
@@ -42,12 +48,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def parse_windows(text: str) -> tuple[float, dict[str, float]]:
+    """``"128"`` or ``"SA1=16,RA=16,PC=128"`` (a bare number in the list sets the default) ->
+    (default window, per-class windows) in ms."""
+    default, per_class = DEFAULT_WINDOW_MS, {}
+    for tok in (t.strip() for t in text.split(",") if t.strip()):
+        name, sep, value = tok.rpartition("=")
+        try:
+            w = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{tok!r}: expected W or CLS=W with W in ms") from None
+        if not sep:
+            default = w
+        elif name.strip() in CLASSES:
+            per_class[name.strip()] = w
+        else:
+            raise argparse.ArgumentTypeError(f"{tok!r}: unknown class {name.strip()!r} (expected one of {', '.join(CLASSES)})")
+    return default, per_class
+
+
+def _classes(text: str) -> tuple[str, ...]:
+    """A comma-separated list of classes, or "none"."""
+    return tuple(c.strip() for c in text.split(",") if c.strip() and c.strip().lower() != "none")
+
+
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams
     from .fit import FitConfig, fit_dataset
 
-    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    kw = {"classes": classes, "window_ms": args.window_ms, "seed": args.seed, "progress": not args.quiet}
+    classes = _classes(args.classes)
+    window, class_windows = args.window_ms
+    kw = {"classes": classes, "window_ms": window, "class_window_ms": class_windows, "seed": args.seed, "progress": not args.quiet,
+          "holdout": not args.no_holdout, "no_pvdf_classes": _classes(args.no_pvdf_classes)}
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
@@ -55,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
             kw[attr] = v
     for name in ("input_stage_classes", "segmented_count_classes"):
         v = getattr(args, name)
-        if v is not None:  # a comma-separated list of classes, or "none"
-            kw[name] = tuple(c.strip() for c in v.split(",") if c.strip() and c.strip().lower() != "none")
+        if v is not None:
+            kw[name] = _classes(v)
     cfg = FitConfig(**kw)
     init = EncoderParams.load(args.init) if args.init else None
     if args.out.parent and not args.out.parent.exists():
