@@ -193,3 +193,25 @@ def test_input_stage_rejects_channels_of_the_wrong_shape():
         with pytest.raises(ValueError, match="channels must be"):
             stage.process(bad)
     assert stage.process(np.ones((10, 2, 4))).shape == (10, 2)
+
+
+def test_set_columns_keeps_continuing_columns_and_starts_new_ones_from_rest():
+    p = default_params()
+    ch = _channels(t=4000, taxels=3, seed=6)
+    enc = Encoder(p, n_taxels=3)
+    parts = [enc.process(Channels(0, ch[:1000]))]
+    enc.set_columns({"PC": [0, 2], "RA": [1]})
+    assert enc.columns == [(0, "PC"), (1, "RA"), (2, "PC")]
+    parts.append(enc.process(Channels(1000, ch[1000:2500])))
+    enc.set_columns({"PC": [0], "SA1": [1, 2], "RA": [1]})
+    parts.append(enc.process(Channels(2500, ch[2500:])))
+    got = type(parts[0]).concatenate(parts)
+    whole = Encoder(p, n_taxels=3).process(Channels(0, ch))
+    for c, x in (("PC", 0), ("RA", 1)):  # active all along: bit-identical to the full encoder
+        np.testing.assert_array_equal(got.train(c, x), whole.train(c, x))
+    # SA1 on taxel 2 restarted at sample 2500 from rest: as a fresh encoder started there
+    fresh = Encoder(p, n_taxels=3, classes=["SA1"]).process(Channels(2500, ch[2500:]))
+    np.testing.assert_array_equal(got.train("SA1", 2), np.concatenate([whole.train("SA1", 2)[whole.train("SA1", 2) < 0.2], fresh.train("SA1", 2)]))
+    assert got.train("PC", 2).max() < 0.5 + 1e-9  # PC on taxel 2 stopped at sample 2500
+    with pytest.raises(ValueError, match="out of range"):
+        enc.set_columns({"PC": [3]})

@@ -5,7 +5,7 @@ import pytest
 
 from touchreal.params import EncoderParams, PreprocessParams, default_params
 from touchreal.preprocess.gate import calibrate
-from touchreal.preprocess.pipeline import Channels, Preprocessor, preprocess_trial
+from touchreal.preprocess.pipeline import Channels, Preprocessor, preprocess_trial, preprocess_trial_windows
 from touchreal.sensing.raw import RawChunk
 from touchreal.sensing.replay import ReplaySource
 from touchreal.settings import CLASSES
@@ -76,7 +76,7 @@ def test_every_window_works_and_sets_the_latency(window_ms):
     head = pre.process(*_fields(src.read(1.0)))
     # after 1 s of input the output reaches 1 s minus the latency (within one STFT hop and PCHIP knot)
     end = head.t0_s + head.n_samples / 5000.0
-    assert 1.0 - pre.latency_s - 0.02 <= end <= 1.0 - window_ms / 1000.0 * 0.5 + 1e-9
+    assert 1.0 - pre.latency_s() - 0.02 <= end <= 1.0 - window_ms / 1000.0 * 0.5 + 1e-9
     ch = Channels.concatenate([head, pre.process(*_fields(src.read(10.0))), pre.finish()], 1)
     assert np.all(np.isfinite(ch.data))
     assert abs(ch.t0_s + ch.n_samples / 5000.0 - tr.st_t[-1]) < 0.01
@@ -147,3 +147,17 @@ def test_stream_shorter_than_the_hum_estimate_still_flushes():
     ch = pre.finish()
     assert ch.n_samples > 0 and np.all(np.isfinite(ch.data))
     assert "pv_held" not in pre.state_arrays()
+
+
+def test_several_windows_at_once_equal_one_window_each():
+    tr = synthetic_trial(duration_s=1.2)
+    params = _calibrated(tr).preprocess
+    both = preprocess_trial_windows(tr, params, [16.0, None, 128.0])
+    for w in (16.0, 128.0):
+        one = preprocess_trial(tr, params.model_copy(update={"window_ms": w}))
+        assert both[w].k0 == one.k0
+        np.testing.assert_array_equal(both[w].data, one.data)
+    st_only = both[None]
+    assert st_only.k0 == both[128.0].k0 and st_only.n_samples == both[128.0].n_samples
+    np.testing.assert_array_equal(st_only.data[:, :, :2], both[128.0].data[:, :, :2])
+    assert not st_only.data[:, :, 2:].any()

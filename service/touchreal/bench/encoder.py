@@ -66,7 +66,7 @@ def _time_updates(params: EncoderParams, chunks: list[RawChunk], n_taxels: int, 
 
 def warmup_updates(se: StreamEncoder, params: EncoderParams) -> int:
     """Updates before the chain first emits output (latency) plus two."""
-    return int(np.ceil(se.latency_s / (params.preprocess.update_ms / 1000.0))) + 2
+    return int(np.ceil(max(se.latency_s.values()) / (params.preprocess.update_ms / 1000.0))) + 2
 
 
 def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:

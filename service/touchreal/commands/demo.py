@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
           f"window {params.preprocess.window_ms:g} ms, update {params.preprocess.update_ms:g} ms")
     steady = compute[warmup_updates(se, params) :]
     print(f"compute per update (after warm-up): mean {1000 * np.mean(steady):.3f} ms, max {1000 * np.max(steady):.3f} ms; "
-          f"algorithmic latency {1000 * se.latency_s:.0f} ms")
+          "algorithmic latency " + ", ".join(f"{c} {1000 * v:.1f} ms" for c, v in se.latency_s.items()))
     trains = {}
     for c in CLASSES:
         tr = spikes.train(c, 0)

@@ -17,7 +17,7 @@ is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -145,9 +145,36 @@ class InputStage:
             if p.lowpass_hz is not None:
                 self.sos[j], self._zi_unit[j] = _lowpass_design(float(p.lowpass_hz))
         self.lead = np.array([int(round(p.negative_lead_ms * OUT_FS_HZ / 1000.0)) for p in params], dtype=np.int64)
-        self.zi: np.ndarray | None = None  # (N, sections, 2, 4)
+        self.zi = np.zeros((n, LOWPASS_SECTIONS, 2, N_CHANNELS))
         self.ring = np.zeros((n, int(self.lead.max(initial=0))))
         self.head = np.zeros(n, dtype=np.int64)
+        self.fresh = np.ones(n, dtype=np.bool_)  # columns whose state starts at their next first sample
+
+    @property
+    def n_columns(self) -> int:
+        return self.src.size
+
+    def carry(self, old: "InputStage", old_rows: np.ndarray, new_rows: np.ndarray) -> None:
+        """Continue columns ``old_rows`` of ``old`` as this stage's ``new_rows`` (same class
+        parameters): their state is copied bit-exactly; the other columns start fresh."""
+        self.zi[new_rows] = old.zi[old_rows]
+        lead = min(old.ring.shape[1], self.ring.shape[1])  # a column uses its own lead's first entries only
+        self.ring[new_rows, :lead] = old.ring[old_rows, :lead]
+        self.head[new_rows] = old.head[old_rows]
+        self.fresh[new_rows] = old.fresh[old_rows]
+
+    def _start(self, first: np.ndarray) -> None:
+        """Fresh columns start in steady state at their first sample ``first`` (X, 4): the low-pass
+        (unit DC gain) at that sample, the lead's history at its positive-part current."""
+        rows = np.flatnonzero(self.fresh)
+        x = first[self.src[rows]]  # (R, 4)
+        self.zi[rows] = self._zi_unit[rows, :, :, None] * x[:, None, None, :]
+        pos = np.zeros(rows.size)
+        for j in range(N_CHANNELS):  # left to right, as a row sum: the same bits for any set of rows
+            pos = pos + np.maximum(x[:, j], 0.0) * self.w[rows, 2 * j]
+        self.ring[rows] = pos[:, None]
+        self.head[rows] = 0
+        self.fresh[rows] = False
 
     def process(self, channels: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(channels, dtype=np.float64)
@@ -156,16 +183,14 @@ class InputStage:
         out = np.empty((self.src.size, x.shape[0]))
         if x.shape[0] == 0:
             return out.T
-        if self.zi is None:  # steady state at the first sample (the low-pass has unit DC gain)
-            first = x[0][self.src]  # (N, 4)
-            self.zi = np.ascontiguousarray(self._zi_unit[:, :, :, None] * first[:, None, None, :])
-            self.ring[:] = (np.maximum(first, 0.0) * self.w[:, 0::2]).sum(axis=1)[:, None]
+        if self.fresh.any():
+            self._start(x[0])
         _input_stage(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead, self.ring, self.head, out)
         return out.T  # (T, N) view; the LIF makes it contiguous
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}
-        if self.zi is not None and self.has_lp.any():
+        if self.has_lp.any():
             out["lowpass"] = self.zi[self.has_lp]
         if self.ring.size:
             out["lead"] = self.ring
@@ -175,7 +200,7 @@ class InputStage:
 def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(M,) tau in samples, (M, 190) post-spike current, (M,) delay in s."""
     tau = np.array([p.tau_samples for p in params], dtype=np.float64)
-    ih = np.array([p.ih for p in params], dtype=np.float64) @ ih_basis()  # (M, 190)
+    ih = np.array([p.ih for p in params], dtype=np.float64).reshape(-1, 2) @ ih_basis()  # (M, 190)
     delay = np.array([p.delay_ms for p in params]) / 1000.0
     return tau, ih, delay
 
@@ -225,10 +250,15 @@ class SpikeEvents:
 
 
 class Encoder:
-    """Stateful encoder of N taxels x the selected classes (only those are computed).
+    """Stateful encoder of N taxels x the selected classes, as one neuron population of *columns*
+    (taxel, class); only the active columns are computed.
 
     ``process(channels)`` takes a :class:`~touchreal.preprocess.pipeline.Channels` block (or the raw
     (T, n_taxels, 4) array with its first grid index) and returns the block's :class:`SpikeEvents`.
+    All columns are active at first; :meth:`set_columns` changes the set: continuing columns keep
+    their state bit-exactly (columns are independent, so a column's spikes do not depend on which
+    others run), a (re)started column starts from rest at the next sample it is given (membrane at
+    0, no recent spike, class low-pass and lead history in steady state at that sample).
     """
 
     def __init__(self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None):
@@ -240,27 +270,53 @@ class Encoder:
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in classes)
         self.class_index = np.array([CLASSES.index(c) for c in self.classes])
-        cps = [params.classes[c] for c in self.classes]
-        tau, ih, self.delay = class_columns(cps)
-        # neuron / input column j = taxel * n_classes + class
-        n_cls = len(self.classes)
-        self._column_params = [cps[c] for _ in range(n_taxels) for c in range(n_cls)]
-        self._taxel_n = np.repeat(np.arange(n_taxels), n_cls)
-        self._cls_n = np.tile(self.class_index, n_taxels)
-        self._delay_n = np.tile(self.delay, n_taxels)
-        self.inputs = InputStage(self._column_params, self._taxel_n)
-        self.lif = LifPopulation(np.tile(tau, n_taxels), np.tile(ih, (n_taxels, 1)))
+        self._build([(x, c) for x in range(n_taxels) for c in self.classes])
+
+    def _build(self, columns: list[tuple[int, str]]) -> None:
+        """Fresh input stages and neurons for ``columns`` [(taxel, class)], taxel-major."""
+        self.columns = columns
+        cps = [self.params.classes[c] for _, c in columns]
+        tau, ih, self._delay_n = class_columns(cps)
+        self._taxel_n = np.array([x for x, _ in columns], dtype=np.int64)
+        self._cls_n = np.array([CLASSES.index(c) for _, c in columns], dtype=np.int64)
+        self.inputs = InputStage(cps, self._taxel_n)
+        self.lif = LifPopulation(tau, ih)
+
+    @property
+    def n_columns(self) -> int:
+        return len(self.columns)
+
+    def set_columns(self, columns: Mapping[str, Iterable[int]]) -> None:
+        """Make the given (class -> taxels) the active columns (classes of this encoder only)."""
+        unknown = set(columns) - set(self.classes)
+        if unknown:
+            raise ValueError(f"classes {sorted(unknown)} are not encoded here (have {list(self.classes)})")
+        want = {c: {int(x) for x in columns.get(c, ())} for c in self.classes}
+        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_taxels})
+        if bad:
+            raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
+        new = [(x, c) for x in range(self.n_taxels) for c in self.classes if x in want[c]]
+        if new == self.columns:
+            return
+        old_index = {col: i for i, col in enumerate(self.columns)}
+        kept = [(old_index[col], j) for j, col in enumerate(new) if col in old_index]
+        old_inputs, old_state = self.inputs, self.lif.state
+        self._build(new)
+        if kept:
+            rows_old, rows_new = (np.array(r, dtype=np.int64) for r in zip(*kept))
+            self.inputs.carry(old_inputs, rows_old, rows_new)
+            self.lif.state.v[rows_new] = old_state.v[rows_old]
+            self.lif.state.counter[rows_new] = old_state.counter[rows_old]
 
     def reset(self) -> None:
-        self.lif.reset()
-        self.inputs = InputStage(self._column_params, self._taxel_n)
+        self._build(self.columns)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Membrane potentials and the input stages' states (class low-pass, lead)."""
         return {"lif_v": self.lif.state.v, **{f"input_{k}": a for k, a in self.inputs.state_arrays().items()}}
 
     def currents(self, data: np.ndarray) -> np.ndarray:
-        """(T, n_taxels, 4) channels -> (T, n_taxels * n_classes) input current (advances the states)."""
+        """(T, n_taxels, 4) channels -> (T, n_columns) input current (advances the states)."""
         return self.inputs.process(data)
 
     def process(self, channels, k0: int | None = None) -> SpikeEvents:
@@ -268,7 +324,7 @@ class Encoder:
         k0 = channels.k0 if k0 is None else k0
         if data.ndim != 3 or data.shape[1:] != (self.n_taxels, 4):
             raise ValueError(f"channels must be (T, {self.n_taxels}, 4), got {data.shape}")
-        if data.shape[0] == 0 or not self.classes:
+        if data.shape[0] == 0 or not self.columns:
             return SpikeEvents.concatenate([])
         k, n = self.lif.step(self.currents(data))
         t = (k0 + k + 1) / OUT_FS_HZ + self._delay_n[n]

@@ -19,6 +19,12 @@ import numba
 import numpy as np
 
 
+def first_grid_index(t_s: float, fs_hz: float) -> int:
+    """The first index k of the grid ``k / fs_hz`` with ``k / fs_hz >= t_s``."""
+    k = math.ceil(t_s * fs_hz)
+    return k if k / fs_hz >= t_s else k + 1
+
+
 class CausalPchip:
     """Stateful PCHIP resampler for (m, n_cols) knots with increasing times (s)."""
 
@@ -34,8 +40,7 @@ class CausalPchip:
         t_all = np.concatenate((self._t, np.asarray(t, dtype=np.float64)))
         y_all = np.concatenate((self._y, np.asarray(y, dtype=np.float64).reshape(-1, self.n_cols)))
         if self.next_k is None and t_all.size >= 2:
-            k = math.ceil(t_all[1] * self.fs_out)
-            self.next_k = k if k / self.fs_out >= t_all[1] else k + 1
+            self.next_k = first_grid_index(float(t_all[1]), self.fs_out)
         out = self._emit(t_all, y_all, end_s=t_all[-2] if t_all.size >= 4 else None)
         self._t, self._y = t_all[-3:], y_all[-3:]
         return out

@@ -1,0 +1,290 @@
+"""StreamEncoder: per-class windows, demand (set_active), emission times and chunk invariance."""
+
+import numpy as np
+import pytest
+
+from touchreal.encoding.encoder import Encoder
+from touchreal.params import default_params
+from touchreal.preprocess.pipeline import Channels, preprocess_trial, preprocess_trial_windows
+from touchreal.sensing.raw import RawChunk
+from touchreal.sensing.replay import ReplaySource
+from touchreal.settings import CLASSES
+from touchreal.stream import StreamEncoder, class_source, encode_chunks
+
+from helpers import synthetic_trial
+from test_pipeline import _irregular_chunks, _sample_chunks
+
+
+def _params(windows=None, pvdf_free=(), zero_delay=False):
+    """Shipped parameters with per-class windows (ms), PVDF/dPVDF weights zeroed for ``pvdf_free``."""
+    p = default_params()
+    classes = {}
+    for c, cp in p.classes.items():
+        update = {"window_ms": (windows or {}).get(c)}
+        if c in pvdf_free:
+            update["weights"] = cp.weights[:4] + [0.0] * 4
+        if zero_delay:
+            update["delay_ms"] = 0.0
+        classes[c] = cp.model_copy(update=update)
+    return p.model_copy(update={"classes": classes, "version": 3})
+
+
+def _alone(params, cls):
+    """The single-window parameter set of one class: preprocess.window_ms = the class's window."""
+    cp = params.classes[cls].model_copy(update={"window_ms": None})
+    pre = params.preprocess.model_copy(update={"window_ms": params.window_ms(cls)})
+    return params.model_copy(update={"preprocess": pre, "classes": {cls: cp}})
+
+
+def _trains(events, n_taxels=1):
+    return {(c, x): events.train(c, x) for c in CLASSES for x in range(n_taxels)}
+
+
+def _assert_trains_equal(a, b, keys=None):
+    for key in keys or a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=str(key))
+
+
+COMBINATIONS = [
+    ({"SA1": 16.0, "RA": 16.0, "PC": 128.0}, ()),
+    ({"RA": 16.0, "PC": 128.0}, ("SA1",)),  # SA1 without PVDF weights: SingleTact only
+    ({"SA1": 32.0, "RA": 8.0, "PC": 256.0}, ()),
+]
+
+
+@pytest.mark.parametrize("windows,pvdf_free", COMBINATIONS)
+def test_chunk_invariance_for_every_window_combination(windows, pvdf_free):
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params(windows, pvdf_free)
+    whole = _trains(encode_chunks(params, [ReplaySource(tr).read(10.0)]))
+    assert all(whole[(c, 0)].size > 0 for c in CLASSES), "the synthetic press must drive every class"
+    _assert_trains_equal(whole, _trains(encode_chunks(params, _irregular_chunks(tr, seed=5))))
+    _assert_trains_equal(whole, _trains(encode_chunks(params, _sample_chunks(tr))))
+
+
+@pytest.mark.parametrize("windows,pvdf_free", COMBINATIONS[:2])
+def test_each_class_equals_the_single_window_encoder_at_its_window(windows, pvdf_free):
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params(windows, pvdf_free)
+    chunks = list(ReplaySource(tr).chunks(0.032))
+    together = encode_chunks(params, chunks)
+    for c in CLASSES:
+        alone = encode_chunks(_alone(params, c), chunks)
+        np.testing.assert_array_equal(together.train(c), alone.train(c), err_msg=c)
+
+
+def test_sources_share_windows_and_skip_the_pvdf_for_pvdf_free_classes():
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    assert [class_source(params, c) for c in CLASSES] == [16.0, 16.0, 128.0]
+    se = StreamEncoder(params, n_taxels=2)
+    assert set(se.encoders) == {16.0, 128.0}  # SA1 and RA share one window branch
+    free = _params({"RA": 16.0}, pvdf_free=("SA1", "PC"))
+    assert [class_source(free, c) for c in CLASSES] == [None, 16.0, None]
+
+
+def test_pvdf_free_classes_run_no_pvdf_branch_and_match_the_window_path():
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params(pvdf_free=("SA1", "RA", "PC"))
+    se = StreamEncoder(params)
+    parts = []
+    for chunk in ReplaySource(tr).chunks(0.004):
+        parts.append(se.process(chunk))
+        assert se.pre.running == {"singletact": True, "pvdf_filter": False, "pvdf_windows": ()}
+        assert not any(k.startswith(("pv_filter", "pv_gate", "pv128")) for k in se.state_arrays())
+    parts.append(se.finish())
+    got = _trains(type(parts[0]).concatenate(parts))
+    # the same columns on the full 128 ms channels (zero weights on real PVDF) give the same spikes
+    ch = preprocess_trial(tr, params.preprocess)
+    want = _trains(Encoder(params).process(ch))
+    _assert_trains_equal(want, got)
+    assert got[("SA1", 0)].size > 0
+
+
+def _scene_chunks(seconds, chunk_s=0.001, n_taxels=1, seed=0):
+    from touchreal.sensing.scene import SceneSource, taxel_grid
+
+    src = SceneSource(taxels_xy_mm=taxel_grid(n_taxels), seed=seed)
+    return [src.read(chunk_s) for _ in range(int(round(seconds / chunk_s)))]
+
+
+def _newest(chunk: RawChunk) -> float:
+    return max(float(t[-1]) for t in (chunk.st_t, chunk.pvdf_t) if t.size)
+
+
+def test_short_windows_emit_earlier_and_latency_stays_within_its_bound():
+    """1 ms chunks of the simulated e-skin: per class, emission (newest sample time of the chunk)
+    minus stamp never exceeds the algorithmic latency (+ one chunk), and SA1 on a 16 ms window and
+    a PVDF-free RA come out well before PC on 128 ms."""
+    params = _params({"SA1": 16.0, "PC": 128.0}, pvdf_free=("RA",), zero_delay=True)
+    ra = params.classes["RA"]
+    ra = ra.model_copy(update={"weights": [0.0, 0.0, 0.05, 0.05] + ra.weights[4:]})  # RA on dST alone
+    params = params.model_copy(update={"classes": {**params.classes, "RA": ra}})
+    se = StreamEncoder(params)
+    lat = {c: [] for c in CLASSES}
+    finals = []
+    for chunk in _scene_chunks(2.5):
+        ev = se.process(chunk)
+        now = _newest(chunk)
+        for c in CLASSES:
+            lat[c] += list(now - ev.train(c))
+        final = se.final_s
+        finals.append(final)
+        if now > 0.3:  # after the stream start's hum estimate: final_s trails the input by at most the bound
+            for c in CLASSES:
+                assert now - final[c] <= se.latency_s[c] + 0.0005, c
+    bound = se.latency_s
+    assert bound["RA"] == bound["SA1"] < bound["PC"]  # on 16 ms, SA1 waits for the SingleTact look-ahead
+    assert bound["PC"] == pytest.approx(0.1285 - 0.0002)
+    for c in CLASSES:
+        assert len(lat[c]) >= 3, c
+        assert max(lat[c]) <= bound[c] + 0.001 + 1e-9, c
+    assert np.mean(lat["SA1"]) < np.mean(lat["PC"]) - 0.05
+    last = finals[-1]
+    assert last["RA"] >= last["SA1"] > last["PC"] + 0.08
+
+
+def test_final_s_is_a_watermark_for_later_spikes():
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    se = StreamEncoder(params)
+    prev = None
+    for chunk in _scene_chunks(2.0, chunk_s=0.007):
+        ev = se.process(chunk)
+        if prev is not None:
+            for c in CLASSES:
+                assert np.all(ev.train(c) >= prev[c] - 1e-12), c
+        prev = se.final_s
+
+
+def test_toggling_other_columns_leaves_continuing_columns_bit_identical():
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    chunks = _two_taxel_chunks(0.004)
+    schedule = {
+        30: {"SA1": [0], "PC": [0, 1]},
+        60: {"SA1": [0, 1], "PC": [0]},
+        150: {"SA1": [0], "RA": [1], "PC": [0]},  # RA joins SA1's 16 ms group
+        200: {"SA1": [0], "PC": [0]},
+        230: {"SA1": [0], "RA": [0, 1], "PC": [0]},
+        300: {"SA1": [0]},  # PC off: the 128 ms branch stops
+        330: {"SA1": [0], "PC": [0, 1], "RA": [0]},
+    }
+    se = StreamEncoder(params, n_taxels=2)
+    parts = []
+    for i, c in enumerate(chunks):
+        if i in schedule:
+            se.set_active(schedule[i])
+            assert se.active == {k: tuple(v) for k, v in schedule[i].items()}
+        parts.append(se.process(c))
+        if i in (200, 300):
+            assert se.pre.running["pvdf_windows"] == ((16.0, 128.0) if i == 200 else (16.0,))
+    parts.append(se.finish())
+    got = type(parts[0]).concatenate(parts)
+    only = StreamEncoder(params, n_taxels=2, classes=["SA1"])
+    only.set_active({"SA1": [0]})
+    want = encode_stream(only, chunks)
+    np.testing.assert_array_equal(got.train("SA1", 0), want.train("SA1", 0))
+    assert got.train("SA1", 0).size > 0
+    assert got.train("SA1", 1).size > 0 and got.train("RA", 1).size > 0  # toggled columns run while on
+
+
+def encode_stream(se, chunks):
+    parts = [se.process(c) for c in chunks]
+    parts.append(se.finish())
+    return type(parts[0]).concatenate(parts)
+
+
+def _two_taxel_chunks(update_s):
+    """Two synthetic taxels (different presses and vibration) on one clock, in ``update_s`` chunks."""
+    a = ReplaySource(synthetic_trial(duration_s=1.6, seed=1)).chunks(update_s)
+    b = ReplaySource(synthetic_trial(duration_s=1.6, seed=2, freq_hz=300.0, depth_n=5.0)).chunks(update_s)
+    return [RawChunk(x.st_t, np.hstack((x.st, y.st)), x.pvdf_t, np.hstack((x.pvdf, y.pvdf))) for x, y in zip(a, b)]
+
+
+def test_a_restarted_window_continues_the_running_filter_exactly():
+    """RA's 16 ms branch stops and restarts while PC keeps the PVDF filter running: from the restart
+    on, RA's spikes are those of fresh neurons started at the restart index on the channels of a
+    branch that never stopped (no warm-up beyond starting the neurons from rest)."""
+    tr = synthetic_trial(duration_s=1.6)
+    params = _params({"RA": 16.0, "PC": 128.0})
+    chunks = list(ReplaySource(tr).chunks(0.004))
+    se = StreamEncoder(params, classes=["RA", "PC"])
+    parts = []
+    k_r = None
+    for i, c in enumerate(chunks):
+        if i == 60:
+            se.set_active({"PC": [0]})
+        if i == 100:
+            k_r = se.pre.restart_index()
+            se.set_active({"PC": [0], "RA": [0]})
+            restart = len(parts)
+        parts.append(se.process(c))
+    parts.append(se.finish())
+    after = type(parts[0]).concatenate(parts[restart:]).train("RA")
+    ch = preprocess_trial_windows(tr, params.preprocess, [16.0])[16.0]
+    tail = Channels(k_r, ch.data[k_r - ch.k0 :])
+    want = Encoder(params, classes=["RA"]).process(tail).train("RA")
+    assert want.size > 0
+    np.testing.assert_array_equal(after, want)
+    assert after.min() >= (k_r + 1) / 5000.0 + params.classes["RA"].delay_ms / 1000.0
+
+
+def test_everything_off_runs_only_acquisition_and_restarts_cleanly():
+    tr = synthetic_trial(duration_s=1.6)
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    se = StreamEncoder(params)
+    chunks = list(ReplaySource(tr).chunks(0.004))
+    for c in chunks[:50]:
+        se.process(c)
+    se.set_active({})
+    assert se.pre.running == {"singletact": False, "pvdf_filter": False, "pvdf_windows": ()}
+    assert se.final_s == {}
+    for c in chunks[50:120]:
+        assert len(se.process(c)) == 0
+    assert set(se.state_arrays()) <= {"st_last", "pv_last", "st_hist", "pv_hist", "16ms_lif_v", "128ms_lif_v"}
+    k_r = se.pre.restart_index()
+    se.set_active({c: [0] for c in CLASSES})
+    events = encode_stream(se, chunks[120:])
+    # rebuilt from the raw history: PVDF after the restart is close to a never-stopped branch
+    got = Channels.concatenate([se.pre.take(16.0)], 1)  # nothing left to take after finish
+    assert got.n_samples == 0
+    for c in CLASSES:
+        assert events.train(c).size > 0, c
+        assert events.train(c).min() >= (k_r + 1) / 5000.0 + params.classes[c].delay_ms / 1000.0
+    assert se.state_report()[0]
+
+
+def test_restart_from_raw_history_matches_the_continuous_channels():
+    """With every branch stopped, a restart rebuilds the PVDF filter (hum-primed) and the gate from
+    the kept raw history: the channels after the restart are close to those of a stream that
+    never stopped (exact ST, PVDF within a few percent of its range)."""
+    from touchreal.preprocess.pipeline import Preprocessor
+
+    tr = synthetic_trial(duration_s=1.6)
+    pre_params = default_params().preprocess.model_copy(update={"window_ms": 16.0})
+    full = preprocess_trial(tr, pre_params)
+    pre = Preprocessor(pre_params)
+    chunks = list(ReplaySource(tr).chunks(0.004))
+    for c in chunks[:100]:
+        pre.feed(c.st_t, c.st, c.pvdf_t, c.pvdf)
+    pre.set_sources([])
+    for c in chunks[100:150]:
+        pre.feed(c.st_t, c.st, c.pvdf_t, c.pvdf)
+    pre.set_sources([16.0])
+    parts = []
+    for c in chunks[150:]:
+        parts.append(pre.process(c.st_t, c.st, c.pvdf_t, c.pvdf))
+    parts.append(pre.finish())
+    got = Channels.concatenate(parts, 1)
+    want = full.data[got.k0 - full.k0 : got.k0 - full.k0 + got.n_samples]
+    assert got.n_samples > 2000
+    np.testing.assert_allclose(got.data[:, 0, 0], want[:, 0, 0], atol=0.02)  # ST: alpha-beta restarted 0.5 s back
+    pv_range = np.ptp(full.data[:, 0, 2])
+    assert np.max(np.abs(got.data[:, 0, 2] - want[:, 0, 2])) < 0.05 * pv_range
+
+
+def test_set_active_rejects_unknown_classes_and_taxels():
+    se = StreamEncoder(_params(), n_taxels=2, classes=["SA1", "PC"])
+    with pytest.raises(ValueError, match="not served"):
+        se.set_active({"RA": [0]})
+    with pytest.raises(ValueError, match="out of range"):
+        se.set_active({"SA1": [2]})
+    assert se.active == {"SA1": (0, 1), "PC": (0, 1)}  # a rejected demand changes nothing
