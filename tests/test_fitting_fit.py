@@ -274,6 +274,14 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
         fast = F.simulate(tset.trials, [p.classes[cls]], p.alignment.lag_ms / 1000.0)[0]
         for a, t in zip(fast, trials):
             np.testing.assert_allclose(a, t.tr[cls], atol=1e-9)
+    # ... and of the online stream (every class on its own source; SA1 on the SingleTact alone)
+    from touchreal.stream import StreamEncoder, encode_trial
+
+    assert StreamEncoder(p).latency_s["SA1"] < StreamEncoder(p).latency_s["RA"]
+    for e, t in list(zip(entries, trials))[:2]:
+        stream = encode_trial(ds.load(e), p)
+        for cls in ("SA1", "RA"):
+            np.testing.assert_allclose(p.reference_times(stream[cls]) - t.onset, t.tr[cls], atol=1e-9)
     m = evaluate(ds.root, p, tmp_path / "rep", EvalConfig(with_sweep=False, with_spatial=False, latency_trials=1, bound_jitters_ms=()))
     assert m["n_held_out"] == n and "TRAINED on every one" in m["evaluated_on"]
     lat = m["latency"]

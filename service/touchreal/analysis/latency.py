@@ -2,11 +2,11 @@
 
 Two figures per class (ms):
 
-* ``algorithmic``: the online chain's own latency from a sensor sample to the emission of what it
-  caused (the class's causal PVDF window and the SingleTact interpolation; the
-  :class:`~touchreal.stream.StreamEncoder`'s per-class figure when it has one, else the
-  preprocessing latency at the class's window). A spike's stamp is that sample's time plus the
-  class delay (>= 0), so its expected ``emission - stamp`` is ``algorithmic - delay``.
+* ``algorithmic``: the online chain's own bound on the time from a sensor sample to the emission
+  of what it caused (:attr:`~touchreal.stream.StreamEncoder.latency_s`: the look-ahead of the
+  class's source, its causal PVDF window or the SingleTact interpolation alone). A spike's stamp is
+  that sample's time plus the class delay (>= 0), so ``emission - stamp`` is at most
+  ``algorithmic - delay``.
 * ``measured``: median (and 90th percentile) of ``emission - stamp`` over real spikes, with a
   recording replayed through the :class:`~touchreal.stream.StreamEncoder` in small chunks; a spike's
   emission time is the end of the chunk whose processing returned it (recording clock, compute time
@@ -20,7 +20,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..params import EncoderParams
-from ..preprocess.pipeline import Preprocessor
 from ..recording import Trial
 from ..sensing.replay import ReplaySource
 from ..settings import CLASSES
@@ -30,12 +29,9 @@ MEASURE_CHUNK_S = 0.001  #: replay chunk of the measured latency (a live sensor'
 
 
 def algorithmic_latency_s(params: EncoderParams) -> dict[str, float]:
-    """Per class: sample-to-emission latency (s) of the online chain (see the module docstring)."""
-    own = StreamEncoder(params).latency_s
-    if isinstance(own, dict):  # the stream knows each class's latency
-        return {c: float(own[c]) for c in params.classes}
-    by_window = {w: Preprocessor(params.preprocess.model_copy(update={"window_ms": w})).latency_s for w in params.windows_ms()}
-    return {c: float(by_window[params.window_ms(c)]) for c in params.classes}
+    """Per class: sample-to-emission latency (s) of the online chain, the
+    :attr:`StreamEncoder.latency_s` of the class's source (its window, or the SingleTact alone)."""
+    return {c: float(v) for c, v in StreamEncoder(params).latency_s.items()}
 
 
 def measured_latency_s(params: EncoderParams, trials: Sequence[Trial], chunk_s: float = MEASURE_CHUNK_S) -> dict[str, np.ndarray]:
@@ -70,7 +66,7 @@ def latency_table(params: EncoderParams, trials: Sequence[Trial] = (), chunk_s: 
             "window_ms": float(params.window_ms(c)),
             "delay_ms": float(d),
             "algorithmic_ms": 1000.0 * alg[c],
-            "expected_emission_minus_stamp_ms": 1000.0 * alg[c] - d,
+            "bound_emission_minus_stamp_ms": 1000.0 * alg[c] - d,
         }
         if trials:
             m = meas[c]
