@@ -289,3 +289,19 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
     assert lat["SA1"]["algorithmic_ms"] < lat["RA"]["algorithmic_ms"]
     assert lat["SA1"]["measured_spikes"] > 0
     assert "Per-class latency" in (tmp_path / "rep" / "report.md").read_text()
+
+
+def test_window_option_per_class():
+    import argparse
+
+    from touchreal.fitting.command import parse_windows
+
+    assert parse_windows("64") == (64.0, {})
+    assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    assert parse_windows("32, SA1=16") == (32.0, {"SA1": 16.0})
+    for bad in ("SA2=16", "SA1=fast", "x"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_windows(bad)
+    with pytest.raises(ValueError, match="window_ms"):
+        F.FitConfig(class_window_ms={"RA": 2.0})
+    assert F.FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0

@@ -720,7 +720,7 @@ def render_markdown(m: dict[str, Any]) -> str:
         f"# TouchReal evaluation on `{m['dataset']}`",
         "",
         f"Data: simulated rig recordings (`{m['dataset_dir']}`). Evaluated on {m['evaluated_on']}. "
-        f"Parameters: {json.dumps({k: m['params_provenance'].get(k) for k in ('fitted_by', 'dataset', 'split_seed', 'window_ms') if k in m['params_provenance']})}.",
+        f"Parameters: {json.dumps({k: m['params_provenance'].get(k) for k in ('fitted_by', 'dataset', 'split_method', 'split_seed', 'window_ms', 'class_window_ms') if k in m['params_provenance']})}.",
         "",
         "## Targets",
         "",

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"fitted {', '.join(res.classes)} on {res.n_train} training trials in {res.seconds:.0f} s -> {args.out}")
     for c, f in res.classes.items():
         tr = f.train.total if f.train else float("nan")
-        va = f.validation.total if f.validation else float("nan")
-        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va:.4f} "
+        va = f"{f.validation.total:.4f}" if f.validation else "- (none held out)"
+        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
     return 0
