@@ -37,7 +37,7 @@ import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -268,36 +268,80 @@ def simulate(trials: Sequence[TrialData], params: Sequence[ClassParams], lag_s: 
 
 
 # ------------------------------------------------------------------------- parallel evaluation
+# The seam between the optimiser and where its candidates are evaluated: an :class:`Executor`
+# maps (class, candidate batch) to losses from a :class:`FitState`. :class:`LocalExecutor` uses
+# forked processes on this machine; ``touchreal.fitting.dask_executor`` uses Dask workers, each of
+# which rebuilds the same state once from the :class:`FitSource` (see :func:`prepare`).
 
-_STATE: dict[str, Any] = {}
+
+@dataclass(frozen=True)
+class FitSource:
+    """Everything a fit's training state is built from (a worker rebuilds it from this alone):
+    the dataset folder (as seen by the worker), the configuration and the ``--init`` file."""
+
+    dataset_dir: str
+    cfg: FitConfig
+    init: EncoderParams | None = None
 
 
-def _losses(cls: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
-    st = _STATE
-    space: ParamSpace = st["spaces"][cls]
-    refs: ReferenceSet = st["refs"][cls]
-    tset: TrialSet = st["train"][cls]
-    cfg: ObjectiveConfig = st["objective"]
-    params = [space.decode(x) for x in xs]
-    trains = simulate(tset.trials, params, st["lag_s"])
+@dataclass
+class FitState:
+    """What evaluating a candidate needs: per class its search space, references and preprocessed
+    training trials; the objective; the rig's lag (s)."""
+
+    spaces: dict[str, ParamSpace]
+    refs: dict[str, ReferenceSet]
+    train: dict[str, TrialSet]
+    objective: ObjectiveConfig
+    lag_s: float
+
+
+Losses = list[tuple[float, dict[str, float]]]  #: per candidate: (total loss, loss terms)
+
+
+def losses(state: FitState, cls: str, xs: np.ndarray) -> Losses:
+    """Objective of every candidate ``xs`` (n, dim) of class ``cls`` (a non-finite loss counts as 1e6).
+    Each candidate's loss depends on that candidate alone, so any split of a batch gives the same numbers."""
+    space, tset = state.spaces[cls], state.train[cls]
+    trains = simulate(tset.trials, [space.decode(x) for x in xs], state.lag_s)
     out = []
     for tr in trains:
-        terms = evaluate_loss(tr, tset.cond_index, refs, cfg)
+        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], state.objective)
         total = terms.total if np.isfinite(terms.total) else 1e6
         out.append((float(total), terms.as_dict()))
     return out
 
 
-def _init_worker(state: dict[str, Any] | None) -> None:
+class Executor(Protocol):
+    """Evaluates a batch of candidates of one class: ``executor(cls, xs) -> losses``, in order."""
+
+    def __call__(self, cls: str, xs: np.ndarray) -> Losses: ...
+
+    def close(self) -> None: ...
+
+
+ExecutorFactory = Callable[[FitSource, FitState], Executor]
+
+_STATE: dict[str, FitState] = {}  # the local worker processes' state (inherited by fork)
+
+
+def _local_losses(cls: str, xs: np.ndarray) -> Losses:
+    return losses(_STATE["state"], cls, xs)
+
+
+def _init_worker(state: FitState | None) -> None:
     if state is not None:
-        _STATE.clear()
-        _STATE.update(state)
+        _STATE["state"] = state
 
 
-class _Evaluator:
-    """Evaluates candidate batches in-process or split across worker processes."""
+class LocalExecutor:
+    """Evaluates candidate batches in-process or split across ``workers`` forked processes (the
+    state is inherited, not copied; numba kernels are compiled before forking)."""
 
-    def __init__(self, workers: int):
+    def __init__(self, state: FitState, workers: int):
+        _STATE["state"] = state
+        warm_up()
+        self.state = state
         self.workers = workers
         self.pool: ProcessPoolExecutor | None = None
         if workers > 1:
@@ -305,15 +349,20 @@ class _Evaluator:
             if "fork" in methods:
                 self.pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker, initargs=(None,))
             else:  # pragma: no cover - platforms without fork: ship the cache once per worker
-                self.pool = ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(dict(_STATE),))
+                self.pool = ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(state,))
 
-    def __call__(self, cls: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
+    @classmethod
+    def factory(cls, workers: int | None) -> ExecutorFactory:
+        """Executor factory for :func:`fit_dataset`: ``workers`` processes (None = all cores, at most the population)."""
+        return lambda source, state: cls(state, max(1, min(workers or os.cpu_count() or 1, source.cfg.popsize)))
+
+    def __call__(self, cls: str, xs: np.ndarray) -> Losses:
         xs = np.asarray(xs, np.float64)
         if self.pool is None or len(xs) < 2:
-            return _losses(cls, xs)
+            return losses(self.state, cls, xs)
         chunks = [c for c in np.array_split(xs, self.workers) if len(c)]
         res = []
-        for part in self.pool.map(_losses, [cls] * len(chunks), chunks):
+        for part in self.pool.map(_local_losses, [cls] * len(chunks), chunks):
             res += part
         return res
 
@@ -321,10 +370,11 @@ class _Evaluator:
         if self.pool is not None:
             self.pool.shutdown()
             self.pool = None
+        _STATE.pop("state", None)
 
 
-def _warm_up() -> None:
-    """Compile numba kernels before forking so workers inherit them."""
+def warm_up() -> None:
+    """Compile the numba kernels (before forking, so workers inherit them; once per Dask worker)."""
     encode_population(np.zeros((16, 4)), 0.0, [ClassParams(weights=[0.0] * 8, i_sat=0, tau_ms=1, ih=[0, 0], delay_ms=0)])
     refs = ReferenceSet.build([[np.array([0.1])]], 0.01)
     evaluate_loss([np.array([0.1])], [0], refs, ObjectiveConfig())
@@ -402,7 +452,7 @@ def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float
 def fit_class(
     cls: str,
     space: ParamSpace,
-    evaluate: Callable[[str, np.ndarray], list[tuple[float, dict[str, float]]]],
+    evaluate: Executor,
     cfg: FitConfig,
     starts: Sequence[np.ndarray],
     delay0_ms: float,
@@ -460,17 +510,26 @@ def fit_class(
     )
 
 
-def fit_dataset(
-    dataset_dir: str | os.PathLike,
-    cfg: FitConfig | None = None,
-    init: EncoderParams | None = None,
-    log: Callable[[str], None] | None = None,
-) -> FitResult:
-    """Fit every class of ``cfg.classes`` on the dataset's ramp + sine training trials, each class
-    at its own causal PVDF window (``cfg.window_of``)."""
-    cfg = cfg or FitConfig()
+@dataclass
+class Prepared:
+    """A fit's data before optimisation (:func:`prepare`): the opened dataset, its split, the
+    calibrated preprocessing, the evaluation state, the rig's lag and what was logged about it."""
+
+    ds: Dataset
+    train_e: list[dict[str, Any]]
+    val_e: list[dict[str, Any]]
+    pre: PreprocessParams
+    n_baselines: int
+    state: FitState
+    lag_ms: float
+    timings: dict[str, float]
+
+
+def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prepared:
+    """Split, calibrate, preprocess and align (steps 1-3 of the fit); deterministic, so every Dask
+    worker that runs it on the same source holds the same state as the driver."""
+    cfg, init, dataset_dir = source.cfg, source.init, source.dataset_dir
     log = log or (lambda s: None)
-    t_all = time.perf_counter()
     timings: dict[str, float] = {}
     ds = Dataset.open(dataset_dir)
     name = str(ds.manifest.get("name", ""))
@@ -509,7 +568,6 @@ def fit_dataset(
     else:
         lag_ms = round(1000.0 * estimate_lag_s(first.trials), 3)
         lag_note = f"rig lag {lag_ms:.1f} ms (SingleTact rise after the commanded onset)"
-    lag_s = lag_ms / 1000.0
     log(f"preprocessed at {windows} ms in {timings['preprocess_s']:.1f} s; channel scale "
         f"{np.round(channel_scale(first.trials), 4).tolist()}; {lag_note}")
 
@@ -519,11 +577,30 @@ def fit_dataset(
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
     refs = {c: train[c].reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
-    _STATE.clear()
-    _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_s)
-    _warm_up()
-    workers = cfg.workers or os.cpu_count() or 1
-    evaluator = _Evaluator(max(1, min(workers, cfg.popsize)))
+    state = FitState(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_ms / 1000.0)
+    return Prepared(ds, train_e, val_e, pre, len(segments), state, lag_ms, timings)
+
+
+def fit_dataset(
+    dataset_dir: str | os.PathLike,
+    cfg: FitConfig | None = None,
+    init: EncoderParams | None = None,
+    log: Callable[[str], None] | None = None,
+    executor: ExecutorFactory | None = None,
+) -> FitResult:
+    """Fit every class of ``cfg.classes`` on the dataset's ramp + sine training trials, each class
+    at its own causal PVDF window (``cfg.window_of``). ``executor`` makes the candidate evaluator
+    (default :meth:`LocalExecutor.factory` with ``cfg.workers``; Dask: ``touchreal.fitting.dask_executor``)."""
+    cfg = cfg or FitConfig()
+    log = log or (lambda s: None)
+    t_all = time.perf_counter()
+    source = FitSource(str(dataset_dir), cfg, init)
+    prep = prepare(source, log)
+    ds, val_e, pre, timings, lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.lag_ms
+    name = str(ds.manifest.get("name", ""))
+    spaces, refs, train, lag_s, tau_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s, cfg.objective.kernel_tau_s
+    first = train[min(cfg.classes, key=cfg.window_of)]  # the smallest window's trial set (counts are the same in all)
+    evaluator = (executor or LocalExecutor.factory(cfg.workers))(source, prep.state)
     fits: dict[str, ClassFit] = {}
     try:
         for cls in cfg.classes:
@@ -570,7 +647,7 @@ def fit_dataset(
         "max_ramp_conditions": cfg.max_ramp_conditions if cfg.max_ramp_conditions is not None else "all",
         "window_ms": float(cfg.window_ms),
         "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
-        "calibration_baselines": len(segments),
+        "calibration_baselines": prep.n_baselines,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
             "lambda_e": cfg.objective.lambda_e,
