@@ -44,6 +44,11 @@ def _dask_fit(client, dataset: Path) -> F.FitResult:
     return F.fit_dataset(dataset, F.FitConfig(**CFG), executor=DaskExecutor.factory(client))
 
 
+def _fit_plugins(client) -> list[str]:
+    """The fit plugins still installed on any worker."""
+    return [p for names in client.run(lambda dask_worker: list(dask_worker.plugins)).values() for p in names if p.startswith("touchreal-fit-")]
+
+
 def _assert_same_fit(a: F.FitResult, b: F.FitResult) -> None:
     assert list(a.classes) == list(b.classes)
     for c in a.classes:
@@ -59,7 +64,15 @@ def test_dask_fit_is_bit_identical_to_the_local_fit(client, datasets, local_fits
     _assert_same_fit(res, local_fits[0])
     assert local_fits[0].classes["SA1"].generations == 3  # CMA-ES really ran
     # the fit's worker plugin is gone afterwards; the workers carry no state of it
-    assert not [n for n in client.run(lambda dask_worker: list(dask_worker.plugins)).values() for p in n if p.startswith("touchreal-fit-")]
+    assert not _fit_plugins(client)
+
+
+def test_a_dataset_the_workers_cannot_read_is_a_clear_error(client, tmp_path):
+    from touchreal.fitting.dask_executor import DaskExecutor
+
+    with pytest.raises(ValueError, match="every worker must read the dataset"):
+        DaskExecutor(client, F.FitSource(str(tmp_path / "not-there"), F.FitConfig(**CFG)))
+    assert not _fit_plugins(client)
 
 
 class KillOnce(distributed.WorkerPlugin):
@@ -78,28 +91,47 @@ class KillOnce(distributed.WorkerPlugin):
 
 
 def test_a_worker_killed_mid_generation_is_survived(client, datasets, local_fits, tmp_path):
+    from touchreal.fitting.dask_executor import DaskExecutor, _setup_error
+
+    class Probe(DaskExecutor):
+        """Before the fit's plugin goes: which workers hold the fit's state."""
+
+        def close(self) -> None:
+            client.wait_for_workers(2, timeout=60)
+            self.workers = client.run(_setup_error, self.name)
+            self.pids = client.run(os.getpid)
+            super().close()
+
+    probes: list[Probe] = []
+
+    def probe(source, state) -> Probe:
+        probes.append(Probe(client, source))
+        return probes[-1]
+
     marker = tmp_path / "killed"
+    pids = set(client.run(os.getpid).values())
     client.register_plugin(KillOnce(str(marker)), name="kill-once")
     try:
-        pids = set(client.run(os.getpid).values())
-        res = _dask_fit(client, datasets[0])
+        res = F.fit_dataset(datasets[0], F.FitConfig(**CFG), executor=probe)
     finally:
         client.unregister_worker_plugin("kill-once")
-    assert marker.exists()  # a worker died while evaluating a chunk
+    assert marker.exists()  # a worker process died while evaluating a chunk
     _assert_same_fit(res, local_fits[0])
-    client.wait_for_workers(2, timeout=60)
-    assert set(client.run(os.getpid).values()) != pids  # the nanny restarted it; it got the plugin again
+    # the nanny restarted it during the fit, and the new worker got the fit's plugin and built the state
+    assert len(probes[0].pids) == 2 and set(probes[0].pids.values()) != pids
+    assert list(probes[0].workers.values()) == [None, None]
 
 
 def test_cli_fits_several_datasets_on_one_cluster(client, datasets, local_fits, tmp_path):
     from touchreal.cli import main
 
-    args = ["--classes", "SA1,RA", "--popsize", "6", "--generations", "3", "--restarts", "0", "--seed", "1",
+    # SA1 alone: a class's fit does not depend on the other classes fitted with it
+    args = ["--classes", "SA1", "--popsize", "6", "--generations", "3", "--restarts", "0", "--seed", "1",
             "--input-stage-classes", "RA", "--no-holdout", "--quiet", "--scheduler", client.scheduler.address]
     assert main(["fit", *map(str, datasets), "--out", str(tmp_path), *args]) == 0
     for d, local in zip(datasets, local_fits):
         p = EncoderParams.load(tmp_path / f"{d.name}.json")
-        assert p.classes == local.params.classes
+        assert p.classes == {"SA1": local.params.classes["SA1"]}
         assert p.provenance["dataset_dir"] == str(d.resolve())
     # several datasets need an existing output folder; the error is clear
     assert main(["fit", *map(str, datasets), "--out", str(tmp_path / "missing"), *args]) == 2

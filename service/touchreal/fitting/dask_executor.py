@@ -26,11 +26,16 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
+import dask
 import numpy as np
 from distributed import Client, LocalCluster, WorkerPlugin, get_worker
 
 from .fit import ExecutorFactory, FitSource, FitState, Losses, losses, prepare, warm_up
 
+#: worker settings for fits: the statistical profiler samples every thread's stack every 10 ms and
+#: made a rig-v1 generation about a third slower (docs/scale-out-dask.md); deploy/dask sets the same
+#: through DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 RETRIES = 3  #: retries of a chunk that raised (a chunk lost with its worker is rescheduled anyway)
 
 
@@ -42,6 +47,7 @@ class FitDataPlugin(WorkerPlugin):
         self.source = source
         self._state: FitState | None = None
         self._lock = threading.Lock()
+        self.error: str | None = None  #: why setup failed on this worker
 
     def __getstate__(self) -> dict:
         return {"source": self.source}
@@ -50,7 +56,13 @@ class FitDataPlugin(WorkerPlugin):
         self.__init__(d["source"])
 
     async def setup(self, worker) -> None:
-        await asyncio.get_running_loop().run_in_executor(None, self.state)  # off the worker's event loop
+        """Build the state off the worker's event loop. A failure (say, the dataset is not at that
+        path on this worker) is kept, not raised, so the worker still starts; the driver asks for it
+        (:func:`_setup_error`) and every chunk sent here raises it."""
+        try:
+            await asyncio.get_running_loop().run_in_executor(None, self.state)
+        except Exception as exc:  # noqa: BLE001 - reported to the driver by _setup_error
+            self.error = f"{type(exc).__name__}: {exc}"
 
     def teardown(self, worker) -> None:
         self._state = None
@@ -73,6 +85,12 @@ def _chunk_losses(plugin_name: str, cls: str, xs: np.ndarray) -> Losses:
     return losses(plugin.state(), cls, xs)
 
 
+def _setup_error(plugin_name: str, dask_worker) -> str | None:
+    """Run on each worker: why its fit plugin could not build the state (None: it did)."""
+    plugin = dask_worker.plugins.get(plugin_name)
+    return plugin.error if isinstance(plugin, FitDataPlugin) else f"no fit plugin {plugin_name!r}"
+
+
 class DaskExecutor:
     """Evaluates candidate batches on the workers of ``client``'s cluster (one chunk per worker thread)."""
 
@@ -81,6 +99,11 @@ class DaskExecutor:
         self.name = f"touchreal-fit-{uuid.uuid4().hex[:12]}"
         source = replace(source, dataset_dir=str(Path(source.dataset_dir).resolve()))
         client.register_plugin(FitDataPlugin(source), name=self.name)
+        errors = {w: e for w, e in client.run(_setup_error, self.name).items() if e}
+        if errors:
+            self.close()
+            raise ValueError(f"Dask workers could not load {source.dataset_dir} (every worker must read the dataset at the "
+                             f"driver's path): " + "; ".join(f"{w}: {e}" for w, e in sorted(errors.items())))
 
     @classmethod
     def factory(cls, client: Client) -> ExecutorFactory:
@@ -111,5 +134,7 @@ def dask_client(scheduler: str | None = None, n_workers: int | None = None) -> I
         return
     if not n_workers or n_workers < 1:
         raise ValueError("give a scheduler address or a number of local Dask workers >= 1")
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+    with dask.config.set(WORKER_CONFIG):
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    with cluster, Client(cluster) as client:
         yield client

@@ -15,7 +15,8 @@ Steps of :func:`fit_dataset`:
 4. Per class, **CMA-ES** (``cma``) in the normalised space of :mod:`.space`, minimising the
    objective of :mod:`.objective` over all training trials; each generation is one LIF population
    per trial (:func:`encode_population`: the candidates are the neurons of one LIF population),
-   split across worker processes (fork; the channel cache is inherited, not copied).
+   split across worker processes (fork; the channel cache is inherited, not copied) or, through
+   the same :class:`Executor` seam, across Dask workers (:mod:`.dask_executor`).
    The start is TouchSim's tau/ih, the class's weight direction and a small grid over the overall
    gain and the delay. For the classes of ``segmented_count_classes`` (default PC) the relative
    count loss of a ramp condition is taken per turning-point window (onset, hold, release, release
@@ -600,7 +601,9 @@ def fit_dataset(
     name = str(ds.manifest.get("name", ""))
     spaces, refs, train, lag_s, tau_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s, cfg.objective.kernel_tau_s
     first = train[min(cfg.classes, key=cfg.window_of)]  # the smallest window's trial set (counts are the same in all)
+    t = time.perf_counter()
     evaluator = (executor or LocalExecutor.factory(cfg.workers))(source, prep.state)
+    timings["executor_start_s"] = time.perf_counter() - t  # Dask: every worker has loaded and preprocessed the dataset
     fits: dict[str, ClassFit] = {}
     try:
         for cls in cfg.classes:
