@@ -288,6 +288,10 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
     assert lat["SA1"]["window_ms"] == 16.0 and lat["RA"]["window_ms"] == 32.0
     assert lat["SA1"]["algorithmic_ms"] < lat["RA"]["algorithmic_ms"]
     assert lat["SA1"]["measured_spikes"] > 0
+    for c in ("SA1", "RA"):  # measured: never later than the bound (+ one 1 ms chunk), never before the causing sample
+        r = lat[c]
+        if r["measured_spikes"]:
+            assert r["measured_median_ms"] <= r["bound_emission_minus_stamp_ms"] + 1.0 and r["measured_median_after_sample_ms"] > 0
     assert "Per-class latency" in (tmp_path / "rep" / "report.md").read_text()
 
 

@@ -73,6 +73,7 @@ def test_version_1_files_still_load_without_the_new_input_stage():
     for c in d["classes"].values():
         c.pop("lowpass_hz", None)
         c.pop("negative_lead_ms", None)
+        c.pop("window_ms", None)
     p = EncoderParams.parse(d)
     assert p.version == 1
     assert all(c.lowpass_hz is None and c.negative_lead_ms == 0.0 for c in p.classes.values())
@@ -94,6 +95,7 @@ def _legacy(version: int, delays: dict[str, float]) -> dict:
     del d["alignment"]
     for c, v in delays.items():
         d["classes"][c]["delay_ms"] = v
+        d["classes"][c].pop("window_ms", None)  # older files have no class windows
     return d
 
 
@@ -127,6 +129,8 @@ def test_shipped_defaults_follow_the_current_rules():
     raw = json.loads(DEFAULT_PARAMS_PATH.read_text())
     assert raw["version"] == 3 and raw["alignment"]["lag_ms"] > 0
     assert all(c["delay_ms"] >= 0 for c in raw["classes"].values())
+    p = default_params()  # the fast path: SA1 and RA do not wait for PC's window
+    assert (p.window_ms("SA1"), p.window_ms("RA"), p.window_ms("PC")) == (16.0, 16.0, 128.0)
 
 
 def test_windows_group_classes():

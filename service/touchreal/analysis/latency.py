@@ -55,8 +55,9 @@ def measured_latency_s(params: EncoderParams, trials: Sequence[Trial], chunk_s: 
 
 
 def latency_table(params: EncoderParams, trials: Sequence[Trial] = (), chunk_s: float = MEASURE_CHUNK_S) -> dict[str, dict[str, float | int | None]]:
-    """Per class (ms): window, delay, algorithmic latency, its ``emission - stamp`` and, with
-    ``trials``, the measured median / 90th percentile of ``emission - stamp`` and the spike count."""
+    """Per class (ms): window, delay, algorithmic latency, its bound on ``emission - stamp`` and,
+    with ``trials``, the measured median / 90th percentile of ``emission - stamp``, the median time
+    from the causing sample to the emission (``emission - stamp + delay``) and the spike count."""
     alg = algorithmic_latency_s(params)
     meas = measured_latency_s(params, trials, chunk_s) if trials else {}
     out: dict[str, dict[str, float | int | None]] = {}
@@ -72,6 +73,7 @@ def latency_table(params: EncoderParams, trials: Sequence[Trial] = (), chunk_s: 
             m = meas[c]
             row.update(
                 measured_median_ms=float(1000.0 * np.median(m)) if m.size else None,
+                measured_median_after_sample_ms=float(1000.0 * np.median(m) + d) if m.size else None,
                 measured_p90_ms=float(1000.0 * np.percentile(m, 90)) if m.size else None,
                 measured_spikes=int(m.size),
                 measured_chunk_ms=1000.0 * chunk_s,

@@ -736,16 +736,18 @@ def render_markdown(m: dict[str, Any]) -> str:
               "Algorithmic = the online chain's bound on the time from a sensor sample to the emission of its spikes (the look-ahead "
               "of the class's source: its PVDF window, or the SingleTact alone); a spike's stamp is the sample's time plus the class "
               "delay (>= 0), so emission - stamp is at most algorithmic - delay. Measured = "
-              "emission - stamp over the spikes of held-out ramp trials replayed in 1 ms chunks (median [90th percentile], spikes). "
+              "emission - stamp over the spikes of held-out ramp trials replayed in 1 ms chunks (median [90th percentile], spikes); "
+              "emission - sample = that median + delay. A delay longer than the algorithmic latency stamps spikes after their emission. "
               f"Spikes are compared with the references at stamp - {_f(al.get('lag_ms'), 1)} ms (the rig's lag, `alignment`).", "",
-              "| class | window [ms] | delay [ms] | algorithmic [ms] | bound on emission - stamp [ms] | measured emission - stamp [ms] | VR ratio | count error |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| class | window [ms] | delay [ms] | algorithmic [ms] | bound on emission - stamp [ms] | measured emission - stamp [ms] | measured emission - sample [ms] | VR ratio | count error |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for c in classes:
             r, s = lat[c], m["mapping"][c]["all"]
             meas = (f"{_f(r['measured_median_ms'], 1)} [{_f(r['measured_p90_ms'], 1)}], {r['measured_spikes']}"
                     if r.get("measured_spikes") else "-")
+            after = _f(r["measured_median_after_sample_ms"], 1) if r.get("measured_spikes") else "-"
             L.append(f"| {c} | {r['window_ms']:g} | {_f(r['delay_ms'], 1)} | {_f(r['algorithmic_ms'], 1)} | "
-                     f"{_f(r['bound_emission_minus_stamp_ms'], 1)} | {meas} | {_f(s.get('ratio_inter_intra'))} | {_f(100 * s['count_error_mean'], 1)} % |")
+                     f"{_f(r['bound_emission_minus_stamp_ms'], 1)} | {meas} | {after} | {_f(s.get('ratio_inter_intra'))} | {_f(100 * s['count_error_mean'], 1)} % |")
     L += [
         "",
         "## Definitions",
