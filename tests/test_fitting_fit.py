@@ -153,9 +153,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     tset = F.TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
     cfg = F.FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
     refs = tset.reference_set("SA1", cfg.objective.kernel_tau_s, 80)
-    F._STATE.clear()
-    F._STATE.update(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0)
-    ev = F._Evaluator(1)
+    ev = F.LocalExecutor(F.FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0), 1)
 
     def loss(x):
         return ev("SA1", np.array([x]))[0][0]

@@ -32,8 +32,8 @@ from distributed import Client, LocalCluster, WorkerPlugin, get_worker
 
 from .fit import ExecutorFactory, FitSource, FitState, Losses, losses, prepare, warm_up
 
-#: worker settings for fits: the statistical profiler samples every thread's stack every 10 ms and
-#: made a rig-v1 generation about a third slower (docs/scale-out-dask.md); deploy/dask sets the same
+#: worker settings for fits: the statistical profiler samples every thread's stack every 10 ms; with
+#: it a generation took 1.75x the local one instead of 1.3-1.5x (docs/scale-out-dask.md); deploy/dask sets the same
 #: through DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 RETRIES = 3  #: retries of a chunk that raised (a chunk lost with its worker is rescheduled anyway)
@@ -58,7 +58,7 @@ class FitDataPlugin(WorkerPlugin):
     async def setup(self, worker) -> None:
         """Build the state off the worker's event loop. A failure (say, the dataset is not at that
         path on this worker) is kept, not raised, so the worker still starts; the driver asks for it
-        (:func:`_setup_error`) and every chunk sent here raises it."""
+        (:func:`_setup_error`), and a chunk sent here tries again and fails the same way (retried)."""
         try:
             await asyncio.get_running_loop().run_in_executor(None, self.state)
         except Exception as exc:  # noqa: BLE001 - reported to the driver by _setup_error
