@@ -76,7 +76,7 @@ def test_every_window_works_and_sets_the_latency(window_ms):
     head = pre.process(*_fields(src.read(1.0)))
     # after 1 s of input the output reaches 1 s minus the latency (within one STFT hop and PCHIP knot)
     end = head.t0_s + head.n_samples / 5000.0
-    assert 1.0 - pre.latency_s() - 0.02 <= end <= 1.0 - window_ms / 1000.0 * 0.5 + 1e-9
+    assert 1.0 - pre.latency_s(float(window_ms)) - 0.02 <= end <= 1.0 - window_ms / 1000.0 * 0.5 + 1e-9
     ch = Channels.concatenate([head, pre.process(*_fields(src.read(10.0))), pre.finish()], 1)
     assert np.all(np.isfinite(ch.data))
     assert abs(ch.t0_s + ch.n_samples / 5000.0 - tr.st_t[-1]) < 0.01
@@ -161,3 +161,15 @@ def test_several_windows_at_once_equal_one_window_each():
     assert st_only.k0 == both[128.0].k0 and st_only.n_samples == both[128.0].n_samples
     np.testing.assert_array_equal(st_only.data[:, :, :2], both[128.0].data[:, :, :2])
     assert not st_only.data[:, :, 2:].any()
+
+
+def test_a_preprocessor_on_a_shared_acquisition_is_fed_through_it():
+    from touchreal.preprocess.pipeline import Acquisition
+
+    acq = Acquisition(n_taxels=3)
+    pre = Preprocessor(PreprocessParams(), acquisition=acq, taxels=range(1, 3))
+    assert pre.n_taxels == 2
+    with pytest.raises(RuntimeError, match="consume"):
+        pre.feed(np.array([0.0]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="contiguous block"):
+        Preprocessor(PreprocessParams(), acquisition=acq, taxels=range(2, 4))

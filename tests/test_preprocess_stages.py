@@ -231,3 +231,22 @@ def test_sos_kernel_equals_scipy_sosfilt(x):
     zi0 = signal.sosfilt_zi(sos)[:, :, None] * x[0][None, None, :]
     want, _ = signal.sosfilt(sos, x, axis=0, zi=zi0)
     np.testing.assert_allclose(f.process(x), want, rtol=1e-12, atol=1e-12)
+
+
+def test_history_ring_keeps_the_newest_samples_by_slot():
+    from touchreal.preprocess.branches import History
+
+    h = History(5, 2)
+    assert h.first is None
+    x = np.arange(16.0).reshape(8, 2)
+    h.push(10, x[:3])
+    h.push(13, x[3:8])  # wraps around: slots 13..17, only 5 kept
+    assert h.first == 13
+    first, got = h.since(0)
+    assert first == 13 and np.array_equal(got, x[3:8])
+    assert np.array_equal(h.since(16)[1], x[6:8])
+    with pytest.raises(ValueError, match="contiguous"):
+        h.push(20, x[:1])
+    h.clear()
+    h.push(20, x[:1])  # after clear any slot starts the history again
+    assert h.first == 20

@@ -41,7 +41,7 @@ def test_hostile_input_never_reaches_state():
         assert np.all(np.isfinite(ev.t_s))
         finite, peak, _ = se.state_report()
         assert finite and peak < 1e4
-    stats = se.pre.stats
+    stats = se.stats
     assert stats["singletact"]["non_finite"] > 0 and stats["singletact"]["out_of_range"] > 0
     assert stats["pvdf"]["non_finite"] > 0
     assert spikes > 0
@@ -55,7 +55,7 @@ def test_gaps_and_duplicates_are_repaired_and_counted():
     for c in chunks:
         se.process(c)
     se.finish()
-    st = se.pre.stats
+    st = se.stats
     assert st["pvdf"]["gaps"] == 1 and st["pvdf"]["gap_filled"] == 320
     assert st["singletact"]["duplicate"] >= 3 and st["pvdf"]["duplicate"] == 64
     assert se.state_report()[0]

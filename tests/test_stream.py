@@ -77,7 +77,7 @@ def test_sources_share_windows_and_skip_the_pvdf_for_pvdf_free_classes():
     params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
     assert [class_source(params, c) for c in CLASSES] == [16.0, 16.0, 128.0]
     se = StreamEncoder(params, n_taxels=2)
-    assert set(se.encoders) == {16.0, 128.0}  # SA1 and RA share one window branch
+    assert set(se.blocks[0].encoders) == {16.0, 128.0}  # SA1 and RA share one window branch
     free = _params({"RA": 16.0}, pvdf_free=("SA1", "PC"))
     assert [class_source(free, c) for c in CLASSES] == [None, 16.0, None]
 
@@ -86,11 +86,15 @@ def test_pvdf_free_classes_run_no_pvdf_branch_and_match_the_window_path():
     tr = synthetic_trial(duration_s=1.2)
     params = _params(pvdf_free=("SA1", "RA", "PC"))
     se = StreamEncoder(params)
+    with_pvdf = StreamEncoder(_params())  # the same classes reading the 128 ms window
     parts = []
     for chunk in ReplaySource(tr).chunks(0.004):
         parts.append(se.process(chunk))
-        assert se.pre.running == {"singletact": True, "pvdf_filter": False, "pvdf_windows": ()}
+        with_pvdf.process(chunk)
+        assert se.running == {"singletact": True, "pvdf_filter": False, "pvdf_windows": (), "blocks": 1}
         assert not any(k.startswith(("pv_filter", "pv_gate", "pv128")) for k in se.state_arrays())
+    for c in CLASSES:  # no window to wait for: final about a window (less the SingleTact look-ahead) sooner
+        assert se.final_s[c] - with_pvdf.final_s[c] > 0.09, c
     parts.append(se.finish())
     got = _trains(type(parts[0]).concatenate(parts))
     # the same columns on the full 128 ms channels (zero weights on real PVDF) give the same spikes
@@ -175,7 +179,7 @@ def test_toggling_other_columns_leaves_continuing_columns_bit_identical():
             assert se.active == {k: tuple(v) for k, v in schedule[i].items()}
         parts.append(se.process(c))
         if i in (200, 300):
-            assert se.pre.running["pvdf_windows"] == ((16.0, 128.0) if i == 200 else (16.0,))
+            assert se.running["pvdf_windows"] == ((16.0, 128.0) if i == 200 else (16.0,))
     parts.append(se.finish())
     got = type(parts[0]).concatenate(parts)
     only = StreamEncoder(params, n_taxels=2, classes=["SA1"])
@@ -192,11 +196,11 @@ def encode_stream(se, chunks):
     return type(parts[0]).concatenate(parts)
 
 
-def _two_taxel_chunks(update_s):
-    """Two synthetic taxels (different presses and vibration) on one clock, in ``update_s`` chunks."""
-    a = ReplaySource(synthetic_trial(duration_s=1.6, seed=1)).chunks(update_s)
-    b = ReplaySource(synthetic_trial(duration_s=1.6, seed=2, freq_hz=300.0, depth_n=5.0)).chunks(update_s)
-    return [RawChunk(x.st_t, np.hstack((x.st, y.st)), x.pvdf_t, np.hstack((x.pvdf, y.pvdf))) for x, y in zip(a, b)]
+def _two_taxel_chunks(update_s, n_taxels=2):
+    """Synthetic taxels (different presses and vibration) on one clock, in ``update_s`` chunks."""
+    looks = [dict(seed=1), dict(seed=2, freq_hz=300.0, depth_n=5.0), dict(seed=3, freq_hz=80.0, depth_n=1.5)]
+    sources = [ReplaySource(synthetic_trial(duration_s=1.6, **looks[j % 3])).chunks(update_s) for j in range(n_taxels)]
+    return [RawChunk(parts[0].st_t, np.hstack([x.st for x in parts]), parts[0].pvdf_t, np.hstack([x.pvdf for x in parts])) for parts in zip(*sources)]
 
 
 def test_a_restarted_window_continues_the_running_filter_exactly():
@@ -213,7 +217,7 @@ def test_a_restarted_window_continues_the_running_filter_exactly():
         if i == 60:
             se.set_active({"PC": [0]})
         if i == 100:
-            k_r = se.pre.restart_index()
+            k_r = se.restart_index()
             se.set_active({"PC": [0], "RA": [0]})
             restart = len(parts)
         parts.append(se.process(c))
@@ -235,17 +239,14 @@ def test_everything_off_runs_only_acquisition_and_restarts_cleanly():
     for c in chunks[:50]:
         se.process(c)
     se.set_active({})
-    assert se.pre.running == {"singletact": False, "pvdf_filter": False, "pvdf_windows": ()}
+    assert se.running == {"singletact": False, "pvdf_filter": False, "pvdf_windows": (), "blocks": 0}
     assert se.final_s == {}
     for c in chunks[50:120]:
         assert len(se.process(c)) == 0
     assert set(se.state_arrays()) <= {"st_last", "pv_last", "st_hist", "pv_hist", "16ms_lif_v", "128ms_lif_v"}
-    k_r = se.pre.restart_index()
+    k_r = se.restart_index()
     se.set_active({c: [0] for c in CLASSES})
     events = encode_stream(se, chunks[120:])
-    # rebuilt from the raw history: PVDF after the restart is close to a never-stopped branch
-    got = Channels.concatenate([se.pre.take(16.0)], 1)  # nothing left to take after finish
-    assert got.n_samples == 0
     for c in CLASSES:
         assert events.train(c).size > 0, c
         assert events.train(c).min() >= (k_r + 1) / 5000.0 + params.classes[c].delay_ms / 1000.0
@@ -288,3 +289,62 @@ def test_set_active_rejects_unknown_classes_and_taxels():
     with pytest.raises(ValueError, match="out of range"):
         se.set_active({"SA1": [2]})
     assert se.active == {"SA1": (0, 1), "PC": (0, 1)}  # a rejected demand changes nothing
+
+
+def test_a_malformed_chunk_is_rejected_whole():
+    se = StreamEncoder(_params(), n_taxels=2)
+    good = _two_taxel_chunks(0.032)
+    se.process(good[0])
+    bad = RawChunk(good[1].st_t, good[1].st, good[1].pvdf_t, good[1].pvdf[:, :1])
+    with pytest.raises(ValueError, match="PVDF: expected values of shape"):
+        se.process(bad)
+    assert se.stats["singletact"]["accepted"] == good[0].st.size  # the SingleTact part was not consumed
+    se.process(good[1])
+    assert se.stats["singletact"]["duplicate"] == 0
+
+
+def test_taxel_blocks_give_the_same_spikes_and_idle_blocks_only_acquire():
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    chunks = _two_taxel_chunks(0.004, n_taxels=5)
+    chunks[40].pvdf[3:6, 4] = np.nan  # hostile values on a taxel of the last block
+    chunks[41].st[:, 1] = 1e6
+    schedule = {0: {"SA1": [0, 1, 4], "PC": [0, 3]}, 100: {"SA1": [0], "RA": [1]}, 200: {"PC": [0, 4], "SA1": [0]}}
+
+    def run(block):
+        se = StreamEncoder(params, n_taxels=5, taxel_block=block)
+        parts = []
+        for i, c in enumerate(chunks):
+            if i in schedule:
+                se.set_active(schedule[i])
+            parts.append(se.process(c))
+            if i == 150:
+                running = se.running, [b.pre.running for b in se.blocks]
+        parts.append(se.finish())
+        return type(parts[0]).concatenate(parts), se, running
+
+    whole, one, _ = run(None)
+    blocked, many, running = run(2)
+    total, per_block = running
+    assert len(many.blocks) == 3 and total["blocks"] == 1  # taxels 0 and 1 only: blocks 1 and 2 idle
+    assert per_block[2] == {"singletact": False, "pvdf_filter": False, "pvdf_windows": ()}
+    _assert_trains_equal(_trains(whole, 5), _trains(blocked, 5))
+    assert len(whole) > 0
+    assert many.stats == one.stats and one.stats["pvdf"]["non_finite"] == 3
+    with pytest.raises(ValueError, match="single taxel block"):
+        many.process_channels(chunks[0])
+
+
+def test_class_channels_give_the_stream_spikes_offline():
+    from touchreal.encoding.encoder import encode_population
+    from touchreal.stream import class_channels, encode_trial
+
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params({"SA1": 16.0, "PC": 64.0}, pvdf_free=("RA",))
+    channels = class_channels(tr, params)
+    assert channels["RA"].data[:, :, 2:].any() == False and channels["SA1"].k0 == channels["PC"].k0  # noqa: E712
+    trains = encode_trial(tr, params)
+    for c in CLASSES:
+        ch = channels[c]
+        got = encode_population(ch.data[:, 0, :], ch.t0_s, [params.classes[c]])[0]
+        np.testing.assert_allclose(got, trains[c], rtol=0, atol=1e-12, err_msg=c)  # same samples; t0 + k/fs vs (k0 + k)/fs
+        assert got.size > 0 or c == "RA"

@@ -15,7 +15,7 @@ import numpy as np
 
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
-from .preprocess.pipeline import Channels, Preprocessor, Source
+from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .recording import Trial
 from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
@@ -32,6 +32,35 @@ def class_source(params: EncoderParams, cls: str) -> Source:
     return float(params.window_ms(cls))
 
 
+class _TaxelBlock:
+    """The branches and encoders of a contiguous block of taxels: a Preprocessor on the shared
+    acquisition and one Encoder per source. A block none of whose columns is active runs nothing;
+    its branches (re)start without touching any other block's columns."""
+
+    def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]], dtype: type):
+        self.taxels = taxels
+        self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
+        self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
+
+    def set_active(self, want: Mapping[str, Sequence[int]]) -> None:
+        """``want``: per class, the block's own (local) taxel indices."""
+        for enc in self.encoders.values():
+            enc.set_columns({c: want.get(c, ()) for c in enc.classes})
+        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns])
+
+    def encode(self, shown: Source | None) -> tuple[Channels, list[SpikeEvents]]:
+        """Spikes of every active source (global taxel indices) and the channels of ``shown``."""
+        channels = Channels(0, np.zeros((0, len(self.taxels), 4)))
+        parts = []
+        for s in self.pre.sources:
+            ch = self.pre.take(s)
+            ev = self.encoders[s].process(ch)
+            parts.append(SpikeEvents(ev.t_s, ev.taxel + self.taxels.start, ev.cls) if self.taxels.start else ev)
+            if s == shown:
+                channels = ch
+        return channels, parts
+
+
 class StreamEncoder:
     """Raw samples of N taxels -> SA1/RA/PC spike events, chunk by chunk, for the active columns.
 
@@ -39,15 +68,29 @@ class StreamEncoder:
     their (class, taxel) columns are active at first (:meth:`set_active` changes that). Every spike
     is stamped on the sensor clock, ``(k + 1) / 5000 + delay_ms`` for a threshold crossing at grid
     sample k, whenever it is emitted; each source emits as soon as its own branches allow.
+
+    ``taxel_block`` splits the taxels into blocks of that many (default: one block) that share the
+    acquisition but nothing else: a block with no active column runs nothing, so a few subscribed
+    taxels of a large skin cost about one block's preprocessing; with every column active, one
+    block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent).
+
+    Not thread-safe: call :meth:`set_active` between :meth:`process` calls (same thread or lock).
     """
 
     def __init__(
-        self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None, dtype: type = np.float64
+        self,
+        params: EncoderParams,
+        n_taxels: int = 1,
+        classes: Sequence[str] | None = None,
+        dtype: type = np.float64,
+        taxel_block: int | None = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
         if missing:
             raise ValueError(f"parameter set has no class {missing}")
+        if taxel_block is not None and taxel_block < 1:
+            raise ValueError("taxel_block must be >= 1")
         self.params = params
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in wanted)
@@ -55,11 +98,10 @@ class StreamEncoder:
         groups: dict[Source, list[str]] = {}
         for c in self.classes:
             groups.setdefault(self.source[c], []).append(c)
-        self.encoders = {s: Encoder(params, n_taxels, cs) for s, cs in groups.items()}
         windows = [s for s in groups if s is not None]
-        self.pre = Preprocessor(
-            params.preprocess, n_taxels, dtype, sources=list(groups), max_window_ms=max(windows, default=params.preprocess.window_ms)
-        )
+        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms))
+        size = n_taxels if taxel_block is None else taxel_block
+        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype) for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
 
@@ -72,11 +114,11 @@ class StreamEncoder:
         * A column that (re)starts starts from rest (:class:`~touchreal.encoding.encoder.Encoder`)
           at the next grid sample its source delivers: for a source that kept running, the sample
           after the last one delivered; for a source that (re)starts, the first grid sample after
-          the newest raw sample received (:meth:`Preprocessor.restart_index`).
+          the newest raw sample received (:meth:`restart_index`).
         * A PVDF window branch runs only while an active column reads it; the PVDF filter only
-          while some window runs; the SingleTact branch only while any column is active. A branch
-          that restarts is rebuilt from the raw history acquisition keeps (no waiting: its class
-          emits after its usual latency), see :meth:`Preprocessor.set_sources`.
+          while some window runs; the SingleTact branch only while any column is active (per taxel
+          block). A branch that restarts is rebuilt from the raw history acquisition keeps (no
+          waiting: its class emits after its usual latency), see :meth:`Preprocessor.set_sources`.
         * With everything off, :meth:`process` only runs acquisition: the sanitizers (input
           policy and counters) and the raw history rings (the last 0.5 s of SingleTact, the last
           100 ms + two frames of the longest window of PVDF) that restarts are rebuilt from.
@@ -88,38 +130,49 @@ class StreamEncoder:
         bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_taxels})
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
-        for enc in self.encoders.values():
-            enc.set_columns({c: want[c] for c in enc.classes})
-        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns])
+        for block in self.blocks:
+            block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()})
         self.active = {c: xs for c, xs in want.items() if xs}
+
+    def restart_index(self) -> int | None:
+        """The grid index a source that (re)started now would deliver from (None before any data)."""
+        return self.acq.restart_index()
 
     # -- data -----------------------------------------------------------------------------------
     def process(self, chunk: RawChunk) -> SpikeEvents:
-        """Spikes of the active columns that became final with this chunk, sorted by time."""
-        self.pre.feed(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
+        """Spikes of the active columns that became final with this chunk, sorted by time (within
+        the call; a later call may return spikes of another class stamped earlier, see :attr:`final_s`)."""
+        self._feed(chunk)
         return self._encode()[1]
 
     def process_channels(self, chunk: RawChunk) -> tuple[Channels, SpikeEvents]:
         """Like :meth:`process`, also returning new 5 kHz channels (for dashboards and analysis): those
         of the active source with the longest window (:attr:`display_source`; its ST and dST are
-        the SingleTact channels every source shares). Empty when no column is active."""
-        self.pre.feed(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
+        the SingleTact channels every source shares). Empty when no column is active; one taxel
+        block only (the default)."""
+        if len(self.blocks) != 1:
+            raise ValueError("process_channels needs a single taxel block (taxel_block=None)")
+        self._feed(chunk)
         return self._encode()
 
     def finish(self) -> SpikeEvents:
         """End of stream: flush every running branch and return the last spikes."""
-        self.pre.flush()
+        for block in self.blocks:
+            block.pre.flush()
         return self._encode()[1]
+
+    def _feed(self, chunk: RawChunk) -> None:
+        new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
+        for block in self.blocks:
+            block.pre.consume(*new)
 
     def _encode(self) -> tuple[Channels, SpikeEvents]:
         shown = self.display_source
-        channels = Channels(0, np.zeros((0, self.n_taxels, 4)))
-        parts = []
-        for s in self.pre.sources:
-            ch = self.pre.take(s)
-            parts.append(self.encoders[s].process(ch))
-            if s == shown:
-                channels = ch
+        channels, parts = Channels(0, np.zeros((0, self.n_taxels, 4))), []
+        for block in self.blocks:
+            ch, evs = block.encode(shown)
+            channels = ch if len(self.blocks) == 1 else channels
+            parts += evs
         events = SpikeEvents.concatenate(parts)
         if len(parts) > 1:
             order = np.argsort(events.t_s, kind="stable")
@@ -131,18 +184,29 @@ class StreamEncoder:
     def display_source(self) -> Source | None:
         """The active source :meth:`process_channels` returns: the longest active window, else the
         SingleTact-only source (PVDF channels zero); None when nothing is active."""
-        sources = self.pre.sources
-        windows = [s for s in sources if s is not None]
+        windows = [s for b in self.blocks for s in b.pre.sources if s is not None]
         return max(windows) if windows else None
+
+    @property
+    def running(self) -> dict[str, bool | tuple[float, ...] | int]:
+        """Which branches run in any block: SingleTact, the PVDF filter, the PVDF windows (ms), and
+        in how many taxel blocks something runs."""
+        runs = [b.pre.running for b in self.blocks]
+        return {
+            "singletact": any(r["singletact"] for r in runs),
+            "pvdf_filter": any(r["pvdf_filter"] for r in runs),
+            "pvdf_windows": tuple(sorted({w for r in runs for w in r["pvdf_windows"]})),
+            "blocks": sum(bool(r["singletact"]) for r in runs),
+        }
 
     @property
     def final_s(self) -> dict[str, float]:
         """Per active class: every spike of that class stamped before this time (s, sensor clock,
         delay included) has been returned (-inf before its source has started)."""
         out = {}
-        for c in self.active:
-            k = self.pre.cursor.get(self.source[c])
-            out[c] = -np.inf if k is None else (k + 1) / OUT_FS_HZ + self._delay_s[c]
+        for c, xs in self.active.items():
+            ks = [b.pre.cursor.get(self.source[c]) for b in self.blocks if any(x in b.taxels for x in xs)]
+            out[c] = -np.inf if None in ks else (min(ks) + 1) / OUT_FS_HZ + self._delay_s[c]
         return out
 
     @property
@@ -150,19 +214,22 @@ class StreamEncoder:
         """Per class: algorithmic latency, the upper bound of emission minus stamp (s) with
         ``delay_ms`` excluded (the look-ahead of the branches its source reads, less the one grid
         sample a spike's stamp is ahead of its sample); a spike's stamp moves by ``delay_ms``."""
-        return {c: self.pre.latency_s(self.source[c]) - 1.0 / OUT_FS_HZ for c in self.classes}
+        return {c: Preprocessor.latency_s(self.source[c]) - 1.0 / OUT_FS_HZ for c in self.classes}
 
     @property
     def stats(self) -> dict[str, dict[str, int]]:
-        """Input-policy counters per sensor (see docs/architecture.md)."""
-        return self.pre.stats
+        """Input-policy counters per sensor, over all taxels (see docs/architecture.md)."""
+        return self.acq.stats
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """All state: preprocessing stages and buffers, class low-passes and membrane potentials."""
-        out = dict(self.pre.state_arrays())
-        for s, enc in self.encoders.items():
-            name = "st" if s is None else f"{s:g}ms"
-            out.update({f"{name}_{k}": a for k, a in enc.state_arrays().items()})
+        out = self.acq.state_arrays()
+        for i, block in enumerate(self.blocks):
+            prefix = f"b{i}_" if len(self.blocks) > 1 else ""
+            out.update({prefix + k: a for k, a in block.pre.state_arrays().items()})
+            for s, enc in block.encoders.items():
+                name = "st" if s is None else f"{s:g}ms"
+                out.update({f"{prefix}{name}_{k}": a for k, a in enc.state_arrays().items()})
         return out
 
     def state_report(self) -> tuple[bool, float, int]:
@@ -171,6 +238,17 @@ class StreamEncoder:
         finite = all(bool(np.all(np.isfinite(a))) for a in arrays)
         peak = max((float(np.max(np.abs(a))) for a in arrays if a.size), default=0.0)
         return finite, peak, sum(a.nbytes for a in arrays)
+
+
+def class_channels(trial: Trial, params: EncoderParams, classes: Sequence[str] | None = None) -> dict[str, Channels]:
+    """One taxel's whole-recording channels per class, each on its own source (window, or the
+    SingleTact alone), every distinct source computed once: the offline counterpart of the
+    stream for fitting and evaluation (``encode_population`` on a class's channels gives the
+    spikes :func:`encode_trial` gives)."""
+    classes = [c for c in CLASSES if c in params.classes and (classes is None or c in classes)]
+    sources = {c: class_source(params, c) for c in classes}
+    channels = preprocess_trial_windows(trial, params.preprocess, list(sources.values()))
+    return {c: channels[sources[c]] for c in classes}
 
 
 def encode_chunks(

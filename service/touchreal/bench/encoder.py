@@ -1,16 +1,21 @@
-"""Encoder benchmark: compute time per update, real-time factor, and run time against error per window.
+"""Encoder benchmark: compute time per update, per-class latency, and run time against error per window.
 
 Part 1 drives the full online chain (preprocessing + LIF, all three classes) with the simulated
 e-skin's live scene for 1, 16 and 256 taxels in 32 ms updates and reports the compute time per
 update (mean, p95, p99, max) and the real-time factor (update interval / mean compute time), in
 float64 and in float32 preprocessing.
 
-Part 2 encodes ramp and sine trials with causal windows of 16-512 ms and reports, against the
-128 ms / float64 result, the mean absolute spike-count error (%) and the mean van Rossum distance
-(tau 10 ms), with the compute time per update for one taxel at that window. It uses rig-v1 from
-TOUCHREAL_SHARED when present, otherwise a small simulated dataset.
+Part 2 measures each class's latency: the live scene fed in 1 ms chunks, every spike's emission
+(the newest sample time of the chunk that returned it) minus its stamp, on the sensor clock, with
+the class's ``delay_ms`` (raw) and without it (the pipeline's own latency), next to the algorithmic
+bound (``StreamEncoder.latency_s``), for the parameter file's windows and per-class window sets.
 
-Part 3 soaks the chain with a long simulated stream (``--soak-hours``) and reports the largest
+Part 3 encodes ramp and sine trials with causal windows of 16-512 ms (all classes on one window, and
+per-class window sets) and reports, against the 128 ms / float64 result, the mean absolute
+spike-count error (%) and the mean van Rossum distance (tau 10 ms), with the compute time per update
+for one taxel. It uses rig-v1 from TOUCHREAL_SHARED when present, otherwise a small simulated dataset.
+
+Part 4 soaks the chain with a long simulated stream (``--soak-hours``) and reports the largest
 state magnitude, the state size at the start and end (flat memory) and the process RSS.
 """
 
@@ -33,6 +38,12 @@ from ..settings import CLASSES, shared_dir
 from ..stream import StreamEncoder, encode_chunks
 
 WINDOWS_MS = (16, 32, 64, 128, 256, 512)
+#: per-class window sets (ms) of the latency and sweep parts, besides the parameter file's own
+CLASS_WINDOWS_MS: tuple[dict[str, float], ...] = (
+    {"SA1": 16.0, "RA": 16.0, "PC": 128.0},
+    {"SA1": 32.0, "RA": 32.0, "PC": 128.0},
+    {"SA1": 64.0, "RA": 32.0, "PC": 128.0},
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--trials", type=int, default=40, help="trials per protocol for the window sweep")
     p.add_argument("--soak-hours", type=float, default=0.0, help="also soak with this many simulated hours")
-    p.add_argument("--skip-sweep", action="store_true", help="only the timing part")
+    p.add_argument("--latency-seconds", type=float, default=30.0, help="simulated seconds per latency run (1 ms chunks)")
+    p.add_argument("--skip-sweep", action="store_true", help="only the timing and latency parts")
 
 
 def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0) -> list[RawChunk]:
@@ -51,8 +63,13 @@ def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0)
     return [src.read(update_s) for _ in range(int(round(seconds / update_s)))]
 
 
-def _time_updates(params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type) -> np.ndarray:
-    se = StreamEncoder(params, n_taxels, dtype=dtype)
+def _time_updates(
+    params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type, active: dict[str, list[int]] | None = None,
+    taxel_block: int | None = None,
+) -> np.ndarray:
+    se = StreamEncoder(params, n_taxels, dtype=dtype, taxel_block=taxel_block)
+    if active is not None:
+        se.set_active(active)
     warm = warmup_updates(se, params)
     for c in chunks[:warm]:  # until the first output: JIT dispatch and caches outside the measurement
         se.process(c)
@@ -81,6 +98,75 @@ def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:
                 f"{n:6d} {np.dtype(dtype).name:>7} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f} "
                 f"{np.percentile(ms, 99):8.3f} {ms.max():8.3f} {update_s * 1000 / ms.mean():11.1f}"
             )
+
+
+def with_class_windows(params: EncoderParams, windows: dict[str, float | None]) -> EncoderParams:
+    """``params`` with the given classes on their own causal windows (ms)."""
+    classes = {c: cp.model_copy(update={"window_ms": windows.get(c, cp.window_ms)}) for c, cp in params.classes.items()}
+    return params.model_copy(update={"classes": classes, "version": 3})
+
+
+def windows_label(params: EncoderParams) -> str:
+    """``SA1 16 / RA 16 / PC 128`` (ms; ``ST`` for a class that reads no PVDF channel)."""
+    from ..stream import class_source
+
+    return " / ".join(f"{c} {'ST' if class_source(params, c) is None else format(params.window_ms(c), 'g')}" for c in params.classes)
+
+
+def measure_latency(params: EncoderParams, seconds: float, chunk_s: float = 0.001, skip_s: float = 0.5) -> tuple[dict[str, np.ndarray], float]:
+    """Emission minus stamp (s) of every spike per class, raw (``delay_ms`` included), for the live
+    scene fed in ``chunk_s`` chunks (spikes emitted in the first ``skip_s`` are left out: stream
+    start), and the mean compute time per chunk (s)."""
+    from ..sensing.scene import SceneSource
+
+    se = StreamEncoder(params, 1)
+    src = SceneSource(seed=0)
+    lat: dict[str, list[np.ndarray]] = {c: [] for c in se.classes}
+    spent = 0.0
+    n = int(round(seconds / chunk_s))
+    for _ in range(n):
+        chunk = src.read(chunk_s)
+        t = time.perf_counter()
+        ev = se.process(chunk)
+        spent += time.perf_counter() - t
+        now = max(float(x[-1]) for x in (chunk.st_t, chunk.pvdf_t) if x.size)
+        if now >= skip_s:
+            for c in se.classes:
+                lat[c].append(now - ev.train(c))
+    return {c: np.concatenate(v) if v else np.zeros(0) for c, v in lat.items()}, spent / n
+
+
+def latency(params: EncoderParams, seconds: float) -> None:
+    print(f"\n== latency per class: emission - stamp (ms) on the sensor clock, live scene in 1 ms chunks, {seconds:g} s")
+    print(f"{'windows (ms)':<28} {'class':>5} {'bound':>6} {'mean':>7} {'p95':>7} {'max':>7} {'raw mean':>8} {'raw max':>8} {'delay':>7} {'spikes':>6} {'us/chunk':>8}")
+    for p in [params] + [with_class_windows(params, w) for w in CLASS_WINDOWS_MS]:
+        se = StreamEncoder(p, 1)
+        lat, per_chunk = measure_latency(p, seconds)
+        for c in se.classes:
+            raw = lat[c] * 1000
+            own = raw + p.classes[c].delay_ms  # delay_ms treated as 0: the pipeline's own latency
+            stats = (f"{own.mean():7.2f} {np.percentile(own, 95):7.2f} {own.max():7.2f} {raw.mean():8.2f} {raw.max():8.2f}"
+                     if raw.size else f"{'-':>7} {'-':>7} {'-':>7} {'-':>8} {'-':>8}")
+            print(f"{windows_label(p):<28} {c:>5} {1000 * se.latency_s[c]:6.1f} {stats} {p.classes[c].delay_ms:7.1f} {raw.size:6d} {per_chunk * 1e6:8.1f}")
+
+
+def demand(params: EncoderParams, n_taxels: int, seconds: float) -> None:
+    """Compute time per update of one stream of ``n_taxels`` for several subscription sets."""
+    update_s = params.preprocess.update_ms / 1000.0
+    chunks = _scene_chunks(n_taxels, seconds, update_s)
+    cases = {
+        "every column": None,
+        "16 taxels, all classes": {c: list(range(16)) for c in params.classes},
+        "1 taxel, all classes": {c: [0] for c in params.classes},
+        "1 taxel, first class": {next(iter(params.classes)): [0]},
+        "nobody (acquisition only)": {},
+    }
+    print(f"\n== demand: compute time per {params.preprocess.update_ms:g} ms update, {n_taxels} taxels ({windows_label(params)})")
+    print(f"{'active columns':<28} {'taxel block':>11} {'mean ms':>8} {'p95 ms':>8}")
+    for name, active in cases.items():
+        for block in (None, 16):
+            ms = _time_updates(params, chunks, n_taxels, np.float64, active, block) * 1000
+            print(f"{name:<28} {block or n_taxels:>11} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f}")
 
 
 def _sweep_dataset(n_trials: int) -> tuple[Dataset, str]:
@@ -116,8 +202,7 @@ def sweep(params: EncoderParams, n_trials: int) -> None:
     print(f"\n== run time against error per causal window ({len(trials)} ramp+sine trials of {name}; "
           "reference: 128 ms, float64; VR tau 10 ms)")
 
-    def encode_all(window_ms: float, dtype: type) -> tuple[list[dict[str, np.ndarray]], float]:
-        p = params.model_copy(update={"preprocess": params.preprocess.model_copy(update={"window_ms": window_ms})})
+    def encode_all(p: EncoderParams, dtype: type) -> tuple[list[dict[str, np.ndarray]], float]:
         out, spent, updates = [], 0.0, 0
         for tr in trials:
             chunks = list(ReplaySource(tr).chunks(p.preprocess.update_ms / 1000.0))
@@ -128,19 +213,24 @@ def sweep(params: EncoderParams, n_trials: int) -> None:
             out.append({c: ev.train(c) for c in CLASSES})
         return out, spent / updates * 1000
 
-    ref, _ = encode_all(128.0, np.float64)
-    print(f"{'window ms':>9} {'dtype':>7} {'ms/update':>9} " + " ".join(f"{c + ' cnt%':>9} {c + ' VR':>7}" for c in CLASSES))
-    for w in WINDOWS_MS:
-        for dtype in (np.float64, np.float32) if w == 128 else (np.float64,):
-            got, ms = encode_all(float(w), dtype)
-            cols = []
-            for c in CLASSES:
-                n_ref = np.array([len(r[c]) for r in ref], float)
-                n_got = np.array([len(g[c]) for g in got], float)
-                cnt = 100 * np.abs(n_got - n_ref).sum() / max(n_ref.sum(), 1.0)
-                vr = np.mean([vr_distance(g[c], r[c], 0.01) for g, r in zip(got, ref)])
-                cols.append(f"{cnt:9.2f} {vr:7.3f}")
-            print(f"{w:9d} {np.dtype(dtype).name:>7} {ms:9.3f} " + " ".join(cols))
+    def one_window(w: float) -> EncoderParams:
+        pre = params.preprocess.model_copy(update={"window_ms": w})
+        return with_class_windows(params.model_copy(update={"preprocess": pre}), {c: None for c in params.classes})
+
+    ref, _ = encode_all(one_window(128.0), np.float64)
+    rows = [(f"all {w}", one_window(float(w)), dtype) for w in WINDOWS_MS for dtype in ((np.float64, np.float32) if w == 128 else (np.float64,))]
+    rows += [(windows_label(p), p, np.float64) for p in [params] + [with_class_windows(params, w) for w in CLASS_WINDOWS_MS]]
+    print(f"{'windows (ms)':>28} {'dtype':>7} {'ms/update':>9} " + " ".join(f"{c + ' cnt%':>9} {c + ' VR':>7}" for c in CLASSES))
+    for label, p, dtype in rows:
+        got, ms = encode_all(p, dtype)
+        cols = []
+        for c in CLASSES:
+            n_ref = np.array([len(r[c]) for r in ref], float)
+            n_got = np.array([len(g[c]) for g in got], float)
+            cnt = 100 * np.abs(n_got - n_ref).sum() / max(n_ref.sum(), 1.0)
+            vr = np.mean([vr_distance(g[c], r[c], 0.01) for g, r in zip(got, ref)])
+            cols.append(f"{cnt:9.2f} {vr:7.3f}")
+        print(f"{label:>28} {np.dtype(dtype).name:>7} {ms:9.3f} " + " ".join(cols))
 
 
 def soak(params: EncoderParams, hours: float) -> None:
@@ -168,6 +258,8 @@ def soak(params: EncoderParams, hours: float) -> None:
 def run(args: argparse.Namespace) -> int:
     params = EncoderParams.load(args.params) if args.params else default_params()
     timing(params, [int(x) for x in args.taxels.split(",")], args.seconds)
+    demand(params, max(int(x) for x in args.taxels.split(",")), args.seconds)
+    latency(params, args.latency_seconds)
     if not args.skip_sweep:
         sweep(params, args.trials)
     if args.soak_hours > 0:

@@ -24,9 +24,12 @@ Steps of :func:`fit_dataset`:
 5. Score the best candidate on the training and held-out trials; write everything into
    :class:`EncoderParams` with provenance.
 
-Spike times enter the objective on the reference clock (stamp minus the rig's lag, the parameter
-file's ``alignment``; the class delays stay >= 0) and relative to each trial's commanded onset
-(``onset_s``), so trials of one condition share a clock. The fitter runs exactly the product encoder's code, so a fitted
+Spike times enter the objective on the reference clock (stamp minus an alignment) and relative to
+each trial's commanded onset (``onset_s``), so trials of one condition share a clock. The search
+runs at an alignment of :data:`SEARCH_LAG_MS`, so a class may lead the reference by up to 250 ms
+(the sensor's lag behind the commanded stimulus); the file records the smallest alignment that keeps
+every class delay >= 0 (the class with the largest lead gets delay 0), kept classes of ``init``
+re-expressed on it with the same reference-clock spikes. The fitter runs exactly the product encoder's code, so a fitted
 parameter set behaves in the service as it did in the fit.
 """
 
@@ -53,6 +56,9 @@ from .objective import LossTerms, ObjectiveConfig, ReferenceSet, evaluate_loss
 from .space import DELAY_RANGE_MS, DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace, touchsim_class_defaults
 
 FIT_PROTOCOLS = ("ramp", "sine")
+#: Alignment (ms) the search runs at: class delays of 0-500 ms then span reference-clock delays of
+#: -250 ... +250 ms. The written file gets the smallest alignment that keeps every delay >= 0.
+SEARCH_LAG_MS = 250.0
 SPLIT_METHOD = "per-condition seeded shuffle of repeats (crc32(condition), seed); first half trains"
 NO_SPLIT_METHOD = "none: every ramp/sine trial trains, nothing is held out"
 
@@ -288,7 +294,7 @@ class FitSource:
 @dataclass
 class FitState:
     """What evaluating a candidate needs: per class its search space, references and preprocessed
-    training trials; the objective; the rig's lag (s)."""
+    training trials; the objective; the search's alignment ``lag_s`` (s; spikes compared at stamp minus it)."""
 
     spaces: dict[str, ParamSpace]
     refs: dict[str, ReferenceSet]
@@ -514,7 +520,7 @@ def fit_class(
 @dataclass
 class Prepared:
     """A fit's data before optimisation (:func:`prepare`): the opened dataset, its split, the
-    calibrated preprocessing, the evaluation state, the rig's lag and what was logged about it."""
+    calibrated preprocessing, the evaluation state, the measured rig lag and the step timings."""
 
     ds: Dataset
     train_e: list[dict[str, Any]]
@@ -522,7 +528,7 @@ class Prepared:
     pre: PreprocessParams
     n_baselines: int
     state: FitState
-    lag_ms: float
+    rig_lag_ms: float  #: the SingleTact's rise after the commanded onset (the search runs at SEARCH_LAG_MS)
     timings: dict[str, float]
 
 
@@ -533,7 +539,6 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     log = log or (lambda s: None)
     timings: dict[str, float] = {}
     ds = Dataset.open(dataset_dir)
-    name = str(ds.manifest.get("name", ""))
     entries = [e for e in ds.entries() if e["protocol"] in FIT_PROTOCOLS and e.get("reference")]
     if not entries:
         raise ValueError(f"{dataset_dir}: no ramp or sine trials with reference spike trains")
@@ -563,14 +568,10 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     train = {c: trainsets[cfg.window_of(c)] for c in cfg.classes}
     timings["preprocess_s"] = time.perf_counter() - t
     first = trainsets[windows[0]]
-    if init is not None and init.alignment.dataset == name and init.alignment.lag_ms > 0:
-        lag_ms = init.alignment.lag_ms  # the kept classes' delays are relative to it
-        lag_note = f"rig lag {lag_ms:.1f} ms (from --init)"
-    else:
-        lag_ms = round(1000.0 * estimate_lag_s(first.trials), 3)
-        lag_note = f"rig lag {lag_ms:.1f} ms (SingleTact rise after the commanded onset)"
+    rig_lag_ms = round(1000.0 * estimate_lag_s(first.trials), 3)
+    lag_s = SEARCH_LAG_MS / 1000.0  # the search's alignment; the file gets the smallest that keeps every delay >= 0
     log(f"preprocessed at {windows} ms in {timings['preprocess_s']:.1f} s; channel scale "
-        f"{np.round(channel_scale(first.trials), 4).tolist()}; {lag_note}")
+        f"{np.round(channel_scale(first.trials), 4).tolist()}; rig lag {rig_lag_ms:.1f} ms (SingleTact rise after the commanded onset)")
 
     tau_s = cfg.objective.kernel_tau_s
     spaces = {}
@@ -578,8 +579,8 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
     refs = {c: train[c].reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
-    state = FitState(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_ms / 1000.0)
-    return Prepared(ds, train_e, val_e, pre, len(segments), state, lag_ms, timings)
+    state = FitState(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_s)
+    return Prepared(ds, train_e, val_e, pre, len(segments), state, rig_lag_ms, timings)
 
 
 def fit_dataset(
@@ -597,7 +598,7 @@ def fit_dataset(
     t_all = time.perf_counter()
     source = FitSource(str(dataset_dir), cfg, init)
     prep = prepare(source, log)
-    ds, val_e, pre, timings, lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.lag_ms
+    ds, val_e, pre, timings, rig_lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.rig_lag_ms
     name = str(ds.manifest.get("name", ""))
     spaces, refs, train, lag_s, tau_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s, cfg.objective.kernel_tau_s
     first = train[min(cfg.classes, key=cfg.window_of)]  # the smallest window's trial set (counts are the same in all)
@@ -608,10 +609,11 @@ def fit_dataset(
     try:
         for cls in cfg.classes:
             sp = spaces[cls]
-            d0 = 0.0  # on the reference clock the class delay is physiological: start at none
+            d0 = SEARCH_LAG_MS - rig_lag_ms  # spikes start aligned with the SingleTact's rise
             if init is not None and cls in init.classes:
-                starts = [sp.clip(sp.encode(init.classes[cls]))]
-                d0 = init.classes[cls].delay_ms
+                start = init.classes[cls]
+                d0 = start.delay_ms - init.alignment.lag_ms + SEARCH_LAG_MS  # the same reference-clock spikes
+                starts = [sp.clip(sp.encode(start.model_copy(update={"delay_ms": d0})))]
             else:
                 starts = [sp.initial(d0, v) for v in range(len(INITIAL_WEIGHTS[cls]))]
             fits[cls] = fit_class(cls, sp, evaluator, cfg, starts, d0)
@@ -632,12 +634,19 @@ def fit_dataset(
     timings["score_s"] = time.perf_counter() - t
     seconds = time.perf_counter() - t_all
 
-    classes = {}
-    if init is not None:  # kept classes keep the window they were fitted at
+    # every class's delay on the reference clock (< 0: it leads the stamp); kept classes keep their window
+    lead_ms: dict[str, float] = {c: f.params.delay_ms - SEARCH_LAG_MS for c, f in fits.items()}
+    classes = {c: f.params for c, f in fits.items()}
+    if init is not None:
         for c, cp in init.classes.items():
-            own = init.window_ms(c)
-            classes[c] = cp.model_copy(update={"window_ms": None if own == pre.window_ms else own})
-    classes.update({c: f.params for c, f in fits.items()})
+            if c not in fits:
+                own = init.window_ms(c)
+                classes[c] = cp.model_copy(update={"window_ms": None if own == pre.window_ms else own})
+                lead_ms[c] = cp.delay_ms - init.alignment.lag_ms
+    lag_ms = max(0.0, -min(lead_ms.values()))  # the smallest alignment with every delay >= 0
+    classes = {c: cp.model_copy(update={"delay_ms": max(0.0, lead_ms[c] + lag_ms)}) for c, cp in classes.items()}
+    for c, f in fits.items():
+        f.params = classes[c]
     prov: dict[str, Any] = {
         "fitted_by": "touchreal fit",
         "dataset": name,
@@ -649,6 +658,7 @@ def fit_dataset(
         "n_validation_trials": len(val_e),
         "max_ramp_conditions": cfg.max_ramp_conditions if cfg.max_ramp_conditions is not None else "all",
         "window_ms": float(cfg.window_ms),
+        "rig_lag_ms": rig_lag_ms,
         "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
         "calibration_baselines": prep.n_baselines,
         "objective": {

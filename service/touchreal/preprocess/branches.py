@@ -1,0 +1,215 @@
+"""The branches of the preprocessing and their buffers (used by :mod:`.pipeline`).
+
+* :class:`SingleTactBranch`: sanitized SingleTact (N, 100 Hz) -> Butterworth low-pass -> alpha-beta
+  -> PCHIP onto the 5 kHz grid (ST [N], dST [N/s]);
+* :class:`PvdfFilter`: sanitized PVDF (V, 2 kHz) -> low-pass + mains notches, hum-primed at its start;
+* :class:`PvdfWindowBranch`: filtered PVDF -> STFT gate of one causal window -> (PVDF [V],
+  dPVDF [V/s]) -> PCHIP onto the 5 kHz grid;
+* :class:`History`: a ring of the last samples of a grid, by slot (restarts are rebuilt from it);
+* :class:`Grid`: a branch's 5 kHz output until every source has read it.
+
+Each branch is a sans-I/O state machine fed slot-indexed samples; frame boundaries, knots and grid
+points depend only on sample indices, so chunking never changes the output.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..params import PreprocessParams
+from ..settings import OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
+from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, prime_with_hum
+from .gate import gate_thresholds, pvdf_filter
+from .resample import CausalPchip
+from .stft_gate import StftGate, frame_length
+
+_ST_LP_ORDER = 2
+
+
+class History:
+    """The last ``size`` samples of a regular grid (n, n_taxels), by grid slot (a ring buffer)."""
+
+    def __init__(self, size: int, n_taxels: int):
+        self.buf = np.zeros((size, n_taxels))
+        self.end = 0  # slot after the newest sample
+        self.count = 0
+
+    def push(self, slot: int, x: np.ndarray) -> None:
+        """Append samples of slots ``slot ...`` (contiguous with the newest, unless empty)."""
+        if x.shape[0] == 0:
+            return
+        if self.count and slot != self.end:
+            raise ValueError(f"history is contiguous: expected slot {self.end}, got {slot}")
+        size = self.buf.shape[0]
+        end = slot + x.shape[0]
+        x = x[-size:]
+        self.buf[np.arange(end - x.shape[0], end) % size] = x
+        self.count = min(self.count + x.shape[0], size)
+        self.end = end
+
+    def since(self, slot: int) -> tuple[int, np.ndarray]:
+        """(first slot, samples) from ``slot`` (or the oldest kept) to the newest."""
+        first = max(slot, self.end - self.count)
+        return first, self.buf[np.arange(first, self.end) % self.buf.shape[0]]
+
+    @property
+    def first(self) -> int | None:
+        return self.end - self.count if self.count else None
+
+    def clear(self) -> None:
+        self.count = 0
+
+
+class Grid:
+    """A branch's 5 kHz output (T, n_taxels, 2) not yet read by every source, as a list of blocks."""
+
+    def __init__(self, n_taxels: int):
+        self.n_taxels = n_taxels
+        self.blocks: list[tuple[int, np.ndarray]] = []
+        self.end: int | None = None  # grid index after the newest emitted sample
+
+    def add(self, emitted: tuple[int, np.ndarray]) -> None:
+        k0, v = emitted
+        if v.shape[0] == 0:
+            return
+        self.blocks.append((k0, v.reshape(v.shape[0], 2, self.n_taxels).transpose(0, 2, 1)))
+        self.end = k0 + v.shape[0]
+
+    @property
+    def k0(self) -> int | None:
+        return self.blocks[0][0] if self.blocks else self.end
+
+    def read(self, a: int, b: int) -> np.ndarray:
+        """Samples a ... b - 1 (all held)."""
+        parts = [blk[max(a - k, 0) : b - k] for k, blk in self.blocks if k < b and k + blk.shape[0] > a]
+        return np.concatenate(parts, axis=0) if len(parts) != 1 else parts[0]
+
+    def drop_before(self, k: int) -> None:
+        keep = []
+        for k0, blk in self.blocks:
+            if k0 + blk.shape[0] <= k:
+                continue
+            keep.append((k, blk[k - k0 :]) if k0 < k else (k0, blk))
+        self.blocks = keep
+
+    def arrays(self) -> list[np.ndarray]:
+        return [blk for _, blk in self.blocks]
+
+
+class SingleTactBranch:
+    """SingleTact: Butterworth low-pass -> alpha-beta -> PCHIP onto the 5 kHz grid (ST [N], dST [N/s])."""
+
+    def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot_time: Callable):
+        self.lp = butter_lowpass(params.st_lowpass_hz, ST_FS_HZ, _ST_LP_ORDER, n_taxels, dtype)
+        self.ab = AlphaBeta(params.st_alpha, params.st_beta, ST_FS_HZ, n_taxels)
+        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
+        self.slot_time = slot_time
+        self.out = Grid(n_taxels)
+
+    def process(self, first: int, x: np.ndarray) -> None:
+        if x.shape[0] == 0:
+            return
+        force, rate = self.ab.process(self.lp.process(x))
+        t = self.slot_time(np.arange(first, first + x.shape[0]))
+        self.out.add(self.rs.process(t, np.concatenate((force, rate), axis=1)))
+
+    def finish(self, until_s: float) -> None:
+        self.out.add(self.rs.finish(until_s))
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        out = {"st_ab_v": self.ab.v, "st_rs": self.rs._y}
+        if self.lp.zi is not None:
+            out["st_lp"] = self.lp.zi
+        if self.ab.x is not None:
+            out["st_ab_x"] = self.ab.x
+        return out
+
+
+class PvdfFilter:
+    """PVDF low-pass + mains notches (one cascade), started at grid slot ``slot``: its first
+    :data:`HUM_PRIME_S` are held and the filter is primed with the hum fitted to them (no notch
+    ringing at the start), then everything flows through."""
+
+    def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot: int):
+        self.filt = pvdf_filter(params, PVDF_FS_HZ, n_taxels, dtype)
+        self.hum_hz = mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ)
+        self.held: list[np.ndarray] | None = []
+        self.slot = slot  # slot of the next output sample
+        self.n_taxels = n_taxels
+
+    def process(self, x: np.ndarray, final: bool = False) -> tuple[int, np.ndarray]:
+        """Filter ``x`` (the samples from the next slot on); returns (first slot, filtered samples)."""
+        if self.held is not None:
+            self.held.append(x)
+            n_prime = int(round(HUM_PRIME_S * PVDF_FS_HZ))
+            held = np.concatenate(self.held)
+            if held.shape[0] < n_prime and not final:
+                return self.slot, held[:0]
+            self.held = None
+            if held.shape[0] == 0:
+                return self.slot, held
+            prime_with_hum(self.filt, held[:n_prime], PVDF_FS_HZ, self.hum_hz)
+            x = held
+        first = self.slot
+        self.slot += x.shape[0]
+        return first, self.filt.process(x)
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        out = {} if self.filt.zi is None else {"pv_filter": self.filt.zi}
+        if self.held:
+            out["pv_held"] = np.concatenate(self.held)
+        return out
+
+
+class PvdfWindowBranch:
+    """One causal window: STFT gate (OLA) -> (PVDF [V], dPVDF = backward difference [V/s]) -> PCHIP.
+
+    Frames lie on the absolute slot grid (a frame starts at every multiple of the hop), so a branch
+    started at any slot gives, once its first frame is full of real samples, exactly the output of a
+    branch that ran all along on the same filtered input."""
+
+    def __init__(self, params: PreprocessParams, window_ms: float, n_taxels: int, dtype: np.dtype, slot_time: Callable, slot: int):
+        n = frame_length(window_ms, PVDF_FS_HZ)
+        gate = StftGate(n, n_taxels, dtype=dtype)
+        if params.gate is not None:
+            thresholds = gate_thresholds(params.gate, gate.window.astype(np.float64), PVDF_FS_HZ)
+            gate = StftGate(n, n_taxels, thresholds, params.gate.attenuation, dtype=dtype)
+        self.gate = gate
+        self.n_taxels = n_taxels
+        self.in_slot = -(-slot // gate.hop) * gate.hop  # first input slot: the next frame boundary
+        self.out_slot = self.in_slot  # slot of the next gate output sample
+        self.prev: np.ndarray | None = None  # last gate output (for the derivative)
+        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
+        self.slot_time = slot_time
+        self.out = Grid(n_taxels)
+
+    def process(self, first: int, y: np.ndarray) -> None:
+        """Filtered PVDF samples from slot ``first`` on (contiguous with the previous call)."""
+        skip = self.in_slot - first
+        if skip < 0:
+            raise ValueError(f"PVDF branch expected slot {self.in_slot}, got {first}")
+        y = y[skip:]
+        self.in_slot += y.shape[0]
+        self._emit(self.gate.process(y))
+
+    def finish(self, until_s: float) -> None:
+        self._emit(self.gate.process(np.zeros((self.gate.n, self.n_taxels))))
+        self.out.add(self.rs.finish(until_s))
+
+    def _emit(self, y: np.ndarray) -> None:
+        if y.shape[0] == 0:
+            return
+        prev = y[:1] if self.prev is None else self.prev[None, :]
+        dy = np.diff(np.concatenate((prev, y), axis=0), axis=0) * PVDF_FS_HZ
+        self.prev = y[-1].copy()
+        slots = np.arange(self.out_slot, self.out_slot + y.shape[0])
+        self.out_slot += y.shape[0]
+        self.out.add(self.rs.process(self.slot_time(slots), np.concatenate((y, dy), axis=1)))
+
+    def state_arrays(self, name: str) -> dict[str, np.ndarray]:
+        out = {f"{name}_gate_buf": self.gate._buf, f"{name}_gate_acc": self.gate._acc, f"{name}_rs": self.rs._y}
+        if self.prev is not None:
+            out[f"{name}_prev"] = self.prev
+        return out
