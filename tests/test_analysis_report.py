@@ -29,7 +29,7 @@ def tiny(rig, tmp_path_factory):
 
 def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
     out = tmp_path / "report"
-    cfg = R.EvalConfig(sweep_windows_ms=(32.0, 128.0), sweep_max_ramp_conditions=1)
+    cfg = R.EvalConfig(sweep_windows_ms=(32.0, 128.0), sweep_max_ramp_conditions=1, latency_trials=0)
     m = R.evaluate(tiny.root, default_params(), out, cfg)
     assert EXPECTED_FILES <= {p.name for p in out.iterdir()}
     for name in EXPECTED_FILES - {"report.md", "metrics.json"}:
@@ -49,6 +49,12 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
         assert set(fr[c]["anova"]) >= {"frequency", "source", "interaction"}
         assert fr[c]["n_obs"]["TouchReal"] == 5 * 4
     assert set(disk["spatial"]) == set(CLASSES)
+    for c in CLASSES:  # per-class latency beside the fidelity (algorithmic only: latency_trials=0)
+        lat = disk["latency"][c]
+        assert lat["window_ms"] == (16.0 if c in ("SA1", "RA") else 128.0) and lat["delay_ms"] >= 0.0  # the fast path
+        assert (lat["algorithmic_ms"] < 20.0) == (c != "PC")
+        assert lat["bound_emission_minus_stamp_ms"] == pytest.approx(lat["algorithmic_ms"] - lat["delay_ms"])
+        assert "measured_spikes" not in lat
     assert len(disk["window_sweep"]["vr"]["PC"]) == 2
     per_cond = {}
     for e in tiny.entries("ramp"):
@@ -119,6 +125,6 @@ def test_cli_evaluate(tiny, tmp_path):
     from touchreal.cli import main
 
     out = tmp_path / "cli"
-    assert main(["evaluate", str(tiny.root), "--out", str(out), "--no-sweep", "--no-spatial", "--quiet"]) == 0
+    assert main(["evaluate", str(tiny.root), "--out", str(out), "--no-sweep", "--no-spatial", "--quiet", "--latency-trials", "0"]) == 0
     assert (out / "report.md").is_file() and (out / "metrics.json").is_file()
     assert main(["evaluate", str(tiny.root), "--out", str(out), "--ramp-condition", "nope", "--quiet", "--no-sweep", "--no-spatial"]) == 2

@@ -3,9 +3,12 @@
 import json
 
 import numpy as np
+import pytest
 
 from touchreal.cli import main
-from touchreal.params import default_params
+from touchreal.encoding.encoder import encode_population
+from touchreal.params import ClassParams, EncoderParams, default_params
+from touchreal.preprocess.pipeline import preprocess_trial
 from touchreal.recording import write_dataset
 from touchreal.stream import encode_trial
 
@@ -24,14 +27,47 @@ def _dataset(tmp_path):
 
 def test_encode_writes_one_json_per_trial(tmp_path, capsys):
     ds, trials = _dataset(tmp_path)
+    p = default_params()
+    assert p.alignment.lag_ms > 0
     assert main(["encode", str(ds), "--out", str(tmp_path / "out")]) == 0
+    assert main(["encode", str(ds), "--out", str(tmp_path / "raw"), "--clock", "sensor"]) == 0
     for tid, trial in trials.items():
         got = json.loads((tmp_path / "out" / f"{tid}.json").read_text())
+        raw = json.loads((tmp_path / "raw" / f"{tid}.json").read_text())
         assert set(got) == {"SA1", "RA", "PC"}
-        want = encode_trial(trial, default_params())
+        stamps = encode_trial(trial, p)  # what the online stream emits
         for c in got:
-            np.testing.assert_allclose(got[c], want[c], atol=1e-6)
-    assert "encoded 2 trials" in capsys.readouterr().out
+            np.testing.assert_allclose(raw[c], stamps[c], atol=1e-6)
+            np.testing.assert_allclose(got[c], stamps[c] - p.alignment.lag_ms / 1000.0, atol=1e-6)
+    out = capsys.readouterr().out
+    assert "encoded 2 trials" in out and "reference clock" in out and "sensor clock" in out
+
+
+def test_encode_output_of_an_old_file_is_unchanged(tmp_path):
+    """A file of the old representation (negative class delays, no alignment) loads with the lag
+    moved into the alignment, and `touchreal encode` writes the same spike times the old encoder
+    (delay < 0 added to every stamp) gave: still comparable with the dataset's reference spikes."""
+    ds, trials = _dataset(tmp_path)
+    new = default_params()
+    old = json.loads(new.to_json())
+    old["version"] = 2
+    del old["alignment"]
+    for name, c in old["classes"].items():
+        c["delay_ms"] = new.classes[name].delay_ms - new.alignment.lag_ms
+        c.pop("window_ms", None)
+    assert min(c["delay_ms"] for c in old["classes"].values()) < -50.0
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert EncoderParams.load(tmp_path / "old.json").alignment.lag_ms == pytest.approx(new.alignment.lag_ms, abs=1e-9)
+    assert main(["encode", str(ds), "--params", str(tmp_path / "old.json"), "--out", str(tmp_path / "out")]) == 0
+    n = 0
+    for tid, trial in trials.items():
+        got = json.loads((tmp_path / "out" / f"{tid}.json").read_text())
+        ch = preprocess_trial(trial, new.preprocess)
+        legacy = [ClassParams.model_construct(**c) for c in old["classes"].values()]  # negative delays, unvalidated
+        for c, want in zip(old["classes"], encode_population(ch.data[:, 0, :], ch.t0_s, legacy)):
+            np.testing.assert_allclose(got[c], want, atol=1e-6)
+            n += want.size
+    assert n > 100
 
 
 def test_encode_rejects_bad_params_and_missing_dataset(tmp_path, capsys):

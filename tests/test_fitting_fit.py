@@ -65,10 +65,10 @@ def test_space_round_trip_and_bounds(cls, input_stage):
     lo, hi = space.bounds()
     assert lo.shape == hi.shape == (N_DIM + 2 * input_stage,) and np.all(lo < hi)
     for v in range(2):
-        x0 = space.initial(-60.0, v)
+        x0 = space.initial(60.0, v)
         assert np.all((x0 >= lo) & (x0 <= hi))
         p = space.decode(x0)
-        assert p.delay_ms == pytest.approx(-60.0)
+        assert p.delay_ms == pytest.approx(60.0)
         if input_stage:  # TouchSim's class median cutoff (10 x column 0), no lead
             assert 80.0 < p.lowpass_hz < 350.0 and p.negative_lead_ms == 0.0
         else:
@@ -79,6 +79,16 @@ def test_space_round_trip_and_bounds(cls, input_stage):
         np.testing.assert_allclose(space.encode(p), x, rtol=1e-9, atol=1e-9)
     extreme = space.decode(hi + 100)
     assert extreme.tau_ms <= 2000 and extreme.delay_ms <= 500
+    assert space.decode(lo - 100).delay_ms == 0.0  # physiological delays only: the rig's lag is the alignment
+
+
+def test_space_without_pvdf_holds_the_pvdf_weights_at_zero():
+    space = ParamSpace.for_class("SA1", [8.0, 60.0, 0.2, 200.0], pvdf=False)
+    assert space.fixed() == {4: 0.0, 5: 0.0, 6: 0.0, 7: 0.0}
+    x = np.random.default_rng(1).uniform(*space.bounds())
+    assert space.decode(x).weights[4:] == [0.0] * 4 and space.decode(x).weights[0] != 0.0
+    es = F._cma(space, space.initial(0.0, 1), 6, 2, 1)  # CMA-ES does not search them
+    assert np.all(np.asarray(es.ask())[:, 4:8] == 0.0)
 
 
 # ------------------------------------------------------------------- fast simulation == encoder
@@ -100,16 +110,16 @@ def _trial(i, channels, onset, refs, k0=50):
 
 def test_batched_candidates_equal_one_at_a_time():
     params = [
-        ClassParams(weights=[0.003, 0, 4e-4, -1e-4, 0.05, 0.05, 1e-5, 1e-5], i_sat=0.0, tau_ms=30, ih=[-0.2, 0], delay_ms=-20),
+        ClassParams(weights=[0.003, 0, 4e-4, -1e-4, 0.05, 0.05, 1e-5, 1e-5], i_sat=0.0, tau_ms=30, ih=[-0.2, 0], delay_ms=20),
         ClassParams(weights=[0, 0, 0.004, 0.004, 0.3, 0.3, 1e-4, 1e-4], i_sat=0.5, tau_ms=4, ih=[-1.8, -0.07], delay_ms=5),
         ClassParams(weights=[0, 0, 0, 0, 2.0, 2.0, 1e-3, 1e-3], i_sat=20.0, tau_ms=1.2, ih=[-6, -0.5], delay_ms=0),
     ]
     trials = [_trial(i, _synthetic_channels(i), 0.1 * i, []) for i in range(3)]
-    batched = F.simulate(trials, params)
+    batched = F.simulate(trials, params, lag_s=0.065)  # on the reference clock: stamps minus the rig's lag
     n_spikes = 0
     for j, p in enumerate(params):
         for a, tr in zip(batched[j], trials):
-            alone = encode_population(tr.channels, tr.k0 / 5000.0, [p])[0] - tr.onset_s
+            alone = encode_population(tr.channels, tr.k0 / 5000.0, [p])[0] - 0.065 - tr.onset_s
             np.testing.assert_array_equal(a, alone)
             n_spikes += a.size
     assert n_spikes > 50  # the comparison is not vacuous
@@ -125,7 +135,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     rng = np.random.default_rng(5)
     scale = np.array([3.0, 30.0, 0.06, 40.0])
     space = ParamSpace.for_class("SA1", scale)
-    x_true = space.initial(-15.0)
+    x_true = space.initial(25.0)
     x_true[:8] = [1.6, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0]
     x_true[8] = -0.3
     true = space.decode(x_true)
@@ -143,15 +153,13 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     tset = F.TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
     cfg = F.FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
     refs = tset.reference_set("SA1", cfg.objective.kernel_tau_s, 80)
-    F._STATE.clear()
-    F._STATE.update(spaces={"SA1": space}, refs={"SA1": refs}, train=tset, objective=cfg.objective)
-    ev = F._Evaluator(1)
+    ev = F.LocalExecutor(F.FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0), 1)
 
     def loss(x):
         return ev("SA1", np.array([x]))[0][0]
 
     l_true = loss(x_true)
-    x_start = space.initial(0.0)
+    x_start = space.initial(10.0)
     x_start[:8] = [0.5, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     l_start = loss(x_start)
     fit = F.fit_class("SA1", space, ev, cfg, [x_start], 0.0)
@@ -200,7 +208,10 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]) == 0
     q = EncoderParams.load(out)
-    assert q.classes["SA1"] == p.classes["SA1"] and q.classes["PC"] == p.classes["PC"]
+    for c in ("SA1", "PC"):  # kept: the same class, re-expressed on the new alignment (same reference-clock spikes)
+        assert q.classes[c].model_copy(update={"delay_ms": 0.0}) == p.classes[c].model_copy(update={"delay_ms": 0.0})
+        assert q.classes[c].delay_ms - q.alignment.lag_ms == pytest.approx(p.classes[c].delay_ms - p.alignment.lag_ms, abs=1e-9)
+    assert min(cp.delay_ms for cp in q.classes.values()) == 0.0  # the smallest alignment with every delay >= 0
     assert json.loads(out.read_text())["provenance"]["fitted_classes"] == ["RA"]
     assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 1.0
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
@@ -236,3 +247,66 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     assert set(n_seg.tolist()) <= {1, 3, 4} and (n_seg > 1).any()
     # the segments of a condition add up to its whole-trial reference count
     np.testing.assert_allclose(np.bincount(np.repeat(np.arange(seg.n_conditions), n_seg), seg.n_t_seg), whole.n_t)
+
+
+@pytest.mark.shared
+def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path):
+    """Each class fitted on its own window's channels; every trial trains; the file records the
+    rig's lag as its alignment (delays >= 0), and `evaluate --split auto` knows nothing was held out."""
+    from touchreal.analysis.report import EvalConfig, evaluate, run_trials
+
+    ds = tiny_rig_subset(rig, tmp_path / "tiny", sine_repeats=1)
+    cfg = F.FitConfig(classes=("SA1", "RA"), class_window_ms={"SA1": 16.0, "RA": 32.0}, holdout=False, popsize=4,
+                      max_generations=1, restarts=0, workers=1, progress=False, input_stage_classes=(), no_pvdf_classes=("SA1",))
+    res = F.fit_dataset(ds.root, cfg)
+    p = res.params
+    n = len([e for e in ds.entries() if e["protocol"] in ("ramp", "sine")])
+    assert res.n_train == n and res.n_validation == 0
+    assert p.provenance["n_validation_trials"] == 0 and p.provenance["class_window_ms"] == {"SA1": 16.0, "RA": 32.0}
+    assert p.window_ms("SA1") == 16.0 and p.window_ms("RA") == 32.0 and p.preprocess.window_ms == 128.0
+    assert p.classes["SA1"].weights[4:] == [0.0] * 4  # SingleTact only
+    assert 40.0 < p.provenance["rig_lag_ms"] < 120.0 and p.alignment.dataset == "rig-v1-tiny"
+    assert all(c.delay_ms >= 0 for c in p.classes.values()) and min(c.delay_ms for c in p.classes.values()) == 0.0
+    # the fit's own loss is the loss of the product encoder at each class's window, on the reference clock
+    entries = [e for e in ds.entries() if e["protocol"] in ("ramp", "sine")]
+    trials = run_trials(ds, entries, p, ["SA1", "RA"])
+    for cls in ("SA1", "RA"):
+        tset = F.build_trial_set(ds, entries, p.preprocess.model_copy(update={"window_ms": p.window_ms(cls)}), [cls])
+        fast = F.simulate(tset.trials, [p.classes[cls]], p.alignment.lag_ms / 1000.0)[0]
+        for a, t in zip(fast, trials):
+            np.testing.assert_allclose(a, t.tr[cls], atol=1e-9)
+    # ... and of the online stream (every class on its own source; SA1 on the SingleTact alone)
+    from touchreal.stream import StreamEncoder, encode_trial
+
+    assert StreamEncoder(p).latency_s["SA1"] < StreamEncoder(p).latency_s["RA"]
+    for e, t in list(zip(entries, trials))[:2]:
+        stream = encode_trial(ds.load(e), p)
+        for cls in ("SA1", "RA"):
+            np.testing.assert_allclose(p.reference_times(stream[cls]) - t.onset, t.tr[cls], atol=1e-9)
+    m = evaluate(ds.root, p, tmp_path / "rep", EvalConfig(with_sweep=False, with_spatial=False, latency_trials=1, bound_jitters_ms=()))
+    assert m["n_held_out"] == n and "TRAINED on every one" in m["evaluated_on"]
+    lat = m["latency"]
+    assert lat["SA1"]["window_ms"] == 16.0 and lat["RA"]["window_ms"] == 32.0
+    assert lat["SA1"]["algorithmic_ms"] < lat["RA"]["algorithmic_ms"]
+    assert lat["SA1"]["measured_spikes"] > 0
+    for c in ("SA1", "RA"):  # measured: never later than the bound (+ one 1 ms chunk), never before the causing sample
+        r = lat[c]
+        if r["measured_spikes"]:
+            assert r["measured_median_ms"] <= r["bound_emission_minus_stamp_ms"] + 1.0 and r["measured_median_after_sample_ms"] > 0
+    assert "Per-class latency" in (tmp_path / "rep" / "report.md").read_text()
+
+
+def test_window_option_per_class():
+    import argparse
+
+    from touchreal.fitting.command import parse_windows
+
+    assert parse_windows("64") == (64.0, {})
+    assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    assert parse_windows("32, SA1=16") == (32.0, {"SA1": 16.0})
+    for bad in ("SA2=16", "SA1=fast", "x"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_windows(bad)
+    with pytest.raises(ValueError, match="window_ms"):
+        F.FitConfig(class_window_ms={"RA": 2.0})
+    assert F.FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0

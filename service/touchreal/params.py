@@ -8,6 +8,7 @@ configuration (with the PVDF gate calibration and the mains harmonics to notch) 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -19,7 +20,9 @@ from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DAT
 SCHEMA_NAME = "touchreal.params"
 #: Written version. Version 1 files (no ``ClassParams.lowpass_hz`` / ``negative_lead_ms``) are still
 #: read, as no class low-pass and no lead; version 2 files (no ``ClassParams.window_ms``) as every
-#: class on ``preprocess.window_ms``.
+#: class on ``preprocess.window_ms``. Files without ``alignment`` (every version 1-2 file, and version
+#: 3 files written before it existed) may hold negative class delays: they are read as the same
+#: encoder with that lead moved into the alignment (:func:`legacy_alignment`).
 SCHEMA_VERSION = 3
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
@@ -43,7 +46,12 @@ class ClassParams(_Strict):
     i_sat: float = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
     tau_ms: float = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
     ih: list[float] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
-    delay_ms: float = Field(ge=-250.0, le=500.0, description="output delay added to spike times (ms)")
+    delay_ms: float = Field(
+        ge=0.0,
+        le=500.0,
+        description="physiological output delay added to spike times (ms, >= 0: a spike's stamp never precedes "
+        "the sensor sample that caused it); a rig's lag behind its reference is in EncoderParams.alignment",
+    )
     lowpass_hz: float | None = Field(
         default=None,
         ge=5.0,
@@ -120,6 +128,47 @@ class PreprocessParams(_Strict):
         return sorted(v)
 
 
+class ReferenceAlignment(_Strict):
+    """How TouchReal's spike stamps line up with a dataset's reference spike trains.
+
+    TouchReal stamps a spike on the sensor clock: the time of the sensor sample that caused it plus
+    the class's physiological delay. A dataset's reference trains (TouchSim on the *commanded*
+    stimulus) run ahead of the sensor by the rig's lag (actuator and sensor response). Comparable
+    times are ``stamp - lag_ms``; fit, evaluate and ``touchreal encode`` apply it for a dataset.
+    """
+
+    lag_ms: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1000.0,
+        description="the rig's lag (ms): reference-clock time = TouchReal stamp - lag_ms",
+    )
+    dataset: str = Field(default="", description="name of the dataset the lag belongs to ('' = unknown)")
+
+
+def legacy_alignment(data: dict) -> dict:
+    """A raw parameter object without ``alignment``, with negative class delays moved into one.
+
+    Older files aligned spikes with the reference by negative class delays. The same encoder in the
+    current representation: lag = max(0, -min delay), every class delay + lag. Comparable output
+    (stamp - lag) is unchanged; the class with the most negative delay gets delay 0."""
+    classes = data.get("classes")
+    if "alignment" in data or not isinstance(classes, dict):
+        return data
+
+    def delay(c: object) -> float | None:  # a finite number, else None (left to the validation)
+        d = c.get("delay_ms") if isinstance(c, dict) else None
+        return float(d) if isinstance(d, (int, float)) and not isinstance(d, bool) and math.isfinite(d) else None
+
+    lag = max([0.0] + [-d for d in map(delay, classes.values()) if d is not None])
+    if lag == 0.0:
+        return data
+    shifted = {name: c if delay(c) is None else {**c, "delay_ms": delay(c) + lag} for name, c in classes.items()}
+    prov = data.get("provenance")
+    dataset = prov.get("dataset", "") if isinstance(prov, dict) and isinstance(prov.get("dataset", ""), str) else ""
+    return {**data, "classes": shifted, "alignment": {"lag_ms": lag, "dataset": dataset}}
+
+
 class EncoderParams(_Strict):
     """A complete, versioned TouchReal parameter set."""
 
@@ -127,9 +176,15 @@ class EncoderParams(_Strict):
     version: Literal[1, 2, 3] = SCHEMA_VERSION
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
+    alignment: ReferenceAlignment = Field(default_factory=ReferenceAlignment)
     provenance: dict[str, str | float | int | list | dict] = Field(default_factory=dict)
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_delays(cls, data: object) -> object:
+        return legacy_alignment(data) if isinstance(data, dict) else data
 
     @field_validator("classes")
     @classmethod
@@ -148,6 +203,18 @@ class EncoderParams(_Strict):
         if self.version < 3 and any(c.window_ms is not None for c in self.classes.values()):
             raise ValueError("classes.*.window_ms needs schema version 3")
         return self
+
+    def reference_times(self, stamps_s: np.ndarray) -> np.ndarray:
+        """Spike stamps (s, sensor clock) -> times comparable with the aligned dataset's reference
+        trains (s): ``stamp - alignment.lag_ms``."""
+        return np.asarray(stamps_s, np.float64) - self.alignment.lag_ms / 1000.0
+
+    def windows_ms(self) -> dict[float, list[str]]:
+        """Distinct causal PVDF windows (ms) -> the classes on each, in class order."""
+        out: dict[float, list[str]] = {}
+        for c in self.classes:
+            out.setdefault(float(self.window_ms(c)), []).append(c)
+        return out
 
     def window_ms(self, cls: str) -> float:
         """Causal PVDF window (ms) of class ``cls``: its own, else the preprocessing default."""

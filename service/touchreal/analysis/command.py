@@ -24,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sweep-ramp-conditions", type=int, default=64,
                    help="ramp conditions in the window sweep (Fig. 12), 0 = all (default 64)")
     p.add_argument("--no-sweep", action="store_true", help="skip the causal window sweep (Fig. 12)")
+    p.add_argument("--latency-trials", type=int, default=1,
+                   help="held-out ramp trials replayed in 1 ms chunks to measure each class's emission - stamp (0: algorithmic only)")
     p.add_argument("--no-spatial", action="store_true", help="skip the spatial analysis (Figs. 10-11)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
@@ -40,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         sweep_max_ramp_conditions=None if args.sweep_ramp_conditions == 0 else args.sweep_ramp_conditions,
         with_sweep=not args.no_sweep,
         with_spatial=not args.no_spatial,
+        latency_trials=max(0, args.latency_trials),
         progress=not args.quiet,
     )
 

@@ -8,7 +8,11 @@ printed into the report):
   (:func:`touchreal.fitting.fit.split_repeats`); otherwise every ramp and sine trial. Spatial
   trials are never used by the fit and are all evaluated.
 * **Spike trains** are compared on time since the commanded onset of their own trial (TouchSim
-  references and TouchReal outputs both), over the whole recording.
+  references and TouchReal outputs both), over the whole recording; TouchReal's stamps are first
+  put on the reference clock (stamp minus the parameter file's ``alignment.lag_ms``, the rig's lag).
+  Each class runs at its own causal PVDF window.
+* **Latency** per class (:mod:`.latency`): the chain's algorithmic latency, and the measured median
+  emission minus stamp on a few held-out ramp trials replayed in 1 ms chunks.
 * **VR distance** (Fig. 8): van Rossum, tau = 1 ms, elephant normalisation. Per class and
   condition: TS-TS = mean over all distinct pairs of TouchSim trains (all repeats x all models of
   the held-out trials of that condition); TS-TR = mean over all (TouchReal held-out trial, TouchSim
@@ -46,6 +50,7 @@ from . import spatial as sp
 from . import spiketrains as stn
 from . import stats
 from . import turning_points as tp
+from .latency import latency_table
 
 VR_TAU_S = 0.001
 SWEEP_WINDOWS_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)
@@ -71,6 +76,7 @@ class EvalConfig:
     sweep_max_ramp_conditions: int | None = 64  #: ramp conditions in the window sweep (None = all)
     ramp_condition: str | None = None  #: Fig. 7 condition (default: FIG7_PREFERRED or the first)
     split: str = "auto"  #: auto | all (every trial) | train (the fit's training half)
+    latency_trials: int = 1  #: held-out ramp trials replayed to measure the latency (0: algorithmic only)
     seed: int = 0  #: subsampling of the window sweep
     with_sweep: bool = True
     with_spatial: bool = True
@@ -100,26 +106,39 @@ def run_trials(
     ds: Dataset, entries: Sequence[dict[str, Any]], params: EncoderParams, classes: Sequence[str], keep_channels: bool | set[str] = False,
     window_ms: float | None = None, progress: bool = False, desc: str = "encode",
 ) -> list[EvalTrial]:
-    """Preprocess + encode every entry (one population of the selected classes per trial).
+    """Preprocess + encode every entry: each class at its own causal PVDF window (``window_ms``
+    overrides every class's), one population per window and trial; spike trains on the reference
+    clock (:meth:`EncoderParams.reference_times`), relative to the commanded onset.
 
-    ``keep_channels``: keep the 5 kHz channels of every trial (True) or of the trial ids given."""
-    pre = params.preprocess if window_ms is None else params.preprocess.model_copy(update={"window_ms": float(window_ms)})
-    cps = [params.classes[c] for c in classes]
+    ``keep_channels``: keep the 5 kHz channels of every trial (True) or of the trial ids given; they
+    are the channels of the preprocessing window (``params.preprocess.window_ms``, or ``window_ms``)."""
+    groups: dict[float, list[str]] = {}
+    for c in classes:
+        groups.setdefault(float(window_ms if window_ms is not None else params.window_ms(c)), []).append(c)
+    kept_w = float(window_ms if window_ms is not None else params.preprocess.window_ms)
     out = []
     for e in _iter(entries, progress, desc):
         trial = ds.load(e)
-        ch = preprocess_trial(trial, pre)
-        x = np.ascontiguousarray(ch.data[:, 0, :])
         onset = float(e["onset_s"])
-        trains = encode_population(x, ch.t0_s, cps)
-        et = EvalTrial(e, onset, {c: t - onset for c, t in zip(classes, trains)})
+        trains: dict[str, np.ndarray] = {}
+        ch_kept = None
+        for w in sorted(set(groups) | ({kept_w} if keep_channels else set())):
+            ch = preprocess_trial(trial, params.preprocess.model_copy(update={"window_ms": w}))
+            x = np.ascontiguousarray(ch.data[:, 0, :])
+            if w == kept_w:
+                ch_kept = (x, int(ch.k0))
+            on_w = groups.get(w, [])
+            if on_w:
+                for c, t in zip(on_w, encode_population(x, ch.t0_s, [params.classes[c] for c in on_w])):
+                    trains[c] = params.reference_times(t) - onset
+        et = EvalTrial(e, onset, {c: trains[c] for c in classes})
         for c in classes:
             if c in trial.reference:
                 r = trial.reference[c]
                 et.ts[c] = [np.sort(np.asarray(t, np.float64)) - onset for t in r.trains()]
                 et.ts_repeats[c] = r.repeats
-        if keep_channels is True or (isinstance(keep_channels, set) and e["id"] in keep_channels):
-            et.channels, et.k0 = x, int(ch.k0)
+        if ch_kept is not None and (keep_channels is True or (isinstance(keep_channels, set) and e["id"] in keep_channels)):
+            et.channels, et.k0 = ch_kept
         out.append(et)
     return out
 
@@ -459,11 +478,14 @@ def select_held_out(ds: Dataset, params: EncoderParams, mode: str = "auto") -> t
     ``auto``: the fit's held-out trials (all trials for parameters fitted elsewhere); ``all``: every
     trial; ``train``: the fit's training half, for choosing fit settings without looking at the
     held-out trials."""
-    from ..fitting.fit import FIT_PROTOCOLS, params_split_seed, split_repeats
+    from ..fitting.fit import FIT_PROTOCOLS, fitted_on_every_trial, params_split_seed, split_repeats
 
     if mode not in ("auto", "all", "train"):
         raise ValueError("split must be 'auto', 'all' or 'train'")
     entries = [e for e in ds.entries() if e["protocol"] in FIT_PROTOCOLS and e.get("reference")]
+    if mode != "all" and fitted_on_every_trial(params, ds):
+        return entries, entries, (f"all {len(entries)} ramp/sine trials: the fit TRAINED on every one (no held-out part; "
+                                  "not a held-out result - evaluate a separate recording for that)")
     seed = params_split_seed(params, ds) if mode != "all" else None
     if seed is None:
         if mode == "train":
@@ -504,6 +526,7 @@ def evaluate(dataset_dir: str | Path, params: EncoderParams, out_dir: str | Path
         "n_held_out": len(held),
         "classes": classes,
         "params_provenance": params.provenance,
+        "alignment": params.alignment.model_dump(),
         "vr_tau_ms": 1000.0 * cfg.vr_tau_s,
         "definitions": {
             "intra": "TouchSim-TouchSim: mean over conditions of the mean VR distance over all distinct pairs of TouchSim trains (repeats x models) of the condition's held-out trials",
@@ -524,6 +547,12 @@ def evaluate(dataset_dir: str | Path, params: EncoderParams, out_dir: str | Path
     ratios = {c: mapping[c]["summary"]["all"].get("ratio_inter_intra", np.nan) for c in classes}
     box = {c: {k: np.array([r[k] for r in mapping[c]["rows"]], float) for k in ("ts_ts", "tr_tr", "ts_tr")} for c in classes}
     figs["fig8"] = fg.fig8_vr_boxes(out / "fig8_vr_distance.png", box, ratios, 1000.0 * cfg.vr_tau_s).name
+
+    # per-class latency, beside the fidelity
+    lat_e = [t.entry for t in held if t.entry["protocol"] == "ramp"]
+    fig7_first = sorted(lat_e, key=lambda e: e["condition"] != (cfg.ramp_condition or FIG7_PREFERRED))
+    log("latency ...")
+    metrics["latency"] = latency_table(params, [ds.load(e) for e in fig7_first[: cfg.latency_trials]])
 
     # Table 1
     metrics["channel_contribution_pct"] = channel_contributions(held, params, classes)
@@ -691,7 +720,7 @@ def render_markdown(m: dict[str, Any]) -> str:
         f"# TouchReal evaluation on `{m['dataset']}`",
         "",
         f"Data: simulated rig recordings (`{m['dataset_dir']}`). Evaluated on {m['evaluated_on']}. "
-        f"Parameters: {json.dumps({k: m['params_provenance'].get(k) for k in ('fitted_by', 'dataset', 'split_seed', 'window_ms') if k in m['params_provenance']})}.",
+        f"Parameters: {json.dumps({k: m['params_provenance'].get(k) for k in ('fitted_by', 'dataset', 'split_method', 'split_seed', 'window_ms', 'class_window_ms') if k in m['params_provenance']})}.",
         "",
         "## Targets",
         "",
@@ -700,6 +729,25 @@ def render_markdown(m: dict[str, Any]) -> str:
     ]
     for k, v in m["targets"].items():
         L.append(f"| {k} | {_f(v['value'])} | {v['target']} | {'PASS' if v['pass'] else 'FAIL'} |")
+    lat = m.get("latency")
+    if lat:
+        al = m.get("alignment", {})
+        L += ["", "## Per-class latency and fidelity", "",
+              "Algorithmic = the online chain's bound on the time from a sensor sample to the emission of its spikes (the look-ahead "
+              "of the class's source: its PVDF window, or the SingleTact alone); a spike's stamp is the sample's time plus the class "
+              "delay (>= 0), so emission - stamp is at most algorithmic - delay. Measured = "
+              "emission - stamp over the spikes of held-out ramp trials replayed in 1 ms chunks (median [90th percentile], spikes); "
+              "emission - sample = that median + delay. A delay longer than the algorithmic latency stamps spikes after their emission. "
+              f"Spikes are compared with the references at stamp - {_f(al.get('lag_ms'), 1)} ms (the rig's lag, `alignment`).", "",
+              "| class | window [ms] | delay [ms] | algorithmic [ms] | bound on emission - stamp [ms] | measured emission - stamp [ms] | measured emission - sample [ms] | VR ratio | count error |",
+              "|---|---|---|---|---|---|---|---|---|"]
+        for c in classes:
+            r, s = lat[c], m["mapping"][c]["all"]
+            meas = (f"{_f(r['measured_median_ms'], 1)} [{_f(r['measured_p90_ms'], 1)}], {r['measured_spikes']}"
+                    if r.get("measured_spikes") else "-")
+            after = _f(r["measured_median_after_sample_ms"], 1) if r.get("measured_spikes") else "-"
+            L.append(f"| {c} | {r['window_ms']:g} | {_f(r['delay_ms'], 1)} | {_f(r['algorithmic_ms'], 1)} | "
+                     f"{_f(r['bound_emission_minus_stamp_ms'], 1)} | {meas} | {after} | {_f(s.get('ratio_inter_intra'))} | {_f(100 * s['count_error_mean'], 1)} % |")
     L += [
         "",
         "## Definitions",

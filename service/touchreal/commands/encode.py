@@ -1,4 +1,10 @@
-"""``touchreal encode DATASET_DIR --params PARAMS.json --out OUT_DIR``."""
+"""``touchreal encode DATASET_DIR --params PARAMS.json --out OUT_DIR``.
+
+Spike times are written on the dataset's reference clock by default: each stamp minus the parameter
+file's ``alignment.lag_ms`` (the rig's lag behind the commanded stimulus its reference spikes follow),
+so they compare directly with the dataset's reference trains. ``--clock sensor`` writes the stamps
+themselves (the sensor clock, as the online stream emits them).
+"""
 
 from __future__ import annotations
 
@@ -19,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: the shipped set)")
     p.add_argument("--out", type=Path, required=True, help="output folder for <trial_id>.json")
     p.add_argument("--protocol", default=None, help="only trials of this protocol")
+    p.add_argument("--clock", choices=("reference", "sensor"), default="reference",
+                   help="reference (default): stamp - the parameter file's alignment lag, comparable with the dataset's "
+                   "reference spike trains; sensor: the stamps as the online stream emits them")
     p.set_defaults(func=run)
 
 
@@ -30,8 +39,11 @@ def run(args: argparse.Namespace) -> int:
     total = {c: 0 for c in params.classes}
     for e in tqdm(entries, desc="encode", unit="trial"):
         trains = encode_trial(ds.load(e), params)
+        if args.clock == "reference":
+            trains = {c: params.reference_times(v) for c, v in trains.items()}
         (args.out / f"{e['id']}.json").write_text(json.dumps({c: [round(float(t), 6) for t in v] for c, v in trains.items()}))
         for c, v in trains.items():
             total[c] += v.size
-    print(f"encoded {len(entries)} trials -> {args.out}; spikes: " + ", ".join(f"{c} {n}" for c, n in total.items()))
+    clock = f"reference clock (stamp - {params.alignment.lag_ms:g} ms)" if args.clock == "reference" else "sensor clock"
+    print(f"encoded {len(entries)} trials -> {args.out} ({clock}); spikes: " + ", ".join(f"{c} {n}" for c, n in total.items()))
     return 0

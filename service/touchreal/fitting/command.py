@@ -5,8 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..settings import CLASSES, DEFAULT_WINDOW_MS
+
+if TYPE_CHECKING:
+    from ..params import EncoderParams
+    from .fit import ExecutorFactory, FitConfig, FitResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -17,10 +22,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "training trials (split by repeat; the rest is held out for `touchreal evaluate`). Calibrates the PVDF "
         "gate on the contact-free baselines. See docs/fitting.md.",
     )
-    p.add_argument("dataset", type=Path, metavar="DATASET_DIR", help="dataset folder (manifest.json + trials/)")
-    p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json", help="parameter file to write")
+    p.add_argument("datasets", type=Path, nargs="+", metavar="DATASET_DIR",
+                   help="dataset folder (manifest.json + trials/); several (one per sensor) are fitted one after another, "
+                   "or side by side on one Dask cluster")
+    p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json",
+                   help="parameter file to write; with several datasets a folder, receiving DATASET_DIR-name.json each")
     p.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to fit (default: all)")
-    p.add_argument("--window-ms", type=float, default=DEFAULT_WINDOW_MS, help="causal PVDF window (ms, default 128)")
+    p.add_argument("--window-ms", type=parse_windows, default=(DEFAULT_WINDOW_MS, {}), metavar="W|CLS=W,...",
+                   help="causal PVDF window (ms) of every class (default 128), or per class, e.g. SA1=16,RA=16,PC=128 "
+                   "(classes not named take a bare number given in the list, else 128)")
+    p.add_argument("--no-pvdf-classes", default="", metavar="CLS,...",
+                   help="classes fitted on the SingleTact channels alone (PVDF and dPVDF weights held at 0)")
+    p.add_argument("--no-holdout", action="store_true",
+                   help="train on every ramp/sine trial (no held-out half; evaluate on a separate recording)")
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
@@ -36,18 +50,51 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="classes whose input stage (low-pass cutoff, negative-part lead) is fitted, comma-separated or 'none' (default RA,PC)")
     p.add_argument("--max-ramp-conditions", type=int, default=None, help="fit on a seeded subsample of ramp conditions")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    # --- Dask (docs/scale-out-dask.md)
+    dask = p.add_mutually_exclusive_group()
+    dask.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                      help="evaluate candidates on this Dask scheduler's workers (each reads DATASET_DIR at the same path)")
+    dask.add_argument("--dask-workers", type=int, default=None, metavar="N",
+                      help="evaluate candidates on a local Dask cluster of N worker processes")
+    # --- end Dask
     p.add_argument("--init", type=Path, default=None, metavar="PARAMS.json",
                    help="start from this parameter file (its preprocessing settings and classes; unfitted classes are kept)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
+def parse_windows(text: str) -> tuple[float, dict[str, float]]:
+    """``"128"`` or ``"SA1=16,RA=16,PC=128"`` (a bare number in the list sets the default) ->
+    (default window, per-class windows) in ms."""
+    default, per_class = DEFAULT_WINDOW_MS, {}
+    for tok in (t.strip() for t in text.split(",") if t.strip()):
+        name, sep, value = tok.rpartition("=")
+        try:
+            w = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{tok!r}: expected W or CLS=W with W in ms") from None
+        if not sep:
+            default = w
+        elif name.strip() in CLASSES:
+            per_class[name.strip()] = w
+        else:
+            raise argparse.ArgumentTypeError(f"{tok!r}: unknown class {name.strip()!r} (expected one of {', '.join(CLASSES)})")
+    return default, per_class
+
+
+def _classes(text: str) -> tuple[str, ...]:
+    """A comma-separated list of classes, or "none"."""
+    return tuple(c.strip() for c in text.split(",") if c.strip() and c.strip().lower() != "none")
+
+
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams
-    from .fit import FitConfig, fit_dataset
+    from .fit import FitConfig
 
-    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
-    kw = {"classes": classes, "window_ms": args.window_ms, "seed": args.seed, "progress": not args.quiet}
+    classes = _classes(args.classes)
+    window, class_windows = args.window_ms
+    kw = {"classes": classes, "window_ms": window, "class_window_ms": class_windows, "seed": args.seed, "progress": not args.quiet,
+          "holdout": not args.no_holdout, "no_pvdf_classes": _classes(args.no_pvdf_classes)}
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
@@ -55,22 +102,73 @@ def run(args: argparse.Namespace) -> int:
             kw[attr] = v
     for name in ("input_stage_classes", "segmented_count_classes"):
         v = getattr(args, name)
-        if v is not None:  # a comma-separated list of classes, or "none"
-            kw[name] = tuple(c.strip() for c in v.split(",") if c.strip() and c.strip().lower() != "none")
+        if v is not None:
+            kw[name] = _classes(v)
     cfg = FitConfig(**kw)
     init = EncoderParams.load(args.init) if args.init else None
-    if args.out.parent and not args.out.parent.exists():
-        raise ValueError(f"output folder {args.out.parent} does not exist")
+    outs = _outputs(args.datasets, args.out)
+    jobs = [(d, o, cfg, init, len(outs) > 1) for d, o in zip(args.datasets, outs)]
+    if args.scheduler is None and args.dask_workers is None:
+        for job in jobs:
+            _fit_one(*job)
+        return 0
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from .dask_executor import DaskExecutor, dask_client
+
+    with dask_client(args.scheduler, args.dask_workers) as client:
+        if len(jobs) == 1:
+            _fit_one(*jobs[0], executor=DaskExecutor.factory(client))
+            return 0
+        # several datasets side by side on the one cluster, each driven from its own process: cma
+        # draws from NumPy's global RNG, so two fits in one process would interleave their draws
+        with ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn")) as pool:
+            for fut in [pool.submit(_fit_on_scheduler, client.scheduler.address, *job) for job in jobs]:
+                fut.result()
+    return 0
+
+
+def _fit_one(dataset: Path, out: Path, cfg: FitConfig, init: EncoderParams | None, prefix: bool,
+             executor: ExecutorFactory | None = None) -> None:
+    """Fit one dataset, write its parameter file and print the summary (log lines prefixed with
+    the dataset's folder name when ``prefix``)."""
+    from .fit import fit_dataset
 
     def log(msg: str) -> None:
-        print(msg, file=sys.stderr)
+        print(f"{dataset.name}: {msg}" if prefix else msg, file=sys.stderr)
 
-    res = fit_dataset(args.dataset, cfg, init=init, log=log)
-    res.params.save(args.out)
-    print(f"fitted {', '.join(res.classes)} on {res.n_train} training trials in {res.seconds:.0f} s -> {args.out}")
+    res = fit_dataset(dataset, cfg, init=init, log=log, executor=executor)
+    res.params.save(out)
+    _summary(res, out)
+
+
+def _fit_on_scheduler(address: str, *job) -> None:
+    """A driver process of its own: fit one dataset on the Dask scheduler at ``address``."""
+    from .dask_executor import DaskExecutor, dask_client
+
+    with dask_client(address) as client:
+        _fit_one(*job, executor=DaskExecutor.factory(client))
+
+
+def _outputs(datasets: list[Path], out: Path) -> list[Path]:
+    """The parameter file of each dataset: ``out`` itself for one, ``out/<folder name>.json`` for several."""
+    if len(datasets) == 1:
+        if out.parent and not out.parent.exists():
+            raise ValueError(f"output folder {out.parent} does not exist")
+        return [out]
+    names = [d.resolve().name for d in datasets]
+    if len(set(names)) < len(names):
+        raise ValueError(f"several datasets share a folder name ({', '.join(names)}); fit them separately")
+    if not out.is_dir():
+        raise ValueError(f"with several datasets --out must be an existing folder, got {out}")
+    return [out / f"{n}.json" for n in names]
+
+
+def _summary(res: FitResult, out: Path) -> None:
+    print(f"fitted {', '.join(res.classes)} on {res.n_train} training trials in {res.seconds:.0f} s -> {out}")
     for c, f in res.classes.items():
         tr = f.train.total if f.train else float("nan")
-        va = f.validation.total if f.validation else float("nan")
-        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va:.4f} "
+        va = f"{f.validation.total:.4f}" if f.validation else "- (none held out)"
+        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
-    return 0

@@ -5,15 +5,18 @@ Steps of :func:`fit_dataset`:
 1. **Split** the ramp and sine trials by repeat (:func:`split_repeats`): within every condition the
    repeats are shuffled with the seed and the first half trains, the rest is held out. Validation
    never sees a training trial (nor its reference spikes). The split is recorded in the parameter
-   file's provenance so ``touchreal evaluate`` can use exactly the held-out trials.
+   file's provenance so ``touchreal evaluate`` can use exactly the held-out trials. With
+   ``holdout=False`` every trial trains and nothing is held out (for a separate test recording).
 2. **Calibrate** the PVDF stage (mains harmonics + spectral gate) on the contact-free baselines of
    the training trials (PVDF samples before ``onset_s``).
-3. **Preprocess** every trial once (channels do not depend on the class parameters) and keep the
-   5 kHz channels in memory.
+3. **Preprocess** every trial once per distinct causal PVDF window of the fitted classes (channels
+   do not depend on the class parameters; each class is fitted on its own window's channels) and
+   keep the 5 kHz channels in memory.
 4. Per class, **CMA-ES** (``cma``) in the normalised space of :mod:`.space`, minimising the
    objective of :mod:`.objective` over all training trials; each generation is one LIF population
    per trial (:func:`encode_population`: the candidates are the neurons of one LIF population),
-   split across worker processes (fork; the channel cache is inherited, not copied).
+   split across worker processes (fork; the channel cache is inherited, not copied) or, through
+   the same :class:`Executor` seam, across Dask workers (:mod:`.dask_executor`).
    The start is TouchSim's tau/ih, the class's weight direction and a small grid over the overall
    gain and the delay. For the classes of ``segmented_count_classes`` (default PC) the relative
    count loss of a ramp condition is taken per turning-point window (onset, hold, release, release
@@ -21,8 +24,12 @@ Steps of :func:`fit_dataset`:
 5. Score the best candidate on the training and held-out trials; write everything into
    :class:`EncoderParams` with provenance.
 
-Spike times enter the objective relative to each trial's commanded onset (``onset_s``), so trials
-of one condition share a clock. The fitter runs exactly the product encoder's code, so a fitted
+Spike times enter the objective on the reference clock (stamp minus an alignment) and relative to
+each trial's commanded onset (``onset_s``), so trials of one condition share a clock. The search
+runs at an alignment of :data:`SEARCH_LAG_MS`, so a class may lead the reference by up to 250 ms
+(the sensor's lag behind the commanded stimulus); the file records the smallest alignment that keeps
+every class delay >= 0 (the class with the largest lead gets delay 0), kept classes of ``init``
+re-expressed on it with the same reference-clock spikes. The fitter runs exactly the product encoder's code, so a fitted
 parameter set behaves in the service as it did in the fit.
 """
 
@@ -34,13 +41,13 @@ import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
 from ..analysis.turning_points import turning_points, window_edges
 from ..encoding.encoder import encode_population, lowpass_channels
-from ..params import ClassParams, EncoderParams, PreprocessParams
+from ..params import ClassParams, EncoderParams, PreprocessParams, ReferenceAlignment
 from ..preprocess.gate import calibrate
 from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset, Trial
@@ -49,7 +56,11 @@ from .objective import LossTerms, ObjectiveConfig, ReferenceSet, evaluate_loss
 from .space import DELAY_RANGE_MS, DELAY_UNIT_MS, INITIAL_WEIGHTS, ParamSpace, touchsim_class_defaults
 
 FIT_PROTOCOLS = ("ramp", "sine")
+#: Alignment (ms) the search runs at: class delays of 0-500 ms then span reference-clock delays of
+#: -250 ... +250 ms. The written file gets the smallest alignment that keeps every delay >= 0.
+SEARCH_LAG_MS = 250.0
 SPLIT_METHOD = "per-condition seeded shuffle of repeats (crc32(condition), seed); first half trains"
+NO_SPLIT_METHOD = "none: every ramp/sine trial trains, nothing is held out"
 
 
 # ------------------------------------------------------------------------------------- split
@@ -81,7 +92,9 @@ def split_repeats(entries: Sequence[dict[str, Any]], seed: int) -> tuple[list[di
 @dataclass
 class FitConfig:
     classes: tuple[str, ...] = CLASSES
-    window_ms: float = 128.0
+    window_ms: float = 128.0  #: preprocessing window (ms): every class without its own entry in class_window_ms
+    class_window_ms: dict[str, float] = field(default_factory=dict)  #: a class's own causal PVDF window (ms)
+    holdout: bool = True  #: False: every trial trains (no held-out half)
     seed: int = 0
     kernel_ms: float = 10.0  #: kernel tau of the objective's D_kernel (eqs. 2-3)
     popsize: int = 12
@@ -94,6 +107,7 @@ class FitConfig:
     count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
     segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window (paper eq. 7: none)
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
+    no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
@@ -104,7 +118,10 @@ class FitConfig:
         bad = [c for c in self.input_stage_classes if c not in CLASSES]
         if bad:
             raise ValueError(f"input_stage_classes must be a subset of {list(CLASSES)}, got {list(self.input_stage_classes)}")
-        if not 4.0 <= self.window_ms <= 512.0:
+        bad = [c for c in self.class_window_ms if c not in CLASSES]
+        if bad:
+            raise ValueError(f"class_window_ms names unknown classes {bad}; expected a subset of {list(CLASSES)}")
+        if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
@@ -112,12 +129,19 @@ class FitConfig:
             raise ValueError("kernel_ms must be > 0")
         if not np.isfinite(self.count_weight) or self.count_weight < 0:
             raise ValueError("count_weight must be >= 0")
+        bad = [c for c in self.no_pvdf_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"no_pvdf_classes must be a subset of {list(CLASSES)}, got {list(self.no_pvdf_classes)}")
         bad = [c for c in self.segmented_count_classes if c not in CLASSES]
         if bad:
             raise ValueError(f"segmented_count_classes must be a subset of {list(CLASSES)}, got {list(self.segmented_count_classes)}")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
+
+    def window_of(self, cls: str) -> float:
+        """Causal PVDF window (ms) class ``cls`` is fitted at."""
+        return float(self.class_window_ms.get(cls, self.window_ms))
 
 
 # ------------------------------------------------------------------------- cached trial data
@@ -220,7 +244,8 @@ def channel_scale(trials: Sequence[TrialData], lowpass_hz: float | None = None) 
 
 def estimate_lag_s(trials: Sequence[TrialData]) -> float:
     """Median delay between the commanded onset and the SingleTact rise (10 % of its range) over
-    ramp trials; the encoder's delay starts at minus this value (0 without ramps)."""
+    ramp trials (0 without ramps): the rig's lag behind its reference, recorded as the parameter
+    file's ``alignment`` (the SingleTact channel does not depend on the PVDF window)."""
     lags = []
     for t in trials:
         if t.protocol != "ramp":
@@ -238,47 +263,92 @@ def estimate_lag_s(trials: Sequence[TrialData]) -> float:
 # --------------------------------------------------------------------------- fast simulation
 
 
-def simulate(trials: Sequence[TrialData], params: Sequence[ClassParams]) -> list[list[np.ndarray]]:
-    """Onset-aligned spike trains ``[parameter set][trial]``: every set is one neuron of the
-    product encoder's population (:func:`~touchreal.encoding.encoder.encode_population`)."""
+def simulate(trials: Sequence[TrialData], params: Sequence[ClassParams], lag_s: float = 0.0) -> list[list[np.ndarray]]:
+    """Onset-aligned spike trains ``[parameter set][trial]`` on the reference clock (stamps minus
+    the rig's lag ``lag_s``): every set is one neuron of the product encoder's population
+    (:func:`~touchreal.encoding.encoder.encode_population`)."""
     out: list[list[np.ndarray]] = [[] for _ in params]
     for tr in trials:
         for j, train in enumerate(encode_population(tr.channels, tr.k0 / OUT_FS_HZ, params)):
-            out[j].append(train - tr.onset_s)
+            out[j].append(train - lag_s - tr.onset_s)
     return out
 
 
 # ------------------------------------------------------------------------- parallel evaluation
+# The seam between the optimiser and where its candidates are evaluated: an :class:`Executor`
+# maps (class, candidate batch) to losses from a :class:`FitState`. :class:`LocalExecutor` uses
+# forked processes on this machine; ``touchreal.fitting.dask_executor`` uses Dask workers, each of
+# which rebuilds the same state once from the :class:`FitSource` (see :func:`prepare`).
 
-_STATE: dict[str, Any] = {}
+
+@dataclass(frozen=True)
+class FitSource:
+    """Everything a fit's training state is built from (a worker rebuilds it from this alone):
+    the dataset folder (as seen by the worker), the configuration and the ``--init`` file."""
+
+    dataset_dir: str
+    cfg: FitConfig
+    init: EncoderParams | None = None
 
 
-def _losses(cls: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
-    st = _STATE
-    space: ParamSpace = st["spaces"][cls]
-    refs: ReferenceSet = st["refs"][cls]
-    tset: TrialSet = st["train"]
-    cfg: ObjectiveConfig = st["objective"]
-    params = [space.decode(x) for x in xs]
-    trains = simulate(tset.trials, params)
+@dataclass
+class FitState:
+    """What evaluating a candidate needs: per class its search space, references and preprocessed
+    training trials; the objective; the search's alignment ``lag_s`` (s; spikes compared at stamp minus it)."""
+
+    spaces: dict[str, ParamSpace]
+    refs: dict[str, ReferenceSet]
+    train: dict[str, TrialSet]
+    objective: ObjectiveConfig
+    lag_s: float
+
+
+Losses = list[tuple[float, dict[str, float]]]  #: per candidate: (total loss, loss terms)
+
+
+def losses(state: FitState, cls: str, xs: np.ndarray) -> Losses:
+    """Objective of every candidate ``xs`` (n, dim) of class ``cls`` (a non-finite loss counts as 1e6).
+    Each candidate's loss depends on that candidate alone, so any split of a batch gives the same numbers."""
+    space, tset = state.spaces[cls], state.train[cls]
+    trains = simulate(tset.trials, [space.decode(x) for x in xs], state.lag_s)
     out = []
     for tr in trains:
-        terms = evaluate_loss(tr, tset.cond_index, refs, cfg)
+        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], state.objective)
         total = terms.total if np.isfinite(terms.total) else 1e6
         out.append((float(total), terms.as_dict()))
     return out
 
 
-def _init_worker(state: dict[str, Any] | None) -> None:
+class Executor(Protocol):
+    """Evaluates a batch of candidates of one class: ``executor(cls, xs) -> losses``, in order."""
+
+    def __call__(self, cls: str, xs: np.ndarray) -> Losses: ...
+
+    def close(self) -> None: ...
+
+
+ExecutorFactory = Callable[[FitSource, FitState], Executor]
+
+_STATE: dict[str, FitState] = {}  # the local worker processes' state (inherited by fork)
+
+
+def _local_losses(cls: str, xs: np.ndarray) -> Losses:
+    return losses(_STATE["state"], cls, xs)
+
+
+def _init_worker(state: FitState | None) -> None:
     if state is not None:
-        _STATE.clear()
-        _STATE.update(state)
+        _STATE["state"] = state
 
 
-class _Evaluator:
-    """Evaluates candidate batches in-process or split across worker processes."""
+class LocalExecutor:
+    """Evaluates candidate batches in-process or split across ``workers`` forked processes (the
+    state is inherited, not copied; numba kernels are compiled before forking)."""
 
-    def __init__(self, workers: int):
+    def __init__(self, state: FitState, workers: int):
+        _STATE["state"] = state
+        warm_up()
+        self.state = state
         self.workers = workers
         self.pool: ProcessPoolExecutor | None = None
         if workers > 1:
@@ -286,15 +356,20 @@ class _Evaluator:
             if "fork" in methods:
                 self.pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker, initargs=(None,))
             else:  # pragma: no cover - platforms without fork: ship the cache once per worker
-                self.pool = ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(dict(_STATE),))
+                self.pool = ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(state,))
 
-    def __call__(self, cls: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
+    @classmethod
+    def factory(cls, workers: int | None) -> ExecutorFactory:
+        """Executor factory for :func:`fit_dataset`: ``workers`` processes (None = all cores, at most the population)."""
+        return lambda source, state: cls(state, max(1, min(workers or os.cpu_count() or 1, source.cfg.popsize)))
+
+    def __call__(self, cls: str, xs: np.ndarray) -> Losses:
         xs = np.asarray(xs, np.float64)
         if self.pool is None or len(xs) < 2:
-            return _losses(cls, xs)
+            return losses(self.state, cls, xs)
         chunks = [c for c in np.array_split(xs, self.workers) if len(c)]
         res = []
-        for part in self.pool.map(_losses, [cls] * len(chunks), chunks):
+        for part in self.pool.map(_local_losses, [cls] * len(chunks), chunks):
             res += part
         return res
 
@@ -302,10 +377,11 @@ class _Evaluator:
         if self.pool is not None:
             self.pool.shutdown()
             self.pool = None
+        _STATE.pop("state", None)
 
 
-def _warm_up() -> None:
-    """Compile numba kernels before forking so workers inherit them."""
+def warm_up() -> None:
+    """Compile the numba kernels (before forking, so workers inherit them; once per Dask worker)."""
     encode_population(np.zeros((16, 4)), 0.0, [ClassParams(weights=[0.0] * 8, i_sat=0, tau_ms=1, ih=[0, 0], delay_ms=0)])
     refs = ReferenceSet.build([[np.array([0.1])]], 0.01)
     evaluate_loss([np.array([0.1])], [0], refs, ObjectiveConfig())
@@ -356,12 +432,14 @@ def _cma(space: ParamSpace, x0: np.ndarray, popsize: int, generations: int, seed
         "tolfun": 1e-6,
         "tolflatfitness": 10,
     }
+    if space.fixed():
+        opts["fixed_variables"] = space.fixed()
     return cma.CMAEvolutionStrategy(list(x0), 1.0, opts)
 
 
 GRID_GAINS = 2.0 ** np.arange(-4, 5)  #: overall weight gains of the start grid
 GRID_LOG_TAU = (-1.4, 0.0, 1.4)  #: tau multipliers exp(.) of the start grid (x0.25, x1, x4)
-GRID_DELAYS_MS = (-20.0, 0.0, 20.0)  #: delay offsets of the start grid
+GRID_DELAYS_MS = (-20.0, 0.0, 20.0)  #: delay offsets of the start grid (clipped to delays >= 0)
 
 
 def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float) -> np.ndarray:
@@ -381,7 +459,7 @@ def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float
 def fit_class(
     cls: str,
     space: ParamSpace,
-    evaluate: Callable[[str, np.ndarray], list[tuple[float, dict[str, float]]]],
+    evaluate: Executor,
     cfg: FitConfig,
     starts: Sequence[np.ndarray],
     delay0_ms: float,
@@ -439,28 +517,38 @@ def fit_class(
     )
 
 
-def fit_dataset(
-    dataset_dir: str | os.PathLike,
-    cfg: FitConfig | None = None,
-    init: EncoderParams | None = None,
-    log: Callable[[str], None] | None = None,
-) -> FitResult:
-    """Fit every class of ``cfg.classes`` on the dataset's ramp + sine training trials."""
-    cfg = cfg or FitConfig()
+@dataclass
+class Prepared:
+    """A fit's data before optimisation (:func:`prepare`): the opened dataset, its split, the
+    calibrated preprocessing, the evaluation state, the measured rig lag and the step timings."""
+
+    ds: Dataset
+    train_e: list[dict[str, Any]]
+    val_e: list[dict[str, Any]]
+    pre: PreprocessParams
+    n_baselines: int
+    state: FitState
+    rig_lag_ms: float  #: the SingleTact's rise after the commanded onset (the search runs at SEARCH_LAG_MS)
+    timings: dict[str, float]
+
+
+def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prepared:
+    """Split, calibrate, preprocess and align (steps 1-3 of the fit); deterministic, so every Dask
+    worker that runs it on the same source holds the same state as the driver."""
+    cfg, init, dataset_dir = source.cfg, source.init, source.dataset_dir
     log = log or (lambda s: None)
-    t_all = time.perf_counter()
     timings: dict[str, float] = {}
     ds = Dataset.open(dataset_dir)
     entries = [e for e in ds.entries() if e["protocol"] in FIT_PROTOCOLS and e.get("reference")]
     if not entries:
         raise ValueError(f"{dataset_dir}: no ramp or sine trials with reference spike trains")
-    train_e, val_e = split_repeats(entries, cfg.seed)
+    train_e, val_e = split_repeats(entries, cfg.seed) if cfg.holdout else (list(entries), [])
     if cfg.max_ramp_conditions is not None:
         conds = sorted({e["condition"] for e in train_e if e["protocol"] == "ramp"})
         if len(conds) > cfg.max_ramp_conditions:
             keep = set(np.random.default_rng(cfg.seed).choice(conds, cfg.max_ramp_conditions, replace=False).tolist())
             train_e = [e for e in train_e if e["protocol"] != "ramp" or e["condition"] in keep]
-    log(f"split: {len(train_e)} training / {len(val_e)} held-out trials (seed {cfg.seed})")
+    log(f"split: {len(train_e)} training / {len(val_e)} held-out trials" + (f" (seed {cfg.seed})" if cfg.holdout else " (no held-out part)"))
 
     t = time.perf_counter()
     loaded = {e["id"]: ds.load(e) for e in train_e}
@@ -472,34 +560,60 @@ def fit_dataset(
         f"gate on {len(pre.gate.freqs_hz) if pre.gate else 0} bins")
 
     t = time.perf_counter()
-    train = build_trial_set(ds, train_e, pre, cfg.classes, loaded)
+    windows = sorted({cfg.window_of(c) for c in cfg.classes})
+    trainsets: dict[float, TrialSet] = {}
+    for w in windows:  # one preprocessing per distinct window
+        trainsets[w] = build_trial_set(ds, train_e, pre.model_copy(update={"window_ms": w}), cfg.classes, loaded)
     del loaded
-    val = build_trial_set(ds, val_e, pre, cfg.classes) if val_e else None
+    train = {c: trainsets[cfg.window_of(c)] for c in cfg.classes}
     timings["preprocess_s"] = time.perf_counter() - t
-    scale = channel_scale(train.trials)
-    lag_s = estimate_lag_s(train.trials)
-    delay0_ms = float(np.clip(-1000.0 * lag_s, *DELAY_RANGE_MS))
-    log(f"preprocessed in {timings['preprocess_s']:.1f} s; channel scale {np.round(scale, 4).tolist()}; sensor lag {1000 * lag_s:.0f} ms")
+    first = trainsets[windows[0]]
+    rig_lag_ms = round(1000.0 * estimate_lag_s(first.trials), 3)
+    lag_s = SEARCH_LAG_MS / 1000.0  # the search's alignment; the file gets the smallest that keeps every delay >= 0
+    log(f"preprocessed at {windows} ms in {timings['preprocess_s']:.1f} s; channel scale "
+        f"{np.round(channel_scale(first.trials), 4).tolist()}; rig lag {rig_lag_ms:.1f} ms (SingleTact rise after the commanded onset)")
 
     tau_s = cfg.objective.kernel_tau_s
     spaces = {}
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
-        spaces[c] = ParamSpace.for_class(c, scale if lp0 is None else channel_scale(train.trials, lp0), lp0 is not None)
-    refs = {c: train.reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
-    _STATE.clear()
-    _STATE.update(spaces=spaces, refs=refs, train=train, objective=cfg.objective)
-    _warm_up()
-    workers = cfg.workers or os.cpu_count() or 1
-    evaluator = _Evaluator(max(1, min(workers, cfg.popsize)))
+        spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
+    refs = {c: train[c].reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
+    state = FitState(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_s)
+    return Prepared(ds, train_e, val_e, pre, len(segments), state, rig_lag_ms, timings)
+
+
+def fit_dataset(
+    dataset_dir: str | os.PathLike,
+    cfg: FitConfig | None = None,
+    init: EncoderParams | None = None,
+    log: Callable[[str], None] | None = None,
+    executor: ExecutorFactory | None = None,
+) -> FitResult:
+    """Fit every class of ``cfg.classes`` on the dataset's ramp + sine training trials, each class
+    at its own causal PVDF window (``cfg.window_of``). ``executor`` makes the candidate evaluator
+    (default :meth:`LocalExecutor.factory` with ``cfg.workers``; Dask: ``touchreal.fitting.dask_executor``)."""
+    cfg = cfg or FitConfig()
+    log = log or (lambda s: None)
+    t_all = time.perf_counter()
+    source = FitSource(str(dataset_dir), cfg, init)
+    prep = prepare(source, log)
+    ds, val_e, pre, timings, rig_lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.rig_lag_ms
+    name = str(ds.manifest.get("name", ""))
+    spaces, refs, train, lag_s, tau_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s, cfg.objective.kernel_tau_s
+    first = train[min(cfg.classes, key=cfg.window_of)]  # the smallest window's trial set (counts are the same in all)
+    t = time.perf_counter()
+    evaluator = (executor or LocalExecutor.factory(cfg.workers))(source, prep.state)
+    timings["executor_start_s"] = time.perf_counter() - t  # Dask: every worker has loaded and preprocessed the dataset
     fits: dict[str, ClassFit] = {}
     try:
         for cls in cfg.classes:
             sp = spaces[cls]
-            d0 = delay0_ms
+            d0 = SEARCH_LAG_MS - rig_lag_ms  # spikes start aligned with the SingleTact's rise
             if init is not None and cls in init.classes:
-                starts = [sp.clip(sp.encode(init.classes[cls]))]
-                d0 = init.classes[cls].delay_ms
+                start = init.classes[cls]
+                d0 = start.delay_ms - init.alignment.lag_ms + SEARCH_LAG_MS  # the same reference-clock spikes
+                starts = [sp.clip(sp.encode(start.model_copy(update={"delay_ms": d0})))]
             else:
                 starts = [sp.initial(d0, v) for v in range(len(INITIAL_WEIGHTS[cls]))]
             fits[cls] = fit_class(cls, sp, evaluator, cfg, starts, d0)
@@ -507,28 +621,46 @@ def fit_dataset(
         evaluator.close()
 
     t = time.perf_counter()
+    val: dict[float, TrialSet] = {}
     for cls, f in fits.items():
-        f.train = evaluate_loss(simulate(train.trials, [f.params])[0], train.cond_index, refs[cls], cfg.objective)
-        if val is not None:
-            vref = val.reference_set(cls, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, cls in cfg.segmented_count_classes)
-            f.validation = evaluate_loss(simulate(val.trials, [f.params])[0], val.cond_index, vref, cfg.objective)
+        f.params = f.params.model_copy(update={"window_ms": None if cfg.window_of(cls) == pre.window_ms else cfg.window_of(cls)})
+        f.train = evaluate_loss(simulate(train[cls].trials, [f.params], lag_s)[0], train[cls].cond_index, refs[cls], cfg.objective)
+        if val_e:
+            w = cfg.window_of(cls)
+            if w not in val:
+                val[w] = build_trial_set(ds, val_e, pre.model_copy(update={"window_ms": w}), cfg.classes)
+            vref = val[w].reference_set(cls, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, cls in cfg.segmented_count_classes)
+            f.validation = evaluate_loss(simulate(val[w].trials, [f.params], lag_s)[0], val[w].cond_index, vref, cfg.objective)
     timings["score_s"] = time.perf_counter() - t
     seconds = time.perf_counter() - t_all
 
-    classes = dict(init.classes) if init is not None else {}
-    classes.update({c: f.params for c, f in fits.items()})
+    # every class's delay on the reference clock (< 0: it leads the stamp); kept classes keep their window
+    lead_ms: dict[str, float] = {c: f.params.delay_ms - SEARCH_LAG_MS for c, f in fits.items()}
+    classes = {c: f.params for c, f in fits.items()}
+    if init is not None:
+        for c, cp in init.classes.items():
+            if c not in fits:
+                own = init.window_ms(c)
+                classes[c] = cp.model_copy(update={"window_ms": None if own == pre.window_ms else own})
+                lead_ms[c] = cp.delay_ms - init.alignment.lag_ms
+    lag_ms = max(0.0, -min(lead_ms.values()))  # the smallest alignment with every delay >= 0
+    classes = {c: cp.model_copy(update={"delay_ms": max(0.0, lead_ms[c] + lag_ms)}) for c, cp in classes.items()}
+    for c, f in fits.items():
+        f.params = classes[c]
     prov: dict[str, Any] = {
         "fitted_by": "touchreal fit",
-        "dataset": str(ds.manifest.get("name", "")),
+        "dataset": name,
         "dataset_dir": str(ds.root.resolve()),
         "protocols": list(FIT_PROTOCOLS),
-        "split_method": SPLIT_METHOD,
+        "split_method": SPLIT_METHOD if cfg.holdout else NO_SPLIT_METHOD,
         "split_seed": int(cfg.seed),
-        "n_train_trials": len(train.trials),
-        "n_validation_trials": len(val.trials) if val else 0,
+        "n_train_trials": len(first.trials),
+        "n_validation_trials": len(val_e),
         "max_ramp_conditions": cfg.max_ramp_conditions if cfg.max_ramp_conditions is not None else "all",
         "window_ms": float(cfg.window_ms),
-        "calibration_baselines": len(segments),
+        "rig_lag_ms": rig_lag_ms,
+        "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
+        "calibration_baselines": prep.n_baselines,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
             "lambda_e": cfg.objective.lambda_e,
@@ -539,6 +671,7 @@ def fit_dataset(
             "count_weight": cfg.count_weight,
             "segmented_count_classes": list(cfg.segmented_count_classes),
             "input_stage_classes": list(cfg.input_stage_classes),
+            "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
         "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts},
@@ -556,12 +689,22 @@ def fit_dataset(
             for c, f in fits.items()
         },
     }
-    params = EncoderParams(preprocess=pre, classes=classes, provenance=prov)
-    return FitResult(params, fits, seconds, timings, len(train.trials), len(val.trials) if val else 0)
+    if init is not None and init.provenance.get("fitted_by") == "touchreal fit":
+        prov["init"] = {k: init.provenance[k] for k in ("dataset", "fitted_classes", "class_window_ms", "window_ms") if k in init.provenance}
+    params = EncoderParams(preprocess=pre, classes=classes, alignment=ReferenceAlignment(lag_ms=lag_ms, dataset=name), provenance=prov)
+    return FitResult(params, fits, seconds, timings, len(first.trials), len(val_e))
+
+
+def fitted_on_every_trial(params: EncoderParams, ds: Dataset) -> bool:
+    """True if ``params`` were fitted on this dataset by ``touchreal fit`` without a held-out part."""
+    prov = params.provenance
+    return (prov.get("fitted_by") == "touchreal fit" and prov.get("split_method") == NO_SPLIT_METHOD
+            and str(prov.get("dataset", "")) == str(ds.manifest.get("name", "")))
 
 
 def params_split_seed(params: EncoderParams, ds: Dataset) -> int | None:
-    """The split seed if ``params`` were fitted on this dataset by ``touchreal fit``, else None."""
+    """The split seed if ``params`` were fitted on this dataset by ``touchreal fit`` with a held-out
+    half, else None."""
     prov = params.provenance
     if prov.get("fitted_by") != "touchreal fit" or prov.get("split_method") != SPLIT_METHOD:
         return None

@@ -11,7 +11,7 @@ size means about the same everywhere:
                      ``scale_ch`` (99th percentile of |channel| over the training trials)
    8  log_tau        ``tau_ms = tau0_ms * exp(x)``
  9-10 ih1, ih2       ``ih = x * ih_scale`` (TouchSim's class-median basis weights as the unit)
-  11  delay          ``delay_ms = 20 x``
+  11  delay          ``delay_ms = 20 x`` (>= 0; the rig's lag is the parameter file's alignment)
   12  log_isat       ``i_sat = exp(x)`` (LIF units; threshold = 1)
   13  log_lowpass    ``lowpass_hz = lp0_hz * exp(x)``          (input stage only)
   14  lead           ``negative_lead_ms = 10 x``               (input stage only)
@@ -39,7 +39,8 @@ LOWPASS_RANGE_HZ = (20.0, 2000.0)  #: cutoffs the fit may choose
 LEAD_UNIT_MS = 10.0
 LEAD_MAX_MS = 100.0
 DELAY_UNIT_MS = 20.0
-DELAY_RANGE_MS = (-250.0, 500.0)  #: the schema's delay range
+PVDF_WEIGHTS = (4, 5, 6, 7)  #: coordinates of the PVDF and dPVDF weights
+DELAY_RANGE_MS = (0.0, 500.0)  #: the schema's delay range (physiological: >= 0)
 _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
 #: Starting directions of the eight weights per class (normalised units), from the functional roles
@@ -82,9 +83,10 @@ class ParamSpace:
     tau0_ms: float
     ih_scale: tuple[float, float]
     lp0_hz: float | None = None  #: None: the input stage (low-pass, lead) is not fitted (13 coordinates)
+    pvdf: bool = True  #: False: the PVDF and dPVDF weights (w5..w8) are held at 0 (a class on the SingleTact alone)
 
     @classmethod
-    def for_class(cls, name: str, channel_scale, input_stage: bool = False) -> "ParamSpace":
+    def for_class(cls, name: str, channel_scale, input_stage: bool = False, pvdf: bool = True) -> "ParamSpace":
         if name not in CLASSES:
             raise ValueError(f"unknown class {name!r}")
         sc = np.asarray(channel_scale, np.float64)
@@ -92,7 +94,7 @@ class ParamSpace:
             raise ValueError("channel_scale must be four positive numbers")
         ts = touchsim_class_defaults()[name]
         ih_scale = (max(abs(ts["ih1"]), 0.05), max(abs(ts["ih2"]), 0.005))
-        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None)
+        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None, pvdf)
 
     @property
     def n_dim(self) -> int:
@@ -112,6 +114,10 @@ class ParamSpace:
             lo[14], hi[14] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
         return lo, hi
 
+    def fixed(self) -> dict[int, float]:
+        """Coordinates held at a value (not searched): w5..w8 = 0 without PVDF."""
+        return {} if self.pvdf else {i: 0.0 for i in PVDF_WEIGHTS}
+
     def stds(self) -> np.ndarray:
         """Per-coordinate initial CMA-ES standard deviations (relative to sigma0 = 1)."""
         s = np.full(self.n_dim, 0.5)
@@ -120,7 +126,10 @@ class ParamSpace:
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         lo, hi = self.bounds()
-        return np.clip(np.asarray(x, np.float64), lo, hi)
+        y = np.clip(np.asarray(x, np.float64), lo, hi)
+        for i, v in self.fixed().items():
+            y[..., i] = v
+        return y
 
     # -- mapping ------------------------------------------------------------------------------
 
