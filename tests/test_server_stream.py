@@ -15,6 +15,7 @@ from server_harness import collect, connect, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
+from touchreal.cli import main
 from touchreal.recording import write_dataset
 from touchreal.server.settings import RuntimeConfig
 from touchreal.stream import encode_trial
@@ -126,21 +127,21 @@ def _replayed_trains(addr, svc, n_trials):
 
 
 def test_replay_spikes_equal_touchreal_encode_to_the_microsecond(tmp_path):
+    """What a client receives for each replayed trial is what `touchreal encode --clock sensor` writes."""
     ds, trials = _replay_dataset(tmp_path)
-    params = default_params()
+    assert main(["encode", str(ds), "--out", str(tmp_path / "enc"), "--clock", "sensor"]) == 0
     with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc):
         t, c = _replayed_trains(addr, svc, 2)
         offsets = [0, svc.runtime.source.offset_us]
     assert offsets[1] > 0
-    for i, (name, trial) in enumerate(trials.items()):
+    for i, name in enumerate(trials):
         lo = offsets[i]
         hi = offsets[i + 1] if i + 1 < len(offsets) else np.iinfo(np.int64).max
-        ref = encode_trial(trial, params)
+        written = json.loads((tmp_path / "enc" / f"{name}.json").read_text())
         for k, cls in enumerate(P.CLASSES):
             got = t[(c == k) & (t >= lo) & (t < hi)] - lo
-            want = np.round(ref[cls] * 1e6).astype(np.int64)
-            want = want[want >= 0]
-            assert np.array_equal(got, want), (name, cls, got[:5], want[:5])
+            want = np.round(np.array(written[cls]) * 1e6).astype(np.int64)
+            assert np.array_equal(got, want[want >= 0]), (name, cls, got[:5], want[:5])
 
 
 @pytest.mark.shared
