@@ -107,7 +107,7 @@ def test_config_patch_restarts_what_it_must(tmp_path):
                 return hello
 
         hello = asyncio.run(asyncio.wait_for(go(), 30))
-    assert len(hello["taxels"]) == 4 and hello["window_us"]["SA1"] == 64000
+    assert len(hello["taxels"]) == 4 and hello["window_us"]["PC"] == 64000  # classes without their own window
 
 
 def test_openapi_fuzz_finds_no_server_error(tmp_path):
