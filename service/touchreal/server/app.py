@@ -71,11 +71,14 @@ def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning
 @contextmanager
 def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
             companions: Sequence[Companion] = ()) -> Iterator[str]:
-    """Run the service's uvicorn server on its own thread; yields ``host:port`` once it accepts.
+    """Run the service's uvicorn server on its own thread; yields ``host:port`` once it accepts and
+    the service has warmed up and opened its source.
 
     For benchmarks and tests that need the real server next to their own code (``port=0``: a free port).
     """
     with serving_app(create_app(service, companions), host, port, log_level) as addr:
+        if not service.opened.wait(120.0):
+            raise RuntimeError("the service did not finish its warm-up within 120 s")
         yield addr
 
 

@@ -9,7 +9,10 @@ loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dro
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import logging
+import threading
 import uuid
 from pathlib import Path
 from typing import Any
@@ -57,17 +60,31 @@ class Service:
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest update
+        self.opened = threading.Event()  #: set once the warm-up and the first source open are done
+        self._startup: asyncio.Task | None = None
         self._posted = 0
         self._delivered = 0
         self.source_error: str | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
+        """Start serving at once: the JIT warm-up and the source open in the background, and
+        ``/v1/ready`` says so until they are done (``/v1/health`` answers meanwhile)."""
         self.loop = asyncio.get_running_loop()
-        await asyncio.to_thread(warm_up, self.store.active)
-        await self._open_runtime()
+        self._startup = asyncio.create_task(self._warm_and_open())
+
+    async def _warm_and_open(self) -> None:
+        try:
+            await asyncio.to_thread(warm_up, self.store.active)
+            await self._open_runtime()
+        finally:
+            self.opened.set()
 
     async def stop(self) -> None:
+        if self._startup is not None and not self._startup.done():
+            self._startup.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._startup
         if self.runtime is not None:
             rt, self.runtime = self.runtime, None
             await asyncio.to_thread(rt.stop)
@@ -84,6 +101,9 @@ class Service:
         self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder)
         self.runtime.start()
+        hello = json.dumps(self.hello(), separators=(",", ":"))
+        for sub in self.hub.subscribers.values():  # the address map may have changed: say it again
+            sub.say(hello)
 
     async def restart_source(self) -> None:
         await self.stop()
@@ -212,6 +232,8 @@ class Service:
         }
 
     def ready(self) -> tuple[bool, str]:
+        if not self.opened.is_set():
+            return False, "warming up (compiling the pipeline, opening the source)"
         rt = self.runtime
         if rt is None:
             return False, f"source not open: {self.source_error}"
