@@ -232,17 +232,17 @@ class Runtime:
             ev, offset_us, final_s, delays = ev
         else:
             offset_us, final_s, delays = self.source.offset_us, dict(self.encoder.final_s), self._delays()
-        t_us = np.round(ev.t_s * 1e6).astype(np.int64) + offset_us
-        keep = t_us >= 0  # a negative class delay can stamp the very first spikes before the clock's zero
-        t_us, taxel, cls = t_us[keep].astype(np.uint64), ev.taxel[keep].astype(np.uint16), ev.cls[keep].astype(np.uint8)
-        final_us = {c: max(int(round(v * 1e6)) + offset_us, 0) if np.isfinite(v) else 0 for c, v in final_s.items()}
+        # stamps are >= 0: grid samples count from the clock's zero and class delays are >= 0
+        t_us = (np.round(ev.t_s * 1e6).astype(np.int64) + offset_us).astype(np.uint64)
+        taxel, cls = ev.taxel.astype(np.uint16), ev.cls.astype(np.uint8)
+        final_us = {c: int(round(v * 1e6)) + offset_us if np.isfinite(v) else 0 for c, v in final_s.items()}
         self.update_no += 1
         emit = wall_us()
         latency = {}
         for i, c in enumerate(CLASSES):
             sel = cls == i
             if sel.any():
-                cause_s = ev.t_s[keep][sel] - delays.get(c, 0.0)
+                cause_s = ev.t_s[sel] - delays.get(c, 0.0)
                 acq = self.chunk_log.acquired_us(cause_s)
                 latency[c] = (emit - acq[acq >= 0]) / 1e6
         upd = Update(self.update_no, self.enc_rev, flags, acq_us, emit, t_us, taxel, cls, final_us, channels, offset_us,
