@@ -64,3 +64,27 @@ async def collect(ws, seconds: float, until=None) -> list:
             m = json.loads(msg)
             frames.append(P.frame_from_json(m) if m["type"] in ("spikes", "channels", "decoded") else m)
     return frames
+
+
+async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[list, object, bool]:
+    """Two clients subscribe to a heavy stream (5 kHz channels); one never reads (4 KiB receive buffer).
+
+    Returns the frames the reading client got until the hub closed the stalled one (or ``seconds``),
+    the close frame the stalled client finally reads, and whether it left the hub.
+    """
+    host, port = addr.split(":")
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect((host, int(port)))
+    sub = {"streams": ["spikes", "channels"], "channels": {"decimation": 1}}
+    async with connect(addr, sock=sock, max_size=None) as stalled, connect(addr, max_size=None) as good:
+        await hello_and_subscribe(stalled, **sub)
+        stalled_id = min(hub.subscribers)  # it connected first
+        await hello_and_subscribe(good, **sub)
+        frames = await collect(good, seconds, lambda fs: metrics.kicked._value.get() >= 1 and len(fs) > 100)
+        gone = stalled_id not in hub.subscribers
+        try:  # the stalled client now reads what was buffered, then its close
+            while True:
+                await asyncio.wait_for(stalled.recv(), 10)
+        except websockets.ConnectionClosed as closed:
+            return frames, closed.rcvd, gone

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -17,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import websockets
-from server_harness import collect, connect, hello_and_subscribe
+from server_harness import collect, connect, hello_and_subscribe, stall_one_of_two
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 
@@ -153,24 +151,7 @@ def test_stalled_gateway_client_is_dropped_without_delaying_others(tmp_path, nat
     with publishing(tmp_path, nats_url, RuntimeConfig(taxels=16)) as (addr, svc, _), \
             gateway(nats_url, queue_frames=8, slow_timeout_s=0.5) as (ga, gw):
 
-        async def go():
-            host, port = ga.split(":")
-            sock = socket.socket()
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-            sock.connect((host, int(port)))
-            sub = {"streams": ["spikes", "channels"], "channels": {"decimation": 1}}  # 1.3 MB/s of channels
-            async with connect(ga, sock=sock, max_size=None) as stalled, connect(ga, max_size=None) as good:
-                await hello_and_subscribe(stalled, **sub)
-                stalled_id = min(gw.hub.subscribers)
-                await hello_and_subscribe(good, **sub)
-                frames = await collect(good, 10.0, lambda fs: gw.metrics.kicked._value.get() >= 1 and len(fs) > 100)
-                gone = stalled_id not in gw.hub.subscribers
-                with pytest.raises(websockets.ConnectionClosed) as closed:
-                    while True:
-                        await asyncio.wait_for(stalled.recv(), 10)
-                return frames, closed.value.rcvd, gone
-
-        frames, rcvd, gone = run(go())
+        frames, rcvd, gone = run(stall_one_of_two(ga, gw.hub, gw.metrics, 10.0))
         lost = gw.upstream.lost + gw.upstream_channels.lost
     assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and gone
     ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 
 import httpx
 import numpy as np
 import pytest
 import websockets
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -222,24 +221,7 @@ def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
 def test_stalled_client_is_dropped_and_others_are_unaffected(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=8, slow_timeout_s=0.5) as (addr, svc):
 
-        async def go():
-            sock = socket.socket()
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-            sock.connect(tuple(addr.split(":")[:1]) + (int(addr.split(":")[1]),))
-            sub = {"streams": ["spikes", "channels"], "channels": {"decimation": 1}}
-            async with connect(addr, sock=sock, max_size=None) as stalled, connect(addr, max_size=None) as good:
-                await hello_and_subscribe(stalled, **sub)
-                stalled_id = min(svc.hub.subscribers)  # it connected first
-                await hello_and_subscribe(good, **sub)
-                frames = await collect(good, 8.0, lambda fs: svc.metrics.kicked._value.get() >= 1 and len(fs) > 100)
-                gone = stalled_id not in svc.hub.subscribers
-                # the stalled client now reads what was buffered, then its close
-                with pytest.raises(websockets.ConnectionClosed) as closed:
-                    while True:
-                        await asyncio.wait_for(stalled.recv(), 10)
-                return frames, closed.value.rcvd, gone
-
-        frames, rcvd, gone = run(go())
+        frames, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 8.0))
         kicked = svc.metrics.kicked._value.get()
     assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and "slow consumer" in rcvd.reason
     assert kicked == 1 and gone
