@@ -170,6 +170,23 @@ def test_sensor_clock_runs_past_2_to_the_32_microseconds(tmp_path):
     assert np.isfinite(np.concatenate([f.data for f in ch])).all()
 
 
+def test_a_channels_only_subscriber_gets_continuous_channels_and_nothing_is_encoded(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["channels"], channels={"decimation": 25})
+                frames = await collect(ws, 2.0)
+                return frames, svc.runtime.active, svc.runtime.encoder.running
+
+        frames, active, running = run(go())
+    ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    assert len(ch) > 40 and not _spikes(frames) and active == {}
+    assert running["singletact"] and running["pvdf_windows"] == (max(svc.store.active.window_ms(c) for c in P.CLASSES),)
+    assert all(b.t0_us == a.t0_us + a.data.shape[0] * a.period_us for a, b in zip(ch, ch[1:]))  # no sample missing
+    assert np.isfinite(np.concatenate([f.data for f in ch])).all()
+
+
 def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 

@@ -253,6 +253,27 @@ def test_everything_off_runs_only_acquisition_and_restarts_cleanly():
     assert se.state_report()[0]
 
 
+def test_channels_alone_run_the_longest_window_and_encode_nothing():
+    tr = synthetic_trial(duration_s=1.6)
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    alone, every = StreamEncoder(params), StreamEncoder(params)  # every column: channels of the longest window
+    alone.set_active({}, channels=[0])
+    assert alone.running == {"singletact": True, "pvdf_filter": True, "pvdf_windows": (128.0,), "blocks": 1}
+    got, want = [], []
+    for c in ReplaySource(tr).chunks(0.004):
+        ch, ev = alone.process_channels(c)
+        assert len(ev) == 0
+        got.append(ch)
+        want.append(every.process_channels(c)[0])
+    got, want = Channels.concatenate(got, 1), Channels.concatenate(want, 1)
+    assert got.n_samples > 7000 and got.k0 == want.k0 and np.array_equal(got.data, want.data)
+    assert alone.final_s == {}
+    alone.set_active({}, channels=())
+    assert alone.running["blocks"] == 0
+    with pytest.raises(ValueError, match="out of range"):
+        alone.set_active({}, channels=[1])
+
+
 def test_restart_from_raw_history_matches_the_continuous_channels():
     """With every branch stopped, a restart rebuilds the PVDF filter (hum-primed) and the gate from
     the kept raw history: the channels after the restart are close to those of a stream that

@@ -42,11 +42,12 @@ class _TaxelBlock:
         self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
         self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
 
-    def set_active(self, want: Mapping[str, Sequence[int]]) -> None:
-        """``want``: per class, the block's own (local) taxel indices."""
+    def set_active(self, want: Mapping[str, Sequence[int]], fallback: Sequence[Source] = ()) -> None:
+        """``want``: per class, the block's own (local) taxel indices; ``fallback``: the sources to run
+        when no column is active (for channels wanted without spikes)."""
         for enc in self.encoders.values():
             enc.set_columns({c: want.get(c, ()) for c in enc.classes})
-        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns])
+        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] or list(fallback))
 
     def encode(self, shown: Source | None) -> tuple[Channels, list[SpikeEvents]]:
         """Spikes of every active source (global taxel indices) and the channels of ``shown``."""
@@ -103,11 +104,14 @@ class StreamEncoder:
         size = n_taxels if taxel_block is None else taxel_block
         self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype) for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
+        #: what runs for channels alone (no column active): the longest window served, else the SingleTact
+        self.channels_source: Source = max(windows) if windows else None
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
 
     # -- demand ---------------------------------------------------------------------------------
-    def set_active(self, columns: Mapping[str, Iterable[int]]) -> None:
-        """Demand: per class, the taxels whose spikes are wanted (a class absent or with no taxels is off).
+    def set_active(self, columns: Mapping[str, Iterable[int]], channels: Iterable[int] = ()) -> None:
+        """Demand: per class, the taxels whose spikes are wanted (a class absent or with no taxels is
+        off), and the taxels whose channels are wanted (:meth:`process_channels`).
 
         * Continuing columns keep their state bit-exactly: a column's spikes never depend on which
           other columns, classes or windows run.
@@ -119,6 +123,8 @@ class StreamEncoder:
           while some window runs; the SingleTact branch only while any column is active (per taxel
           block). A branch that restarts is rebuilt from the raw history acquisition keeps (no
           waiting: its class emits after its usual latency), see :meth:`Preprocessor.set_sources`.
+        * Channels are those of the longest active window; a block with channels wanted but no
+          active column runs :attr:`channels_source` for them (and encodes nothing).
         * With everything off, :meth:`process` only runs acquisition: the sanitizers (input
           policy and counters) and the raw history rings (the last 0.5 s of SingleTact, the last
           100 ms + two frames of the longest window of PVDF) that restarts are rebuilt from.
@@ -127,11 +133,14 @@ class StreamEncoder:
         if unknown:
             raise ValueError(f"classes {sorted(unknown)} are not served (have {list(self.classes)})")
         want = {c: tuple(sorted({int(x) for x in columns.get(c, ())})) for c in self.classes}
-        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_taxels})
+        shown = {int(x) for x in channels}
+        bad = sorted({x for xs in [*want.values(), shown] for x in xs if not 0 <= x < self.n_taxels})
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
         for block in self.blocks:
-            block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()})
+            fallback = [self.channels_source] if shown.intersection(block.taxels) else []
+            block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
+                             fallback)
         self.active = {c: xs for c, xs in want.items() if xs}
 
     def restart_index(self) -> int | None:

@@ -117,6 +117,7 @@ class Runtime:
         self.enc_rev = 0
         self.enc_segment = source.segment
         self.active: dict[str, tuple[int, ...]] | None = None
+        self.active_channels: tuple[int, ...] = ()
         self.update_no = 0
         self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
         self.error: str | None = None
@@ -183,9 +184,9 @@ class Runtime:
             self.decoders = {}
         self._follow_decoder_demand(demand)
         columns = dict(demand.columns)
-        if columns != self.active:
-            self.encoder.set_active(columns)
-            self.active = columns
+        if columns != self.active or demand.channel_taxels != self.active_channels:
+            self.encoder.set_active(columns, demand.channel_taxels)
+            self.active, self.active_channels = columns, demand.channel_taxels
         if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
             self.encoder.process(chunk)
             flags |= self._count_sanitizer()
