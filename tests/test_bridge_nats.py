@@ -20,7 +20,7 @@ from server_harness import collect, connect, hello_and_subscribe, stall_one_of_t
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 
-from touchreal.bridge import natsd
+from touchreal.bridge import natsd, subjects
 from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
 from touchreal.bridge.publisher import NatsPublisher
 from touchreal.params import default_params
@@ -40,11 +40,21 @@ def nats_url() -> Iterator[str]:
         yield url
 
 
+@pytest.fixture
+def nats_js_url() -> Iterator[str]:
+    """A nats-server with JetStream (-js, a temporary store directory)."""
+    if not natsd.available():
+        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+    with natsd.local_nats_server(jetstream=True) as url:
+        yield url
+
+
 @contextmanager
-def publishing(state_dir: Path, url: str, config: RuntimeConfig | None = None, **settings):
+def publishing(state_dir: Path, url: str, config: RuntimeConfig | None = None, publisher: dict | None = None,
+               **settings):
     """The service on a free loopback port, publishing to NATS as SENSOR; yields (addr, service, publisher)."""
     svc = Service(ServeSettings(host="127.0.0.1", port=0, state_dir=state_dir, **settings), config or RuntimeConfig())
-    pub = NatsPublisher(svc, url, SENSOR)
+    pub = NatsPublisher(svc, url, SENSOR, **(publisher or {}))
     with serving(svc, companions=[pub]) as addr:
         yield addr, svc, pub
 
@@ -102,7 +112,7 @@ def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp
     assert _consecutive(f2)  # spikes and channels frames share the client's seq
     f2, fd = _spikes(f2), _spikes(fd)
     assert h1["session"] == h2["session"] == svc.session and len(h1["taxels"]) == 4
-    assert set(h1["streams"]) == {"spikes", "channels"} and "gateway" in h1["server"]
+    assert set(h1["streams"]) == {"spikes", "channels", "decoded"} and "gateway" in h1["server"]
     assert demand == {c: (0, 1, 2, 3) for c in P.CLASSES} and after == [None, None]
     f1 = _spikes(f1)
     assert _consecutive(f1)
@@ -182,6 +192,71 @@ def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_u
     assert 0 < jumps == frames[-1].header.dropped - frames[0].header.dropped <= lost
 
 
+def _decoded(frames):
+    return [f for f in frames if isinstance(f, P.DecodedFrame)]
+
+
+def test_decoded_outputs_cross_nats_on_demand_and_equal_the_service_direct(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url, RuntimeConfig(taxels=4)) as (addr, svc, pub), gateway(nats_url) as (ga, gw):
+
+        async def go():
+            async with connect(ga) as via, connect(addr) as direct:
+                hv, _ = await hello_and_subscribe(via, taxels=[0, 2], streams=["decoded"], decoders=["force"])
+                hd, _ = await hello_and_subscribe(direct, taxels=[0, 2], streams=["decoded"], decoders=["force"])
+                await asyncio.sleep(0.5)
+                lanes = {k: v.subscription for k, v in pub.lanes.items()}
+                demand, running = dict(svc.hub.demand.decoders), sorted(svc.runtime.decoders)
+                fv, fd = await asyncio.gather(collect(via, 3.0), collect(direct, 3.0))
+                announced = gw.status()["demand"]
+            await asyncio.sleep(1.0)  # both clients gone: the lane idles and the decoder stops
+            return hv, hd, lanes, demand, running, fv, fd, announced, pub.lanes, sorted(svc.runtime.decoders)
+
+        hv, hd, lanes, demand, running, fv, fd, announced, after, running_after = run(go())
+    names = [d["name"] for d in hv["streams"]["decoded"]["decoders"]]
+    assert names == [d["name"] for d in hd["streams"]["decoded"]["decoders"]] and "force" in names
+    # only the decoder's lane is subscribed upstream: the SA1/RA spikes it reads are computed, not published
+    subject = f"touchreal.{SENSOR}.decoded.force"
+    assert lanes[f"touchreal.{SENSOR}.frames"] is None and lanes[f"touchreal.{SENSOR}.channels"] is None
+    assert (lanes[subject].taxels, lanes[subject].streams, lanes[subject].decoders) == ([0, 2], ["decoded"], ["force"])
+    assert demand == {"force": (0, 2)} and running == ["force"]
+    assert announced == {"columns": {}, "channel_taxels": [], "decoders": {"force": [0, 2]}}
+    assert after[subject].subscription is None and running_after == []
+    fv, fd = _decoded(fv), _decoded(fd)
+    assert fv and _consecutive(fv) and fv[-1].header.dropped == 0
+    assert {f.decoder for f in fv} == {names.index("force")}
+    direct = {int(t): f.values[i] for f in fd for i, t in enumerate(f.t_us)}
+    via = {int(t): (f.taxels.tolist(), f.values[i]) for f in fv for i, t in enumerate(f.t_us)}
+    shared = sorted(set(direct) & set(via))
+    assert len(shared) > 60  # 32 ms steps over ~3 s
+    for t in shared:  # the same step carries the same force, bit for bit, whichever way it travelled
+        taxels, values = via[t]
+        assert taxels == [0, 2] and np.array_equal(values, direct[t])
+
+
+def test_a_decoders_frames_lost_on_the_hop_become_gaps_its_subscribers_see(tmp_path, nats_url):
+    with publishing(tmp_path, nats_url) as (addr, svc, pub), gateway(nats_url, pending_frames=2) as (ga, gw):
+
+        async def go():
+            async with connect(ga) as ws:
+                hello, _ = await hello_and_subscribe(ws, streams=["decoded"], decoders=["force_sa1"])
+                before = _decoded(await collect(ws, 1.0))
+                gw.loop.call_soon_threadsafe(time.sleep, 0.8)  # the gateway stalls: frames pile up in NATS
+                after = _decoded(await collect(ws, 2.0))
+                return hello, before, after
+
+        hello, before, after = run(go())
+        lost = gw.upstream_decoded["force_sa1"].lost
+    step = next(d["step_us"] for d in hello["streams"]["decoded"]["decoders"] if d["name"] == "force_sa1")
+    frames = before + after
+    seq_gaps = np.diff([f.header.seq for f in frames]) - 1
+    steps = [np.asarray(f.t_us, np.int64) for f in frames]
+    assert all(np.all(np.diff(s) == step) for s in steps)
+    step_gaps = np.array([(b[0] - a[-1]) // step - 1 for a, b in zip(steps, steps[1:])])
+    # each lost frame is one seq jump counted in dropped, and steps are missing exactly where seq jumps
+    assert 0 < seq_gaps.sum() == frames[-1].header.dropped - frames[0].header.dropped <= lost
+    assert np.array_equal(step_gaps > 0, seq_gaps > 0) and np.all(step_gaps >= seq_gaps)
+
+
 def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path, nats_url):
     with publishing(tmp_path, nats_url) as (addr, svc, pub), gateway(nats_url) as (gb, _g2):
         port = natsd.free_port()
@@ -241,3 +316,63 @@ def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored
 
         live, expired = run(go())
     assert live == {"RA": (0,)} and expired == {}
+
+
+def test_a_late_joiner_catches_up_on_the_retained_seconds(tmp_path, nats_js_url):
+    import nats
+    from nats.js.api import DeliverPolicy, StorageType
+
+    from touchreal.server.runtime import wall_us
+
+    subject = f"touchreal.{SENSOR}.frames"
+    with publishing(tmp_path, nats_js_url, RuntimeConfig(taxels=2),
+                    publisher={"publish_all": True, "retain_s": 2.0}) as (addr, svc, pub):
+        time.sleep(5.0)  # longer than the retention: the oldest frames have expired
+
+        async def go():
+            nc = await nats.connect(nats_js_url)
+            js = nc.jetstream()
+            info = await js.stream_info(f"touchreal_{SENSOR}")
+            live: list[bytes] = []
+
+            async def on_live(msg):
+                live.append(msg.data)
+
+            joined_us = wall_us()
+            await nc.subscribe(subject, cb=on_live)  # an ordinary subscriber joining now: live frames only
+            late = await js.subscribe(subject, ordered_consumer=True, deliver_policy=DeliverPolicy.ALL)
+            caught: list = []
+            end = time.monotonic() + 1.5
+            while time.monotonic() < end:
+                try:
+                    caught.append(await late.next_msg(timeout=0.5))
+                except nats.errors.TimeoutError:
+                    pass
+            await nc.close()
+            return info, joined_us, live, caught
+
+        info, joined_us, live, caught = run(go())
+        status = pub.status()["retain"]
+    assert info.config.storage == StorageType.MEMORY and info.config.max_age == 2.0 and status["error"] is None
+    frames = [P.decode_frame(m.data) for m in caught]
+    assert {m.headers[subjects.SESSION_HEADER] for m in caught} == {svc.session}
+    assert _consecutive(frames)  # the stored seconds and the live frames join without a gap
+    age_s = (joined_us - frames[0].header.emit_us) / 1e6
+    assert 1.5 < age_s < 3.0, age_s  # about the retained 2 s, not the 5 s the service has been publishing
+    assert frames[-1].header.emit_us > joined_us and len(live) > 20
+    by_seq = {f.header.seq: m.data for f, m in zip(frames, caught)}
+    shared = [d for d in live if P.decode_header(d).seq in by_seq]
+    assert len(shared) > 20 and all(by_seq[P.decode_header(d).seq] == d for d in shared)  # frames stored unchanged
+
+
+def test_retention_without_jetstream_is_reported_and_publishing_goes_on(tmp_path, nats_url):
+    import httpx
+
+    with publishing(tmp_path, nats_url, publisher={"publish_all": True, "retain_s": 2.0}) as (addr, svc, pub):
+        deadline = time.monotonic() + 20
+        while pub.published < 20:
+            assert time.monotonic() < deadline, pub.status()
+            time.sleep(0.05)
+        status = httpx.get(f"http://{addr}/v1/status").json()["nats"]
+    assert status["retain"]["seconds"] == 2.0 and "-js" in status["retain"]["error"]
+    assert status["connected"] and status["published"] >= 20  # the service's own /v1/status tells

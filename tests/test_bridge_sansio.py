@@ -38,6 +38,14 @@ def test_published_frames_become_hub_updates():
     upd = update_from_frame(P.decode_frame(raw), 2)
     assert not upd.spikes and upd.channels.k0 == 1001 and upd.offset_us == 50
     assert np.isnan(upd.channels.data[:, 0]).all() and np.array_equal(upd.channels.data[:, 1], data[:, 0])
+    values = np.arange(2 * 1 * 3, dtype=np.float32).reshape(2, 1, 3)
+    raw = P.encode_decoded(P.Header(P.KIND_DECODED, update=8, emit_us=900), 4, [1], np.array([5, 6], np.uint64), values)
+    with pytest.raises(ValueError, match="decoder's name"):
+        update_from_frame(P.decode_frame(raw), 2)
+    upd = update_from_frame(P.decode_frame(raw), 2, "force")
+    (name, taxels, t_us, vals), = upd.decoded
+    assert not upd.spikes and upd.channels is None and (upd.update, upd.emit_us) == (8, 900)
+    assert (name, taxels, t_us.tolist()) == ("force", (1,), [5, 6]) and np.array_equal(vals, values)
 
 
 def test_demand_announcements_merge_into_one_product_and_expire():
@@ -54,9 +62,21 @@ def test_demand_announcements_merge_into_one_product_and_expire():
     assert fd.gateways == ["g2"] and fd.channels() is None and fd.spikes().classes == ["PC"]
     fd.announce("g2", Announced({}), 5.0, now=3.0)  # an empty announcement withdraws at once
     assert fd.spikes() is None and fd.gateways == []
+    # decoders: one decoded-only subscription per decoder, over the union of its taxels; no spikes
+    gid, d, ttl = parse_announcement(announcement("g3", Announced({}, (), {"force": [3, 1], "texture": []})))
+    assert dict(d.decoders) == {"force": [1, 3]} and not d.empty
+    fd.announce("g3", d, ttl, now=4.0)
+    fd.announce("g4", Announced({}, (), {"force": [0], "texture": [2]}), ttl, now=4.0)
+    assert fd.spikes() is None and fd.channels() is None
+    dec = fd.decoded()
+    assert {n: (s.taxels, s.classes, s.streams, s.decoders) for n, s in dec.items()} == {
+        "force": ([0, 1, 3], [], ["decoded"], ["force"]), "texture": ([2], [], ["decoded"], ["texture"])}
+    assert parse_announcement(b'{"gateway": "old", "ttl_ms": 5, "columns": {"RA": [0]}}')[1].decoders == {}
     for bad in (b"{", b"[]", b'{"gateway": 1, "ttl_ms": 5, "columns": {}}',
                 b'{"gateway": "g", "ttl_ms": 5, "columns": {"XX": [0]}}',
-                b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "channels": [-1]}'):
+                b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "channels": [-1]}',
+                b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "decoders": {"a.b": [0]}}',  # not a subject token
+                b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "decoders": {"force": 0}}'):
         with pytest.raises(ValueError, match="malformed demand"):
             parse_announcement(bad)
 
@@ -68,12 +88,16 @@ def test_sensor_ids_are_single_subject_tokens():
             check_sensor_id(bad)
 
 
-def test_hub_skip_advances_seq_and_dropped_per_stream():
+def test_hub_skip_advances_seq_and_dropped_per_stream_and_decoder():
     hub = Hub(capacity=4, slow_timeout_s=1.0)
-    hub.configure(2, P.CLASSES, {})
-    both, spikes, none = hub.add(), hub.add(), hub.add()
+    hub.configure(2, P.CLASSES, {"force": ["SA1"], "texture": ["SA1", "RA"]})
+    both, spikes, none, force, every = hub.add(), hub.add(), hub.add(), hub.add(), hub.add()
     hub.subscribe(both, P.Subscription(streams=["spikes", "channels"]))
     hub.subscribe(spikes, P.Subscription())
-    hub.skip(3)
-    hub.skip(2, ("channels",))
-    assert [(s.seq, s.dropped) for s in (both, spikes, none)] == [(5, 5), (3, 3), (0, 0)]
+    hub.subscribe(force, P.Subscription(taxels=[1], streams=["decoded"], decoders=["force"]))
+    hub.subscribe(every, P.Subscription(streams=["spikes", "decoded"]))  # decoders None: every decoder
+    hub.skip(3, "spikes")
+    hub.skip(2, "channels")
+    hub.skip(4, "decoded", "texture")
+    hub.skip(1, "decoded", "force")
+    assert [(s.seq, s.dropped) for s in (both, spikes, none, force, every)] == [(5, 5), (3, 3), (0, 0), (1, 1), (8, 8)]

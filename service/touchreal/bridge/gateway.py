@@ -9,8 +9,8 @@ subscribe to is forwarded to the publisher as demand (:mod:`.demand`).
 Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
 gateway's bounded pending buffer dropped) advances every spikes subscriber's ``seq`` and ``dropped``
 by the frames it lost (``Hub.skip``), exactly as if its own queue had dropped them; the same holds
-for the channels subject and channels subscribers. Spikes and channels cross the broker; decoded
-outputs are the service's own ``/v1/stream``.
+for the channels subject and channels subscribers, and for each decoder's subject and the subscribers
+to that decoder's outputs. The decoders offered are the publisher's whose names are subject tokens.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from touchreal_client import protocol as P
 
 from .. import __version__
 from ..server import ws
+from ..server.demand import build_demand
 from ..server.hub import Hub
 from ..server.metrics import Metrics
 from ..server.runtime import wall_us
@@ -64,14 +65,20 @@ class GatewaySettings(BaseSettings):
 
 
 class AnnouncingHub(Hub):
-    """The gateway's hub: every change of its demand also wakes the demand announcer."""
+    """The gateway's hub: every change of its demand also wakes the demand announcer, and its
+    :attr:`announced` is what it forwards: the spikes its clients want as spikes (not the classes
+    their decoders read: the publisher computes those for the decoders itself), channels, decoders."""
 
     def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event):
         self.changed = changed
+        self.announced = Announced({})
         super().__init__(capacity, slow_timeout_s)
 
     def refresh_demand(self) -> None:
         super().refresh_demand()
+        subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
+        spikes = build_demand(subs, self.n_taxels, self.allowed_classes, {})
+        self.announced = Announced(dict(spikes.columns), self.demand.channel_taxels, dict(self.demand.decoders))
         self.changed.set()
 
 
@@ -88,12 +95,13 @@ class Gateway:
         self.metrics = Metrics()
         r = self.metrics.registry
         self.m_lost = Counter("touchreal_gateway_upstream_lost_frames", "frames lost between publisher and gateway "
-                              "(seq jumps on the frames subject)", registry=r)
+                              "(seq jumps on any subject: spikes, channels, decoded)", registry=r)
         self.m_slow = Counter("touchreal_gateway_nats_slow_consumer", "frames NATS dropped because this gateway's "
                               "pending buffer was full", registry=r)
         self.m_connected = Gauge("touchreal_gateway_nats_connected", "1 while connected to NATS", registry=r)
         self.upstream = UpstreamTracker()  #: the spikes subject
         self.upstream_channels = UpstreamTracker()
+        self.upstream_decoded: dict[str, UpstreamTracker] = {}  #: per decoder subject
         self.upstream_hello: dict[str, Any] | None = None
         self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest frame
         self.last_frame_mono: float | None = None
@@ -125,7 +133,8 @@ class Gateway:
             reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
-        for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id)):
+        for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id),
+                        subjects.decoded_any(self.sensor_id)):
             await self.nc.subscribe(subject, cb=self._on_frame, pending_msgs_limit=s.pending_frames,
                                     pending_bytes_limit=s.pending_frames * 65536)
         self._tasks.append(asyncio.create_task(self._announce_demand(), name="touchreal-gateway-demand"))
@@ -143,7 +152,13 @@ class Gateway:
 
     def _set_hello(self, hello: dict[str, Any]) -> None:
         self.upstream_hello = hello
-        self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)), {})
+        self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)),
+                           {d["name"]: d["classes"] for d in self._decoders()})
+
+    def _decoders(self) -> list[dict[str, Any]]:
+        """The publisher's decoders this gateway offers: those that have a subject (token names)."""
+        decs = (self.upstream_hello or {}).get("streams", {}).get("decoded", {}).get("decoders", [])
+        return [d for d in decs if subjects.token_ok(d.get("name", ""))]
 
     async def _on_hello(self, msg) -> None:
         if msg.reply or not msg.data:  # a gateway's request, not an announcement
@@ -161,18 +176,27 @@ class Gateway:
             self.bad_frames += 1
             log.warning("bad frame on %s: %s", msg.subject, exc)
             return
+        decoder = None
         if isinstance(frame, P.DecodedFrame):
-            return
-        spikes = isinstance(frame, P.SpikesFrame)
-        tracker = self.upstream if spikes else self.upstream_channels
+            decoder = subjects.decoder_of(msg.subject)
+            tracker = self.upstream_decoded.setdefault(decoder, UpstreamTracker())
+            stream = "decoded"
+        elif isinstance(frame, P.SpikesFrame):
+            tracker, stream = self.upstream, "spikes"
+        else:
+            tracker, stream = self.upstream_channels, "channels"
         seen = tracker.observe((msg.headers or {}).get(subjects.SESSION_HEADER), frame.header.seq)
         if seen.new_session and self.upstream_hello is not None and \
                 self.upstream_hello.get("session") != tracker.session:
             self._tasks.append(asyncio.create_task(self._fetch_hello()))  # the service restarted
+        if decoder is not None and decoder not in self.hub.decoder_classes:
+            self.bad_frames += 1  # not in the hello we have (a newer one is on its way): no client can have it
+            log.warning("decoded frame of %r, which the publisher's hello does not list", decoder)
+            return
         if seen.lost:
             self.m_lost.inc(seen.lost)
-            self.hub.skip(seen.lost, ("spikes",) if spikes else ("channels",))
-        upd = update_from_frame(frame, self.hub.n_taxels)
+            self.hub.skip(seen.lost, stream, decoder)
+        upd = update_from_frame(frame, self.hub.n_taxels, decoder)
         if upd.final_us:
             self.anchor = (max(upd.final_us.values()), upd.emit_us)
         self.last_frame_mono = time.monotonic()
@@ -189,9 +213,7 @@ class Gateway:
             self._demand_dirty.clear()
             ttl = max(DEFAULT_TTL_S, 3 * self.settings.demand_interval_s)
             try:
-                d = self.hub.demand
-                await self.nc.publish(subjects.demand(self.sensor_id),
-                                      announcement(self.id, Announced(dict(d.columns), d.channel_taxels), ttl))
+                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, self.hub.announced, ttl))
             except (NatsError, OSError) as exc:
                 log.debug("demand announcement failed: %r", exc)
 
@@ -206,7 +228,7 @@ class Gateway:
 
     # -- what ws.py and the routes read -----------------------------------------------------------
     def hello(self) -> dict[str, Any]:
-        """The publisher's hello, as this gateway serves it: spikes and channels (no decoded outputs),
+        """The publisher's hello, as this gateway serves it: the decoders it offers (:meth:`_decoders`),
         its own queue limits, a fresh clock anchor. Before the publisher answered: no taxels,
         ``session`` null."""
         up = self.upstream_hello or {"session": None, "taxels": [], "classes": [], "latency_us": {}, "window_us": {},
@@ -215,8 +237,8 @@ class Gateway:
         return {**up, "type": "hello", "protocol": P.PROTOCOL, "version": P.VERSION,
                 "versions": list(P.SUPPORTED_VERSIONS), "server": f"touchreal-gateway {__version__} (NATS {self.sensor_id})",
                 "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
-                "streams": {k: v for k, v in up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}).items()
-                            if k != "decoded"},
+                "streams": {**up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}),
+                            "decoded": {"decoders": self._decoders()}},
                 "encodings": list(P.ENCODINGS), "default_encoding": "binary",
                 "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": s.queue_frames,
                            "slow_timeout_s": s.slow_timeout_s}}
@@ -238,9 +260,11 @@ class Gateway:
                 "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
                              "channels_frames": self.upstream_channels.frames, "channels_lost": self.upstream_channels.lost,
+                             "decoded": {n: {"frames": t.frames, "lost": t.lost} for n, t in self.upstream_decoded.items()},
                              "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get())},
-                "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
-                           "channel_taxels": list(self.hub.demand.channel_taxels)},
+                "demand": {"columns": {c: list(t) for c, t in self.hub.announced.columns.items()},
+                           "channel_taxels": list(self.hub.announced.channels),
+                           "decoders": {n: list(t) for n, t in self.hub.announced.decoders.items()}},
                 "clients": [{"id": c.id, "seq": c.seq, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue)}
                             for c in self.hub.subscribers.values()]}
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import shutil
 import socket
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,13 +28,15 @@ def free_port() -> int:
 
 
 @contextmanager
-def local_nats_server(port: int | None = None, timeout_s: float = 10.0) -> Iterator[str]:
-    """Run ``nats-server -a 127.0.0.1 -p PORT``; yields its URL once it accepts connections."""
+def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstream: bool = False) -> Iterator[str]:
+    """Run ``nats-server -a 127.0.0.1 -p PORT`` (with ``-js`` and a temporary store directory when
+    ``jetstream``); yields its URL once it accepts connections."""
     if not available():
         raise FileNotFoundError(f"{BINARY} is not installed (Debian: apt-get install nats-server)")
     port = port or free_port()
-    proc = subprocess.Popen([BINARY, "-a", "127.0.0.1", "-p", str(port)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
+    store = tempfile.TemporaryDirectory(prefix="touchreal-nats-") if jetstream else None
+    cmd = [BINARY, "-a", "127.0.0.1", "-p", str(port)] + (["-js", "-sd", store.name] if store else [])
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + timeout_s
         while True:
@@ -53,3 +56,5 @@ def local_nats_server(port: int | None = None, timeout_s: float = 10.0) -> Itera
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if store is not None:
+            store.cleanup()

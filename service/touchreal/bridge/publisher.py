@@ -1,15 +1,21 @@
 """``touchreal serve --publish nats://HOST:PORT --sensor-id ID``: the service's frames onto NATS.
 
-The publisher is two more subscribers of the service's :class:`~touchreal.server.hub.Hub` (so the
-acquisition thread never sees it), one per subject: spikes for the demand the gateways forward
-(:mod:`.demand`; every class and taxel with ``publish_all``), and full-rate channels for the channel
-taxels they forward. A task on the event loop drains their bounded queues into ``nc.publish`` (nats-py buffers writes and flushes them itself; while the broker
+The publisher is more subscribers of the service's :class:`~touchreal.server.hub.Hub` (so the
+acquisition thread never sees it), one per subject (a *lane*): spikes for the demand the gateways
+forward (:mod:`.demand`; every class and taxel with ``publish_all``), full-rate channels for the
+channel taxels they forward, and one lane per decoder they forward (``decoded.<name>``, created on
+first demand), each with its own ``seq``. A task on the event loop drains their bounded queues into ``nc.publish`` (nats-py buffers writes and flushes them itself; while the broker
 is unreachable it keeps up to ``pending_bytes`` and reconnects on its own; a publish it refuses is
 counted and dropped, the next frame's ``seq`` jump shows the loss downstream). If the loop ever lets
 the queue overflow, the hub drops frames for the publisher alone, again visible as a ``seq`` jump.
 
 It also answers ``hello`` requests with the service's current hello and announces a new one when
-the parameter revision, taxels or classes change.
+the parameter revision, taxels, classes or decoders change.
+
+With ``retain_s`` it keeps the last seconds of everything it publishes in a small in-memory
+JetStream stream (:func:`.subjects.stream_name`), so a late joiner reading NATS can catch up; the
+broker stores the core publishes itself, the publishing path does not change. A broker without
+JetStream is reported in ``status()`` and publishing goes on without retention.
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ import time
 
 import nats
 from nats.errors import Error as NatsError
+from nats.js.api import DiscardPolicy, StorageType, StreamConfig
+from nats.js.errors import BadRequestError
 from prometheus_client import Counter, Gauge
 from touchreal_client import protocol as P
 
@@ -34,13 +42,17 @@ EXPIRE_EVERY_S = 0.25  #: how often forwarded demand is checked for expiry (s)
 
 
 class NatsPublisher:
-    """Publishes one service's frames under ``touchreal.<sensor_id>.`` (a Companion of the app). Its two
+    """Publishes one service's frames under ``touchreal.<sensor_id>.`` (a Companion of the app). Its
     hub subscribers (lanes) show in the service's ``/v1/status`` clients like any other."""
 
     def __init__(self, service: Service, url: str, sensor_id: str, publish_all: bool = False,
-                 pending_bytes: int = 8 << 20):
+                 pending_bytes: int = 8 << 20, retain_s: float = 0.0, retain_bytes: int = 64 << 20):
         self.service, self.url, self.sensor_id = service, url, subjects.check_sensor_id(sensor_id)
         self.publish_all, self.pending_bytes = publish_all, pending_bytes
+        if retain_s < 0 or retain_bytes <= 0:
+            raise ValueError("retain_s must be >= 0 and retain_bytes > 0")
+        self.retain_s, self.retain_bytes = retain_s, retain_bytes
+        self.retain_error: str | None = None
         self.demand = ForwardedDemand()
         self.nc: nats.NATS | None = None
         self.spikes_subject, self.channels_subject = subjects.frames(sensor_id), subjects.channels(sensor_id)
@@ -56,11 +68,11 @@ class NatsPublisher:
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
 
     async def start(self) -> None:
-        self.lanes = {self.spikes_subject: self.service.hub.add(), self.channels_subject: self.service.hub.add()}
         self._wakeup = asyncio.Event()
-        for sub in self.lanes.values():
-            sub.wakeup = self._wakeup  # one drain task serves both
+        for subject in (self.spikes_subject, self.channels_subject):
+            self._lane(subject)
         self._apply_demand()
+        self.service.status_sections["nats"] = self.status
         self._task = asyncio.create_task(self._run(), name="touchreal-nats-publisher")
 
     async def stop(self) -> None:
@@ -70,6 +82,7 @@ class NatsPublisher:
                 await self._task
             except (asyncio.CancelledError, Exception):
                 pass
+        self.service.status_sections.pop("nats", None)
         for sub in self.lanes.values():
             self.service.hub.remove(sub)
         if self.nc is not None and not self.nc.is_closed:
@@ -79,9 +92,13 @@ class NatsPublisher:
                 await self.nc.close()
 
     def status(self) -> dict:
+        """The ``nats`` section of the service's ``/v1/status``."""
         return {"url": self.url, "sensor_id": self.sensor_id, "connected": bool(self.nc and self.nc.is_connected),
                 "published": self.published, "failures": int(self.m_failed._value.get()),
                 "gateways": self.demand.gateways,
+                "retain": {"seconds": self.retain_s, "max_bytes": self.retain_bytes,
+                           "stream": subjects.stream_name(self.sensor_id), "error": self.retain_error}
+                if self.retain_s else None,
                 "lanes": {subject: {"seq": sub.seq, "dropped": sub.dropped,
                                     "subscription": sub.subscription.to_json() if sub.subscription else None}
                           for subject, sub in self.lanes.items()}}
@@ -95,6 +112,8 @@ class NatsPublisher:
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        if self.retain_s:
+            await self._retain()
         log.info("publishing %s to %s", subjects.frames(self.sensor_id), self.url)
         headers = {subjects.SESSION_HEADER: self.service.session}
         while True:
@@ -104,7 +123,7 @@ class NatsPublisher:
                 pass
             self._wakeup.clear()
             self._expire()
-            for subject, sub in self.lanes.items():
+            for subject, sub in list(self.lanes.items()):  # a demand callback may add a lane meanwhile
                 if sub.kick is not None:  # the loop starved it for slow_timeout_s: keep publishing (losses are counted)
                     log.warning("publisher fell behind on %s: %s", subject, sub.kick[1])
                     sub.kick, sub.full_since = None, None
@@ -120,6 +139,23 @@ class NatsPublisher:
                     except (NatsError, OSError) as exc:
                         self.m_failed.inc()
                         log.debug("publish failed: %r", exc)
+
+    async def _retain(self) -> None:
+        """Create (or reconfigure) the in-memory stream over this sensor's frame subjects."""
+        cfg = StreamConfig(name=subjects.stream_name(self.sensor_id), subjects=subjects.retained(self.sensor_id),
+                           storage=StorageType.MEMORY, max_age=self.retain_s, max_bytes=self.retain_bytes,
+                           discard=DiscardPolicy.OLD, num_replicas=1)
+        js = self.nc.jetstream()
+        try:
+            try:
+                await js.add_stream(cfg)
+            except BadRequestError:  # it exists with another configuration (a previous run's)
+                await js.update_stream(cfg)
+            self.retain_error = None
+            log.info("retaining the last %g s of %s in JetStream stream %s", self.retain_s, self.sensor_id, cfg.name)
+        except (NatsError, asyncio.TimeoutError) as exc:
+            self.retain_error = f"no JetStream stream ({exc!r}); is nats-server running with -js?"
+            log.warning("publishing without retention: %s", self.retain_error)
 
     # -- demand and hello -----------------------------------------------------------------------
     async def _on_demand(self, msg) -> None:
@@ -137,13 +173,26 @@ class NatsPublisher:
         if self.demand.gateways != before:
             self._apply_demand()
 
+    def _lane(self, subject: str) -> Subscriber:
+        sub = self.lanes.get(subject)
+        if sub is None:
+            sub = self.lanes[subject] = self.service.hub.add()
+            sub.wakeup = self._wakeup  # one drain task serves every lane
+        return sub
+
     def _apply_demand(self) -> None:
-        """Subscribe each lane to what is wanted downstream (None: no frames, nothing computed for us)."""
+        """Subscribe each lane to what is wanted downstream (None: no frames, nothing computed for us).
+        A decoder lane is created when its decoder is first wanted and kept (idle) afterwards, so its
+        ``seq`` runs on; announced decoders the service does not have are ignored."""
         self.m_gateways.set(len(self.demand.gateways))
         wants = {self.spikes_subject: P.Subscription() if self.publish_all else self.demand.spikes(),
                  self.channels_subject: self.demand.channels()}
+        wants |= {subject: None for subject in self.lanes if subject not in wants}
+        installed = self.service.hub.decoder_classes
+        wants |= {subjects.decoded(self.sensor_id, name): want for name, want in self.demand.decoded().items()
+                  if name in installed}
         for subject, want in wants.items():
-            sub = self.lanes[subject]
+            sub = self._lane(subject) if want is not None else self.lanes[subject]
             if (sub.subscription and sub.subscription.to_json()) != (want and want.to_json()):
                 self.service.hub.subscribe(sub, want)
 
@@ -155,7 +204,7 @@ class NatsPublisher:
         return json.dumps(self.service.hello(), separators=(",", ":")).encode()
 
     async def _announce_if_changed(self, params_rev: int) -> None:
-        key = (params_rev, self.service.n_taxels, tuple(self.service.config.classes))
+        key = (params_rev, self.service.n_taxels, tuple(self.service.config.classes), tuple(self.service.hub.decoder_names))
         if key != self._announced:
             if self._announced is not None:
                 try:

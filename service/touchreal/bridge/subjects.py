@@ -6,9 +6,15 @@
   = the service's session.
 * ``channels``: binary channels frames at full rate (decimation 1) for the taxels some gateway
   wants, one per update, with their own ``seq``; only while demanded.
+* ``decoded.<name>``: binary decoded frames of decoder ``<name>`` for the taxels some gateway wants,
+  with their own ``seq`` per decoder (a jump = that decoder's frames lost); only while demanded, and
+  only for decoders whose name is one subject token (:func:`token_ok`).
 * ``hello``: the service's ``hello`` JSON; a request (any payload, with a reply subject) is answered
   with the current one, and the publisher announces a new one here when it changes.
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+
+With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
+JetStream stream :func:`stream_name`.
 """
 
 from __future__ import annotations
@@ -16,12 +22,17 @@ from __future__ import annotations
 import re
 
 SESSION_HEADER = "Touchreal-Session"
-_SENSOR_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_TOKEN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def token_ok(name: str) -> bool:
+    """``name`` can be one NATS subject token: letters, digits, ``_`` and ``-`` (1..64)."""
+    return bool(_TOKEN.match(name))
 
 
 def check_sensor_id(sensor_id: str) -> str:
-    """A sensor id is one NATS subject token: letters, digits, ``_`` and ``-`` (1..64)."""
-    if not _SENSOR_ID.match(sensor_id):
+    """A sensor id is one NATS subject token (:func:`token_ok`)."""
+    if not token_ok(sensor_id):
         raise ValueError(f"sensor id {sensor_id!r}: use 1-64 letters, digits, '_' or '-' (it is a NATS subject token)")
     return sensor_id
 
@@ -40,3 +51,27 @@ def hello(sensor_id: str) -> str:
 
 def demand(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.demand"
+
+
+def decoded(sensor_id: str, decoder: str) -> str:
+    return f"touchreal.{sensor_id}.decoded.{decoder}"
+
+
+def decoded_any(sensor_id: str) -> str:
+    """The wildcard a gateway subscribes to: every decoder's subject."""
+    return f"touchreal.{sensor_id}.decoded.*"
+
+
+def decoder_of(subject: str) -> str:
+    """The decoder name of a ``decoded.<name>`` subject."""
+    return subject.rsplit(".", 1)[1]
+
+
+def retained(sensor_id: str) -> list[str]:
+    """The subjects a retaining publisher keeps (every frame subject; not hello or demand)."""
+    return [frames(sensor_id), channels(sensor_id), decoded_any(sensor_id)]
+
+
+def stream_name(sensor_id: str) -> str:
+    """The JetStream stream that keeps a sensor's last seconds (``--retain-s``)."""
+    return f"touchreal_{sensor_id}"

@@ -3,7 +3,8 @@
 :class:`UpstreamTracker` follows the publisher's ``seq`` on the frames subject: a jump of k means k
 frames (= k updates) were lost between publisher and gateway (the broker dropped them for a slow
 consumer, or the gateway's own pending buffer overflowed); a new session means the service
-restarted (sequence numbers start again; the sensor clock may too). :func:`update_from_frame` turns a
+restarted (sequence numbers start again; the sensor clock may too). The gateway keeps one tracker per
+subject (spikes, channels, each decoder). :func:`update_from_frame` turns a
 published frame back into the hub's :class:`~touchreal.server.runtime.Update` so the gateway's
 hub renders each client's subscription from it exactly as the service's hub does.
 """
@@ -54,19 +55,28 @@ class UpstreamTracker:
         return Observed(lost, new)
 
 
-def update_from_frame(frame: P.SpikesFrame | P.ChannelsFrame, n_taxels: int) -> Update:
+def update_from_frame(frame: P.Frame, n_taxels: int, decoder: str | None = None) -> Update:
     """The hub update a published frame stands for (wall times from the publisher).
+
+    A decoded frame becomes a decoded-only update carrying ``decoder``'s outputs (its name: the
+    frame's index refers to the publisher's hello, the subject names it).
 
     A channels frame (decimation 1) becomes a channels-only update whose data spans all ``n_taxels``
     (NaN for taxels the publisher did not send); its 5 kHz grid index is counted from the wire
     clock's zero, so a client's decimation picks samples on that grid."""
     h = frame.header
+    empty = np.zeros(0, np.uint64)
+    if isinstance(frame, P.DecodedFrame):
+        if decoder is None:
+            raise ValueError("a decoded frame needs its decoder's name")
+        return Update(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, empty, empty.astype(np.uint16),
+                      empty.astype(np.uint8), {}, spikes=False,
+                      decoded=[(decoder, tuple(int(t) for t in frame.taxels), frame.t_us, frame.values)])
     if isinstance(frame, P.ChannelsFrame):
         data = np.full((frame.data.shape[0], n_taxels, len(P.CHANNELS)), np.nan, np.float32)
         keep = frame.taxels < n_taxels
         data[:, frame.taxels[keep].astype(int), :] = frame.data[:, keep, :]
         k0, offset = divmod(int(frame.t0_us), GRID_US)
-        empty = np.zeros(0, np.uint64)
         return Update(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, empty, empty.astype(np.uint16),
                       empty.astype(np.uint8), {}, Channels(k0, data), offset, spikes=False)
     final = {c: v for c, v in frame.final_us.items() if v is not None}

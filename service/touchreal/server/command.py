@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-id", default=None, help="with --publish: subjects touchreal.<ID>.frames/.hello/.demand")
     p.add_argument("--publish-all", action="store_true",
                    help="with --publish: every class and taxel, whatever the gateways forward as demand")
+    p.add_argument("--retain-s", type=float, default=0.0, metavar="S",
+                   help="with --publish: keep the last S seconds of published frames in an in-memory JetStream "
+                        "stream touchreal_<ID> for late joiners (nats-server -js)")
     p.set_defaults(func=run)
 
 
@@ -44,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
 
         if not args.sensor_id:
             raise ValueError("--publish needs --sensor-id (the NATS subjects are touchreal.<ID>.*)")
-        companions.append(NatsPublisher(service, args.publish, args.sensor_id, publish_all=args.publish_all))
+        companions.append(NatsPublisher(service, args.publish, args.sensor_id, publish_all=args.publish_all,
+                                        retain_s=args.retain_s))
     app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "

@@ -145,15 +145,16 @@ class Hub:
             for kind, payload in frames:
                 sub.offer(kind, payload)
 
-    def skip(self, n_updates: int, streams: Sequence[str] = ("spikes",)) -> None:
-        """``n_updates`` updates carrying ``streams`` were lost upstream (a gateway's broker hop): every
-        subscriber to one of those streams is told, one frame per lost update and stream."""
+    def skip(self, n_frames: int, stream: str, decoder: str | None = None) -> None:
+        """``n_frames`` frames of ``stream`` (of ``decoder``'s outputs, for ``decoded``) were lost upstream (a
+        gateway's broker hop): every subscriber that would have received them is told, one ``seq`` and one
+        ``dropped`` per frame."""
         for sub in self.subscribers.values():
             s = sub.subscription
-            if s is not None and sub.kick is None:
-                n = n_updates * len(set(streams) & set(s.streams))
-                if n:
-                    sub.skip(n)
+            if s is None or sub.kick is not None or stream not in s.streams:
+                continue
+            if decoder is None or s.decoders is None or decoder in s.decoders:
+                sub.skip(n_frames)
 
     def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
         out: list[P.Frame] = []

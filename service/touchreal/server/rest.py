@@ -75,7 +75,7 @@ def ready(request: Request) -> Any:
 
 @router.get("/v1/status", tags=["service"])
 def status(request: Request) -> dict[str, Any]:
-    """Source state and counters, pipeline state, current demand, per-client queues and drops."""
+    """Source state and counters, pipeline state, current demand, per-client queues and drops; `nats` when publishing."""
     return service_of(request).status()
 
 

@@ -14,6 +14,7 @@ import json
 import logging
 import threading
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,8 @@ class Service:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest update
         self.opened = threading.Event()  #: set once the warm-up and the first source open are done
+        #: more sections of ``/v1/status`` (name -> callable), e.g. the NATS publisher's ``nats``
+        self.status_sections: dict[str, Callable[[], dict[str, Any]]] = {}
         self._startup: asyncio.Task | None = None
         self._posted = 0
         self._delivered = 0
@@ -224,11 +227,13 @@ class Service:
             "pipeline": {"state": rt.state if rt else "stopped", "error": rt.error if rt else self.source_error,
                          "updates": rt.update_no if rt else 0, "active": rt.active if rt else None},
             "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
-                       "channel_taxels": list(self.hub.demand.channel_taxels)},
+                       "channel_taxels": list(self.hub.demand.channel_taxels),
+                       "decoders": {n: list(t) for n, t in self.hub.demand.decoders.items()}},
             "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
                         for s in self.hub.subscribers.values()],
             "faults": dict(rt.counters) if rt else {},
             "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
+            **{name: section() for name, section in self.status_sections.items()},
         }
 
     def ready(self) -> tuple[bool, str]:
