@@ -187,6 +187,22 @@ def test_a_channels_only_subscriber_gets_continuous_channels_and_nothing_is_enco
     assert np.isfinite(np.concatenate([f.data for f in ch])).all()
 
 
+def test_taxel_blocks_nobody_subscribes_to_run_nothing(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=8), taxel_block=4) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, taxels=[5], classes=["SA1"], streams=["spikes", "channels"])
+                frames = await collect(ws, 2.0)
+                return frames, [b.pre.running for b in svc.runtime.encoder.blocks]
+
+        frames, blocks = run(go())
+    assert [bool(r["singletact"]) for r in blocks] == [False, True]  # taxels 0-3: nothing runs
+    ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    assert len(ch) > 40 and all(f.taxels.tolist() == [5] and np.isfinite(f.data).all() for f in ch)
+    assert all(set(f.taxel.tolist()) <= {5} for f in _spikes(frames))
+
+
 def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 

@@ -39,25 +39,28 @@ class _TaxelBlock:
 
     def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]], dtype: type):
         self.taxels = taxels
+        self.shows = True  #: channels wanted from this block (every taxel at first, like every column)
         self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
         self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
 
-    def set_active(self, want: Mapping[str, Sequence[int]], fallback: Sequence[Source] = ()) -> None:
-        """``want``: per class, the block's own (local) taxel indices; ``fallback``: the sources to run
-        when no column is active (for channels wanted without spikes)."""
+    def set_active(self, want: Mapping[str, Sequence[int]], shown: Sequence[Source] = ()) -> None:
+        """``want``: per class, the block's own (local) taxel indices; ``shown``: the source whose
+        channels are wanted from this block (run even when none of its columns is active)."""
         for enc in self.encoders.values():
             enc.set_columns({c: want.get(c, ()) for c in enc.classes})
-        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] or list(fallback))
+        self.shows = bool(shown)
+        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + list(shown))
 
-    def encode(self, shown: Source | None) -> tuple[Channels, list[SpikeEvents]]:
-        """Spikes of every active source (global taxel indices) and the channels of ``shown``."""
-        channels = Channels(0, np.zeros((0, len(self.taxels), 4)))
+    def encode(self, shown: Source) -> tuple[Channels | None, list[SpikeEvents]]:
+        """Spikes of every active source (global taxel indices), and the channels of ``shown`` if
+        this block shows them (else None)."""
+        channels = None
         parts = []
         for s in self.pre.sources:
             ch = self.pre.take(s)
             ev = self.encoders[s].process(ch)
             parts.append(SpikeEvents(ev.t_s, ev.taxel + self.taxels.start, ev.cls) if self.taxels.start else ev)
-            if s == shown:
+            if self.shows and s == shown:
                 channels = ch
         return channels, parts
 
@@ -66,14 +69,16 @@ class StreamEncoder:
     """Raw samples of N taxels -> SA1/RA/PC spike events, chunk by chunk, for the active columns.
 
     ``classes`` are the classes this encoder can serve (default: all of the parameter set); all
-    their (class, taxel) columns are active at first (:meth:`set_active` changes that). Every spike
+    their (class, taxel) columns and every taxel's channels are active at first (:meth:`set_active`
+    changes that). Every spike
     is stamped on the sensor clock, ``(k + 1) / 5000 + delay_ms`` for a threshold crossing at grid
     sample k, whenever it is emitted; each source emits as soon as its own branches allow.
 
     ``taxel_block`` splits the taxels into blocks of that many (default: one block) that share the
     acquisition but nothing else: a block with no active column runs nothing, so a few subscribed
     taxels of a large skin cost about one block's preprocessing; with every column active, one
-    block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent).
+    block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent);
+    channels equal to rounding (~1e-15).
 
     Not thread-safe: call :meth:`set_active` between :meth:`process` calls (same thread or lock).
     """
@@ -104,8 +109,9 @@ class StreamEncoder:
         size = n_taxels if taxel_block is None else taxel_block
         self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype) for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
-        #: what runs for channels alone (no column active): the longest window served, else the SingleTact
+        #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
+        self.channel_taxels: tuple[int, ...] = tuple(range(n_taxels))
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
 
     # -- demand ---------------------------------------------------------------------------------
@@ -123,8 +129,8 @@ class StreamEncoder:
           while some window runs; the SingleTact branch only while any column is active (per taxel
           block). A branch that restarts is rebuilt from the raw history acquisition keeps (no
           waiting: its class emits after its usual latency), see :meth:`Preprocessor.set_sources`.
-        * Channels are those of the longest active window; a block with channels wanted but no
-          active column runs :attr:`channels_source` for them (and encodes nothing).
+        * Channels are always those of :attr:`channels_source` (the longest window served), which
+          runs in every taxel block with channels wanted, whatever spikes are wanted.
         * With everything off, :meth:`process` only runs acquisition: the sanitizers (input
           policy and counters) and the raw history rings (the last 0.5 s of SingleTact, the last
           100 ms + two frames of the longest window of PVDF) that restarts are rebuilt from.
@@ -138,10 +144,11 @@ class StreamEncoder:
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
         for block in self.blocks:
-            fallback = [self.channels_source] if shown.intersection(block.taxels) else []
+            show = [self.channels_source] if shown.intersection(block.taxels) else []
             block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
-                             fallback)
+                             show)
         self.active = {c: xs for c, xs in want.items() if xs}
+        self.channel_taxels = tuple(sorted(shown))
 
     def restart_index(self) -> int | None:
         """The grid index a source that (re)started now would deliver from (None before any data)."""
@@ -155,12 +162,10 @@ class StreamEncoder:
         return self._encode()[1]
 
     def process_channels(self, chunk: RawChunk) -> tuple[Channels, SpikeEvents]:
-        """Like :meth:`process`, also returning new 5 kHz channels (for dashboards and analysis): those
-        of the active source with the longest window (:attr:`display_source`; its ST and dST are
-        the SingleTact channels every source shares). Empty when no column is active; one taxel
-        block only (the default)."""
-        if len(self.blocks) != 1:
-            raise ValueError("process_channels needs a single taxel block (taxel_block=None)")
+        """Like :meth:`process`, also returning the new 5 kHz channels (for dashboards and analysis) of
+        :attr:`channels_source` (its ST and dST are the SingleTact channels every source shares),
+        for all taxels: NaN for taxels of blocks without channels wanted (:meth:`set_active`) and for
+        samples a block that just (re)started does not have. Empty when no channels are wanted."""
         self._feed(chunk)
         return self._encode()
 
@@ -176,26 +181,33 @@ class StreamEncoder:
             block.pre.consume(*new)
 
     def _encode(self) -> tuple[Channels, SpikeEvents]:
-        shown = self.display_source
-        channels, parts = Channels(0, np.zeros((0, self.n_taxels, 4))), []
+        shown, parts = [], []
         for block in self.blocks:
-            ch, evs = block.encode(shown)
-            channels = ch if len(self.blocks) == 1 else channels
+            ch, evs = block.encode(self.channels_source)
+            if ch is not None:
+                shown.append((block.taxels, ch))
             parts += evs
         events = SpikeEvents.concatenate(parts)
         if len(parts) > 1:
             order = np.argsort(events.t_s, kind="stable")
             events = SpikeEvents(events.t_s[order], events.taxel[order], events.cls[order])
-        return channels, events
+        return self._assemble(shown), events
+
+    def _assemble(self, shown: list[tuple[range, Channels]]) -> Channels:
+        """One block's channels as they are when it covers every taxel; else the blocks' channels on
+        the union of their grid ranges, NaN where a block has no samples."""
+        if len(shown) == 1 and len(shown[0][0]) == self.n_taxels:
+            return shown[0][1]
+        spans = [(ch.k0, ch.k0 + ch.n_samples) for _, ch in shown if ch.n_samples]
+        if not spans:
+            return Channels(0, np.zeros((0, self.n_taxels, 4)))
+        k0, k1 = min(a for a, _ in spans), max(b for _, b in spans)
+        data = np.full((k1 - k0, self.n_taxels, 4), np.nan, dtype=shown[0][1].data.dtype)
+        for taxels, ch in shown:
+            data[ch.k0 - k0 : ch.k0 - k0 + ch.n_samples, taxels.start : taxels.stop] = ch.data
+        return Channels(k0, data)
 
     # -- reporting ------------------------------------------------------------------------------
-    @property
-    def display_source(self) -> Source | None:
-        """The active source :meth:`process_channels` returns: the longest active window, else the
-        SingleTact-only source (PVDF channels zero); None when nothing is active."""
-        windows = [s for b in self.blocks for s in b.pre.sources if s is not None]
-        return max(windows) if windows else None
-
     @property
     def running(self) -> dict[str, bool | tuple[float, ...] | int]:
         """Which branches run in any block: SingleTact, the PVDF filter, the PVDF windows (ms), and

@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token", default=None, help="bearer token for write endpoints (or TOUCHREAL_TOKEN)")
     p.add_argument("--state-dir", type=Path, default=None, help="parameter history + user models (TOUCHREAL_STATE_DIR)")
     p.add_argument("--params", type=Path, default=None, help="initial parameter file (default: last active, else shipped)")
+    p.add_argument("--taxel-block", type=int, default=None,
+                   help="taxels per preprocessing block; blocks nobody subscribes to run nothing (default 64; 0 = one "
+                        "block; TOUCHREAL_TAXEL_BLOCK)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level")
     p.add_argument("--publish", default=None, metavar="NATS_URL",
                    help="also publish the frames to NATS (docs/scale-out.md), e.g. nats://127.0.0.1:4222")
@@ -37,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from .settings import RuntimeConfig, ServeSettings
 
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("token", args.token),
-                                   ("state_dir", args.state_dir), ("params", args.params)) if v is not None}
+                                   ("state_dir", args.state_dir), ("params", args.params),
+                                   ("taxel_block", args.taxel_block)) if v is not None}
     settings = ServeSettings(**overrides)
     config = RuntimeConfig(source=args.source, taxels=args.taxels, speed=args.speed, loop=args.loop)
     service = Service(settings, config)

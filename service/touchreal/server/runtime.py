@@ -108,8 +108,10 @@ class Runtime:
         params: Callable[[], tuple[int, EncoderParams]],
         publish: Callable[[Update], None],
         make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
+        taxel_block: int | None = None,
     ):
         self.source = source
+        self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
         self._demand, self._params, self._publish = demand, params, publish
         self._make_decoder = make_decoder
         self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
@@ -179,7 +181,7 @@ class Runtime:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
         if self.encoder is None:
-            self.encoder = StreamEncoder(params, self.source.n_taxels)
+            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block)
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
             self.decoders = {}
         self._follow_decoder_demand(demand)

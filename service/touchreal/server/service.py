@@ -102,7 +102,8 @@ class Service:
             return
         self.source_error = None
         self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
-        self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder)
+        self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
+                               self.settings.taxel_block or None)
         self.runtime.start()
         hello = json.dumps(self.hello(), separators=(",", ":"))
         for sub in self.hub.subscribers.values():  # the address map may have changed: say it again

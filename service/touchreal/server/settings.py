@@ -27,6 +27,8 @@ class ServeSettings(BaseSettings):
     queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1)
+    taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
+                             "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
     seed: int = 0
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 
