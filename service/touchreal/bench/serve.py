@@ -14,7 +14,8 @@ last count for that long.
 With ``--nats`` (needs Debian's ``nats-server``), part 2 runs again through NATS: the service
 publishes (``--publish``), two ``touchreal gateway`` processes serve the subscribers (spread evenly
 over both), all on loopback; the latency is the same receipt minus ``emit_us`` (the publisher's
-encoder), so the broker hop and the gateway are included.
+encoder), so the broker hop and the gateway are included; then one subscriber to the decoded force
+takes each path in turn (the decoder runs in the service; its outputs cross on ``decoded.force``).
 
 Part 3 drives the pipeline directly and compares the compute time per update for what a demand
 needs: everything, one class, one taxel of many, a PVDF-free class, and nobody.
@@ -147,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
                 gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
                 _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
                        "the publisher's emission), all classes and taxels")
+                _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
     _part3(params, args.taxels)
     return 0
 
@@ -212,6 +214,20 @@ def _part2(addrs: list[str], args, subscribers: str, title: str) -> None:
         gaps = sum(int(np.sum(np.diff(r[:, 5]) != 1)) for r in res if r.shape[0] > 1)
         print(f"   {n:11d}  {seconds:7.0f}  {ev:15.1f}  {fr:15.1f}  {np.percentile(fan, 50):6.2f}  "
               f"{np.percentile(fan, 99):6.2f}  {fan.max():6.1f}  {dropped} (seq gaps {gaps})")
+
+
+def _decoded(paths: list[tuple[str, str]], args, decoder: str = "force") -> None:
+    """Decoded outputs (``decoder``, every taxel), one subscriber on each path in turn."""
+    print(f"\n2c. Decoded outputs ({decoder}, 1 subscriber, {args.seconds:g} s; receipt minus emission)")
+    print("   path               frames/s  p50 ms  p99 ms  max ms  dropped")
+    for label, addr in paths:
+        (r,) = _run_clients(addr, 1, args.seconds, 1, {"streams": ["decoded"], "decoders": [decoder]})
+        if not r.size:
+            print(f"   {label:<17}  no frames")
+            continue
+        fan = (r[:, 3] - r[:, 1]) / 1000
+        print(f"   {label:<17}  {r.shape[0] / args.seconds:8.1f}  {np.percentile(fan, 50):6.2f}  "
+              f"{np.percentile(fan, 99):6.2f}  {fan.max():6.1f}  {int(r[-1, 6])}")
 
 
 def _part3(params: EncoderParams, n_taxels: int) -> None:
