@@ -101,17 +101,17 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         assert dict(svc.hub.demand.columns) == {"PC": (1, 2)}
 
         # causal window: refused without the token (logged, nothing changes), applied with it
-        win = browser.find_element(By.ID, "window-ms")
-        win.clear()
-        win.send_keys("64")
-        browser.find_element(By.ID, "apply-window").click()
+        def apply_window(ms: str) -> None:
+            win = browser.find_element(By.ID, "window-ms")
+            win.clear()
+            win.send_keys(ms)
+            browser.find_element(By.ID, "apply-window").click()
+
+        apply_window("64")
         wait_for(browser, "return document.getElementById('log').textContent.includes('HTTP 401')")
         assert svc.config_view()["window_ms"] == 128
         browser.find_element(By.ID, "token").send_keys("tok")
-        win = browser.find_element(By.ID, "window-ms")
-        win.clear()
-        win.send_keys("64")
-        browser.find_element(By.ID, "apply-window").click()
+        apply_window("64")
         wait_for(browser, "return document.getElementById('config').textContent.includes('window 64 ms')")
         assert svc.config_view()["window_ms"] == 64
 

@@ -25,6 +25,7 @@ def test_demand_is_the_union_limited_to_allowed_classes_and_existing_taxels():
     d = build_demand(subs, 4, ["SA1", "RA"], {"force": ["SA1", "RA"], "texture": ["PC"]})
     assert d.columns == {"SA1": (0, 1), "RA": (0, 1, 2, 3)}
     assert d.channel_taxels == (2,) and d.decoders == {"force": (1,)}
+    assert d.spikes == {"SA1": (0,), "RA": (0, 1, 2, 3)}  # taxel 1's SA1 is computed for the decoder only
     assert build_demand([], 4, ["SA1"], {}).empty
 
 

@@ -37,30 +37,32 @@ class _TaxelBlock:
     acquisition and one Encoder per source. A block none of whose columns is active runs nothing;
     its branches (re)start without touching any other block's columns."""
 
-    def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]], dtype: type):
+    def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]],
+                 dtype: type, channels_source: Source):
         self.taxels = taxels
+        self.channels_source = channels_source
         self.shows = True  #: channels wanted from this block (every taxel at first, like every column)
         self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
         self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
 
-    def set_active(self, want: Mapping[str, Sequence[int]], shown: Sequence[Source] = ()) -> None:
-        """``want``: per class, the block's own (local) taxel indices; ``shown``: the source whose
-        channels are wanted from this block (run even when none of its columns is active)."""
+    def set_active(self, want: Mapping[str, Sequence[int]], shows: bool) -> None:
+        """``want``: per class, the block's own (local) taxel indices; ``shows``: channels are wanted
+        from this block (its channels source then runs even when none of its columns is active)."""
         for enc in self.encoders.values():
             enc.set_columns({c: want.get(c, ()) for c in enc.classes})
-        self.shows = bool(shown)
-        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + list(shown))
+        self.shows = shows
+        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else []))
 
-    def encode(self, shown: Source) -> tuple[Channels | None, list[SpikeEvents]]:
-        """Spikes of every active source (global taxel indices), and the channels of ``shown`` if
-        this block shows them (else None)."""
+    def encode(self) -> tuple[Channels | None, list[SpikeEvents]]:
+        """Spikes of every active source (global taxel indices), and the channels of the channels
+        source if this block shows them (else None)."""
         channels = None
         parts = []
         for s in self.pre.sources:
             ch = self.pre.take(s)
             ev = self.encoders[s].process(ch)
             parts.append(SpikeEvents(ev.t_s, ev.taxel + self.taxels.start, ev.cls) if self.taxels.start else ev)
-            if self.shows and s == shown:
+            if self.shows and s == self.channels_source:
                 channels = ch
         return channels, parts
 
@@ -70,8 +72,7 @@ class StreamEncoder:
 
     ``classes`` are the classes this encoder can serve (default: all of the parameter set); all
     their (class, taxel) columns and every taxel's channels are active at first (:meth:`set_active`
-    changes that). Every spike
-    is stamped on the sensor clock, ``(k + 1) / 5000 + delay_ms`` for a threshold crossing at grid
+    changes that). Every spike is stamped on the sensor clock, ``(k + 1) / 5000 + delay_ms`` for a threshold crossing at grid
     sample k, whenever it is emitted; each source emits as soon as its own branches allow.
 
     ``taxel_block`` splits the taxels into blocks of that many (default: one block) that share the
@@ -106,12 +107,12 @@ class StreamEncoder:
             groups.setdefault(self.source[c], []).append(c)
         windows = [s for s in groups if s is not None]
         self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms))
-        size = n_taxels if taxel_block is None else taxel_block
-        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype) for a in range(0, n_taxels, size)]
-        self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
-        self.channel_taxels: tuple[int, ...] = tuple(range(n_taxels))
+        size = n_taxels if taxel_block is None else taxel_block
+        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source)
+                       for a in range(0, n_taxels, size)]
+        self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
 
     # -- demand ---------------------------------------------------------------------------------
@@ -144,11 +145,9 @@ class StreamEncoder:
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
         for block in self.blocks:
-            show = [self.channels_source] if shown.intersection(block.taxels) else []
             block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
-                             show)
+                             bool(shown.intersection(block.taxels)))
         self.active = {c: xs for c, xs in want.items() if xs}
-        self.channel_taxels = tuple(sorted(shown))
 
     def restart_index(self) -> int | None:
         """The grid index a source that (re)started now would deliver from (None before any data)."""
@@ -183,7 +182,7 @@ class StreamEncoder:
     def _encode(self) -> tuple[Channels, SpikeEvents]:
         shown, parts = [], []
         for block in self.blocks:
-            ch, evs = block.encode(self.channels_source)
+            ch, evs = block.encode()
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs

@@ -35,7 +35,6 @@ from touchreal_client import protocol as P
 
 from .. import __version__
 from ..server import ws
-from ..server.demand import build_demand
 from ..server.hub import Hub
 from ..server.metrics import Metrics
 from ..server.runtime import wall_us
@@ -71,14 +70,15 @@ class AnnouncingHub(Hub):
 
     def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event):
         self.changed = changed
-        self.announced = Announced({})
         super().__init__(capacity, slow_timeout_s)
+
+    @property
+    def announced(self) -> Announced:
+        d = self.demand
+        return Announced(dict(d.spikes), d.channel_taxels, dict(d.decoders))
 
     def refresh_demand(self) -> None:
         super().refresh_demand()
-        subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
-        spikes = build_demand(subs, self.n_taxels, self.allowed_classes, {})
-        self.announced = Announced(dict(spikes.columns), self.demand.channel_taxels, dict(self.demand.decoders))
         self.changed.set()
 
 

@@ -185,12 +185,12 @@ class NatsPublisher:
         A decoder lane is created when its decoder is first wanted and kept (idle) afterwards, so its
         ``seq`` runs on; announced decoders the service does not have are ignored."""
         self.m_gateways.set(len(self.demand.gateways))
-        wants = {self.spikes_subject: P.Subscription() if self.publish_all else self.demand.spikes(),
-                 self.channels_subject: self.demand.channels()}
-        wants |= {subject: None for subject in self.lanes if subject not in wants}
-        installed = self.service.hub.decoder_classes
-        wants |= {subjects.decoded(self.sensor_id, name): want for name, want in self.demand.decoded().items()
-                  if name in installed}
+        wants: dict[str, P.Subscription | None] = {subject: None for subject in self.lanes}
+        wants[self.spikes_subject] = P.Subscription() if self.publish_all else self.demand.spikes()
+        wants[self.channels_subject] = self.demand.channels()
+        for name, want in self.demand.decoded().items():
+            if name in self.service.hub.decoder_classes:
+                wants[subjects.decoded(self.sensor_id, name)] = want
         for subject, want in wants.items():
             sub = self._lane(subject) if want is not None else self.lanes[subject]
             if (sub.subscription and sub.subscription.to_json()) != (want and want.to_json()):

@@ -16,12 +16,14 @@ from ..settings import CLASSES
 
 @dataclass(frozen=True)
 class Demand:
-    """``columns[c]``: taxels whose class-c spikes are wanted; ``channel_taxels``: taxels whose
-    channels are wanted; ``decoders[name]``: taxels a decoder runs for."""
+    """``columns[c]``: taxels whose class-c spikes are computed (for spikes subscribers or for
+    decoders); ``channel_taxels``: taxels whose channels are wanted; ``decoders[name]``: taxels a
+    decoder runs for; ``spikes[c]``: the part of ``columns`` wanted as spikes frames."""
 
     columns: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
     channel_taxels: tuple[int, ...] = ()
     decoders: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
+    spikes: Mapping[str, tuple[int, ...]] = field(default_factory=dict)
 
     @property
     def empty(self) -> bool:
@@ -37,6 +39,7 @@ def build_demand(
     """Union of the subscriptions, limited to existing taxels and the classes the service may compute.
     A decoded-output subscription adds the classes its decoders read (``decoder_classes[name]``)."""
     cols: dict[str, set[int]] = {c: set() for c in CLASSES}
+    spikes: dict[str, set[int]] = {c: set() for c in CLASSES}
     chan: set[int] = set()
     decs: dict[str, set[int]] = {}
     for sub in subscriptions:
@@ -44,6 +47,7 @@ def build_demand(
         if "spikes" in sub.streams:
             for c in sub.classes:
                 cols[c] |= taxels
+                spikes[c] |= taxels
         if "channels" in sub.streams:
             chan |= taxels
         if "decoded" in sub.streams:
@@ -54,4 +58,5 @@ def build_demand(
                         cols[c] |= taxels
     columns = {c: tuple(sorted(t)) for c, t in cols.items() if t and c in allowed_classes}
     decoders = {n: tuple(sorted(t)) for n, t in decs.items() if all(c in columns for c in decoder_classes[n])}
-    return Demand(columns, tuple(sorted(chan)), decoders)
+    return Demand(columns, tuple(sorted(chan)), decoders,
+                  {c: tuple(sorted(t)) for c, t in spikes.items() if t and c in allowed_classes})
