@@ -6,6 +6,7 @@
  * Commands on stdin (binary, little-endian), one byte each then their operands:
  *   'P' u8 channel (1 SingleTact, 2 PVDF), u64 t_us, f32 value[N_TAXELS]  push one sample (N or V)
  *   'D'                                                                 the host reads: drain the ring to stdout
+ *   'R' u32 n                                                           the host reads at most n bytes
  *   'F'                                                                 flush both channels' partial frames
  * At end of input both channels are flushed and the ring drained; the channels' counters go to
  * stderr as one JSON line. Samples pushed while no 'D' comes are what a stalled host means to the
@@ -33,12 +34,15 @@ static uint64_t get_le(const uint8_t *p, int n) {
     return v;
 }
 
-static void drain(tr_ring_t *ring) {
+/* Send at most `limit` bytes from the ring to stdout, as a link would. */
+static void drain(tr_ring_t *ring, uint32_t limit) {
     const uint8_t *data;
     uint32_t n;
-    while ((n = tr_ring_peek(ring, &data)) > 0) {
+    while (limit > 0 && (n = tr_ring_peek(ring, &data)) > 0) {
+        if (n > limit) n = limit;
         fwrite(data, 1, n, stdout);
         tr_ring_consume(ring, n);
+        limit -= n;
     }
 }
 
@@ -88,7 +92,10 @@ int main(int argc, char **argv) {
             }
             if (tr_push(&dev, (tr_channel_id)head[0], get_le(head + 1, 8), values) != TR_OK) return fail("bad channel");
         } else if (cmd == 'D') {
-            drain(&ring);
+            drain(&ring, UINT32_MAX);
+        } else if (cmd == 'R') {
+            if (!read_exact(head, 4)) return fail("truncated read");
+            drain(&ring, (uint32_t)get_le(head, 4));
         } else if (cmd == 'F') {
             tr_flush(&dev, TR_SINGLETACT);
             tr_flush(&dev, TR_PVDF);
@@ -98,7 +105,7 @@ int main(int argc, char **argv) {
     }
     tr_flush(&dev, TR_SINGLETACT);
     tr_flush(&dev, TR_PVDF);
-    drain(&ring);
+    drain(&ring, UINT32_MAX);
     fflush(stdout);
     print_stats(&dev);
     return 0;
