@@ -7,6 +7,7 @@ checks) and as the stdin/stdout harness firmware/host/tr_host.c fed with a recor
 
 from __future__ import annotations
 
+import asyncio
 import binascii
 import ctypes
 import json
@@ -14,20 +15,27 @@ import shutil
 import struct
 import subprocess
 import sys
+import threading
+import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from helpers import synthetic_trial
+from server_harness import collect, connect, hello_and_subscribe, running_server
+from touchreal_client import protocol as P
 
 from touchreal.params import default_params
 from touchreal.recording import Dataset, Trial, write_dataset
-from touchreal.sensing.mcu_emulator import frame_schedule
+from touchreal.sensing.mcu_emulator import PtyPort, frame_schedule, play
 from touchreal.sensing.serial_frame import PERIOD_US, Channel, Frame, FrameParser, Gap, encode_frame
 from touchreal.sensing.serial_source import SampleCollector
-from touchreal.stream import encode_chunks
+from touchreal.server.settings import RuntimeConfig
+from touchreal.settings import CLASSES
+from touchreal.stream import encode_chunks, encode_trial
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", f"-I{FIRMWARE / 'core'}"]
@@ -295,3 +303,54 @@ def test_sequence_numbers_wrap_without_a_gap(host):
     assert [f.seq for f in frames_of(events)] == [65534, 65535, 0, 1, 2, 3]
     assert [f.t0_us for f in frames_of(events)] == [10_000 * k for k in range(n - 6, n)]
     assert parser.stats.gaps == 0 and PERIOD_US[Channel.SINGLETACT] == 10_000
+
+
+def test_firmware_bytes_through_a_pty_into_touchreal_serve_give_the_recording_spikes(host, recording, tmp_path):
+    """The harness's bytes played in real time (x4) through a pty into a real `touchreal serve --source serial:`."""
+    _, trial = recording
+    data, _ = run_host(host, samples_of(trial))
+    schedule, offset = [], 0
+    for f in frames_of(FrameParser().feed(data)):  # each frame goes out when its last sample is taken
+        size = 22 + 4 * f.samples.size + 4
+        schedule.append((int(f.times_us[-1]), data[offset : offset + size]))
+        offset += size
+    assert offset == len(data)
+    path = tmp_path / "ttyTR0"
+    port = PtyPort(path)
+    port.plug()
+    player = threading.Thread(target=play, args=(schedule, port), kwargs={"speed": 4.0, "linger_s": 1.0}, daemon=True)
+    end_us = schedule[-1][0]
+    try:
+        with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{path}")) as (addr, _svc):
+            deadline = time.monotonic() + 20
+            while not (port.host_attached() and httpx.get(f"http://{addr}/v1/status").json()["source"]["connects"]):
+                assert time.monotonic() < deadline, "the service did not open the port"
+                time.sleep(0.02)
+
+            def settled(frames) -> bool:
+                finals = [f.final_us for f in frames if isinstance(f, P.SpikesFrame)]
+                return bool(finals) and all(v is not None and v >= end_us - 400_000 for v in finals[-1].values())
+
+            async def go():
+                async with connect(addr) as ws:
+                    await hello_and_subscribe(ws, streams=["spikes"])
+                    player.start()
+                    return await collect(ws, 30.0, settled)
+
+            frames = asyncio.run(asyncio.wait_for(go(), 40))
+            status = httpx.get(f"http://{addr}/v1/status").json()
+    finally:
+        player.join(10)
+        port.close()
+    spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
+    assert settled(spikes), "the service did not get through the recording in time"
+    assert status["faults"]["source_crc_errors"] == status["faults"]["source_gaps"] == 0
+    want = encode_trial(trial, default_params())
+    t_us = np.concatenate([f.t_us for f in spikes]).astype(np.int64)
+    cls = np.concatenate([f.cls for f in spikes])
+    final = spikes[-1].final_us
+    assert sum(v.size for v in want.values()) > 0
+    for i, name in enumerate(CLASSES):
+        expected = np.rint(want[name] * 1e6).astype(np.int64)
+        expected = expected[expected < final[name]]
+        np.testing.assert_allclose(np.sort(t_us[cls == i]), expected, rtol=0, atol=1)
