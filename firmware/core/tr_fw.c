@@ -11,11 +11,22 @@
 #define TR_BARRIER() ((void)0)
 #endif
 
+/* CRCs four bits at a time: 16-entry tables (96 bytes of flash), about 4x the bitwise loop's speed. */
+static const uint16_t crc16_nibble[16] = {
+    0x0000u, 0x1021u, 0x2042u, 0x3063u, 0x4084u, 0x50A5u, 0x60C6u, 0x70E7u,
+    0x8108u, 0x9129u, 0xA14Au, 0xB16Bu, 0xC18Cu, 0xD1ADu, 0xE1CEu, 0xF1EFu,
+};
+static const uint32_t crc32_nibble[16] = {
+    0x00000000u, 0x1DB71064u, 0x3B6E20C8u, 0x26D930ACu, 0x76DC4190u, 0x6B6B51F4u, 0x4DB26158u, 0x5005713Cu,
+    0xEDB88320u, 0xF00F9344u, 0xD6D6A3E8u, 0xCB61B38Cu, 0x9B64C2B0u, 0x86D3D2D4u, 0xA00AE278u, 0xBDBDF21Cu,
+};
+
 uint16_t tr_crc16(const uint8_t *p, size_t n) {
     uint16_t crc = 0xFFFFu;
     while (n--) {
         crc ^= (uint16_t)(*p++ << 8);
-        for (int i = 0; i < 8; i++) crc = (crc & 0x8000u) ? (uint16_t)((crc << 1) ^ 0x1021u) : (uint16_t)(crc << 1);
+        crc = (uint16_t)((crc << 4) ^ crc16_nibble[crc >> 12]);
+        crc = (uint16_t)((crc << 4) ^ crc16_nibble[crc >> 12]);
     }
     return crc;
 }
@@ -24,7 +35,8 @@ uint32_t tr_crc32(const uint8_t *p, size_t n) {
     uint32_t crc = 0xFFFFFFFFu;
     while (n--) {
         crc ^= *p++;
-        for (int i = 0; i < 8; i++) crc = (crc & 1u) ? (crc >> 1) ^ 0xEDB88320u : crc >> 1;
+        crc = (crc >> 4) ^ crc32_nibble[crc & 0xFu];
+        crc = (crc >> 4) ^ crc32_nibble[crc & 0xFu];
     }
     return ~crc;
 }
@@ -88,6 +100,7 @@ bool tr_ring_has_room(const tr_ring_t *r, uint32_t n) { return n <= r->mask + 1u
 uint32_t tr_ring_peek(const tr_ring_t *r, const uint8_t **data) {
     uint32_t tail = r->tail, used = r->head - tail, start = tail & r->mask;
     uint32_t run = r->mask + 1u - start;
+    TR_BARRIER(); /* the bytes are read after the index that published them */
     *data = r->buf + start;
     return used < run ? used : run;
 }

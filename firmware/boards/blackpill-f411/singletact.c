@@ -42,7 +42,12 @@ static bool wait_sr1(uint32_t flag) {
     }
 }
 
-static bool start(uint8_t address, bool read) {
+/* A (repeated) start and the address; waits for a previous STOP to go out first. */
+static bool begin(uint8_t address, bool read) {
+    uint32_t t0 = board_micros();
+    while (I2C1_CR1 & I2C_CR1_STOP) {
+        if (board_micros() - t0 > ST_I2C_TIMEOUT_US) return false;
+    }
     I2C1_CR1 |= I2C_CR1_START | (read ? I2C_CR1_ACK : 0u);
     if (!wait_sr1(I2C_SR1_SB)) return false;
     I2C1_DR = (uint32_t)(address << 1) | (read ? 1u : 0u);
@@ -52,7 +57,7 @@ static bool start(uint8_t address, bool read) {
 }
 
 static bool write_bytes(uint8_t address, const uint8_t *p, uint32_t n) {
-    if (!start(address, false)) return false;
+    if (!begin(address, false)) return false;
     for (uint32_t i = 0; i < n; i++) {
         if (!wait_sr1(I2C_SR1_TXE)) return false;
         I2C1_DR = p[i];
@@ -64,7 +69,7 @@ static bool write_bytes(uint8_t address, const uint8_t *p, uint32_t n) {
 
 /* Master receive of n >= 3 bytes, the reference manual's procedure for the last three. */
 static bool read_bytes(uint8_t address, uint8_t *p, uint32_t n) {
-    if (!start(address, true)) return false;
+    if (!begin(address, true)) return false;
     for (uint32_t i = 0; i + 3 < n; i++) {
         if (!wait_sr1(I2C_SR1_RXNE)) return false;
         p[i] = (uint8_t)I2C1_DR;
