@@ -51,9 +51,11 @@ def _gcc() -> str:
 
 @pytest.fixture(scope="module")
 def host(tmp_path_factory) -> Path:
-    """The harness program, built with -Werror."""
+    """The harness program, built with -Werror and the address and undefined-behaviour sanitizers
+    (any out-of-bounds access or overflow aborts the run, so the test fails)."""
     out = tmp_path_factory.mktemp("fw") / "tr_host"
-    subprocess.run([_gcc(), *CFLAGS, "-o", str(out), str(FIRMWARE / "host" / "tr_host.c"), *CORE], check=True)
+    sanitize = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    subprocess.run([_gcc(), *CFLAGS, *sanitize, "-o", str(out), str(FIRMWARE / "host" / "tr_host.c"), *CORE], check=True)
     return out
 
 
@@ -292,6 +294,16 @@ def test_host_stalls_show_up_as_gaps_never_as_corruption(host, seed):
         n_frames = sum(f.channel is c for f in got)
         assert n_frames == stats["singletact" if c is Channel.SINGLETACT else "pvdf"]["frames_sent"]
         assert [f.seq for f in got if f.channel is c][-1] == n_frames + dropped[c] - 1
+
+
+def test_a_sample_not_later_than_the_previous_one_is_refused_and_counted(host):
+    times = [1000, 1500, 2000, 1900, 2000, 2500, 3000]  # 1900 and the repeated 2000 run backwards
+    samples = [Sample(t, Channel.PVDF, np.array([t / 1000], np.float32)) for t in times]
+    data, stats = run_host(host, samples, pvdf_block=4)
+    assert stats["pvdf"]["rejected"] == 2 and stats["pvdf"]["samples"] == 5
+    got = frames_of(parse(data)[1])
+    assert [list(f.times_us) for f in got] == [[1000, 1500, 2000, 2500], [3000]]
+    assert np.array_equal(np.concatenate([f.samples[:, 0] for f in got]), np.array([1, 1.5, 2, 2.5, 3], np.float32))
 
 
 def test_sequence_numbers_wrap_without_a_gap(host):

@@ -191,6 +191,12 @@ static void emit(tr_device_t *dev, tr_framer_t *f) {
 tr_status tr_push(tr_device_t *dev, tr_channel_id ch, uint64_t t_us, const float *values) {
     tr_framer_t *f = dev != NULL ? framer(dev, ch) : NULL;
     if (f == NULL || values == NULL) return TR_EINVAL;
+    if (f->started && t_us <= f->last_us) {
+        f->stats.rejected++;
+        return TR_EINVAL;
+    }
+    f->started = true;
+    f->last_us = t_us;
     if (f->filled > 0) {
         uint64_t expected = f->t0_us + (uint64_t)f->filled * f->period_us;
         uint64_t off = t_us > expected ? t_us - expected : expected - t_us;

@@ -88,6 +88,7 @@ typedef struct {
     uint32_t frames_dropped;               /* frames dropped for lack of room (seq used) */
     uint32_t samples;                      /* samples pushed */
     uint32_t breaks;                       /* frames closed early: a sample off the period grid */
+    uint32_t rejected;                     /* samples refused: not later than the channel's previous one */
 } tr_channel_stats_t;
 
 typedef struct {
@@ -97,6 +98,8 @@ typedef struct {
     uint16_t seq;                          /* number of the frame being filled */
     uint16_t filled;                       /* samples in it so far */
     uint64_t t0_us;                        /* device time of its first sample */
+    uint64_t last_us;                      /* device time of the channel's latest sample */
+    bool started;                          /* a sample was pushed since boot */
     tr_channel_stats_t stats;
     uint8_t frame[TR_MAX_FRAME_SIZE];      /* the frame being filled */
 } tr_framer_t;
@@ -124,7 +127,9 @@ tr_status tr_device_init(tr_device_t *dev, uint16_t n_taxels, uint16_t st_block,
 /* Add one sample of channel `ch` for every taxel: values[n_taxels] in N (SingleTact) or V (PVDF),
  * NaN for a failed reading, taken at device time t_us. A sample that is not one period after the
  * previous one (more than half a period off) closes the current frame first, so the host's
- * t0_us + k * period is always the true sample time. A full frame goes to the ring (or is dropped). */
+ * t0_us + k * period is always the true sample time. A full frame goes to the ring (or is dropped).
+ * A sample not later than the channel's previous one is refused (TR_EINVAL, counted in `rejected`):
+ * the device clock of a session never runs backwards. */
 tr_status tr_push(tr_device_t *dev, tr_channel_id ch, uint64_t t_us, const float *values);
 
 /* Close channel ch's partial frame now (e.g. before sleeping); nothing happens when it is empty. */

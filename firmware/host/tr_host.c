@@ -57,9 +57,9 @@ static void print_stats(const tr_device_t *dev) {
     fprintf(stderr, "{\"session\": %u", dev->session);
     for (int i = 0; i < 2; i++) {
         const tr_channel_stats_t *s = tr_stats(dev, chans[i]);
-        fprintf(stderr, ", \"%s\": {\"frames_sent\": %lu, \"frames_dropped\": %lu, \"samples\": %lu, \"breaks\": %lu}",
+        fprintf(stderr, ", \"%s\": {\"frames_sent\": %lu, \"frames_dropped\": %lu, \"samples\": %lu, \"breaks\": %lu, \"rejected\": %lu}",
                 names[i], (unsigned long)s->frames_sent, (unsigned long)s->frames_dropped, (unsigned long)s->samples,
-                (unsigned long)s->breaks);
+                (unsigned long)s->breaks, (unsigned long)s->rejected);
     }
     fprintf(stderr, "}\n");
 }
@@ -90,7 +90,8 @@ int main(int argc, char **argv) {
                 memcpy(&f, &bits, sizeof f);
                 values[i] = f;
             }
-            if (tr_push(&dev, (tr_channel_id)head[0], get_le(head + 1, 8), values) != TR_OK) return fail("bad channel");
+            if (head[0] != TR_SINGLETACT && head[0] != TR_PVDF) return fail("bad channel");
+            tr_push(&dev, (tr_channel_id)head[0], get_le(head + 1, 8), values); /* refusals are counted */
         } else if (cmd == 'D') {
             drain(&ring, UINT32_MAX);
         } else if (cmd == 'R') {
