@@ -10,8 +10,8 @@ void board_clock_init(void) {
     RCC_CR |= RCC_CR_HSEON;
     while (!(RCC_CR & RCC_CR_HSERDY)) {
     }
-    /* PLL: M = 25 (1 MHz in), N = 192, P = 2 (96 MHz), Q = 4 (48 MHz), source HSE */
-    RCC_PLLCFGR = 25u | (192u << 6) | (0u << 16) | (1u << 22) | (4u << 24);
+    /* PLL: M = 25 (1 MHz in), N = 192, P = 2 (96 MHz), Q = 4 (48 MHz), source HSE; reserved bits kept */
+    RCC_PLLCFGR = (RCC_PLLCFGR & ~0x0F437FFFu) | 25u | (192u << 6) | (0u << 16) | (1u << 22) | (4u << 24);
     RCC_CR |= RCC_CR_PLLON;
     while (!(RCC_CR & RCC_CR_PLLRDY)) {
     }

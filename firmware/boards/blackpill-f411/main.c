@@ -49,7 +49,7 @@ int main(void) {
     uint32_t entropy_round = 0;
     if (tr_device_init(&dev, TR_N_TAXELS, TR_ST_BLOCK, tr_pvdf_block_for(TR_N_TAXELS), &ring, adc_entropy,
                        &entropy_round) != TR_OK) {
-        for (;;) board_led_toggle();                          /* a configuration error: LED at full flicker */
+        for (;;) board_led_toggle();                          /* a configuration error: LED dimly lit */
     }
     uint32_t first = board_micros() + 1000u;
     tr_clock_init(&device_clock, first);                      /* device time 0 = the first sample */
