@@ -166,26 +166,26 @@ static tr_framer_t *framer(tr_device_t *dev, tr_channel_id ch) {
 /* Finish the header and CRCs of the filled frame, queue it or drop it; the sequence number is used either way. */
 static void emit(tr_device_t *dev, tr_framer_t *f) {
     uint8_t *p = f->frame;
-    uint32_t n_values = (uint32_t)f->filled * dev->n_taxels, size = TR_FRAME_SIZE(n_values);
+    uint16_t seq = f->seq++, n_samples = f->filled; /* seq wraps 65535 -> 0 */
+    uint32_t size = TR_FRAME_SIZE((uint32_t)n_samples * dev->n_taxels);
+    f->filled = 0;
+    if (!tr_ring_has_room(dev->ring, size)) { /* the host is not reading: no CRC work for a lost frame */
+        f->stats.frames_dropped++;
+        return;
+    }
     p[0] = 0xA5;
     p[1] = 0x5A;
     p[2] = TR_VERSION;
     p[3] = f->id;
-    put_u16(p + 4, f->seq);
+    put_u16(p + 4, seq);
     put_u16(p + 6, dev->session);
     put_u64(p + 8, f->t0_us);
     put_u16(p + 16, dev->n_taxels);
-    put_u16(p + 18, f->filled);
+    put_u16(p + 18, n_samples);
     put_u16(p + 20, tr_crc16(p, 20));
     put_u32(p + size - TR_CRC_SIZE, tr_crc32(p, size - TR_CRC_SIZE));
-    if (tr_ring_has_room(dev->ring, size)) {
-        ring_write(dev->ring, p, size);
-        f->stats.frames_sent++;
-    } else {
-        f->stats.frames_dropped++;
-    }
-    f->seq++; /* wraps 65535 -> 0 */
-    f->filled = 0;
+    ring_write(dev->ring, p, size);
+    f->stats.frames_sent++;
 }
 
 tr_status tr_push(tr_device_t *dev, tr_channel_id ch, uint64_t t_us, const float *values) {
