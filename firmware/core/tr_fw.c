@@ -11,7 +11,8 @@
 #define TR_BARRIER() ((void)0)
 #endif
 
-/* CRCs four bits at a time: 16-entry tables (96 bytes of flash), about 4x the bitwise loop's speed. */
+/* CRCs four bits at a time: 16-entry tables (96 bytes of flash), two steps per byte instead of eight
+ * (1.7x the bitwise loop on the x86 host; not measured on a Cortex-M4). */
 static const uint16_t crc16_nibble[16] = {
     0x0000u, 0x1021u, 0x2042u, 0x3063u, 0x4084u, 0x50A5u, 0x60C6u, 0x70E7u,
     0x8108u, 0x9129u, 0xA14Au, 0xB16Bu, 0xC18Cu, 0xD1ADu, 0xE1CEu, 0xF1EFu,
