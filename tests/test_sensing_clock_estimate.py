@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchreal.sensing.clock_estimate import HORIZON_US, WINDOW_US, DeviceClock
+from touchreal.sensing.clock_estimate import FLOOR_US, HORIZON_US, WINDOW_US, ClockEstimate, DeviceClock
 
 SETTLE_S = 3.0  #: the documented settling time (s of device time)
 BOUND_US = 1000  #: the documented error bound after settling (jitter mean <= 5 ms, stalls, |drift| <= 200 ppm)
@@ -76,12 +76,14 @@ def test_rate_and_offset_of_a_100_ppm_device_over_a_minute_of_bursty_jitter():
     assert len(dc._minima) <= HORIZON_US // WINDOW_US  # bounded memory: one point per window of the horizon
 
 
-def test_estimate_needs_two_windows_and_restart_starts_a_new_epoch():
+def test_estimate_is_provisional_before_two_windows_and_restart_starts_a_new_epoch():
     dc = DeviceClock()
     assert dc.estimate(0) is None
-    dc.add(1_000, 50_000)
-    dc.add(2_000, 51_000)
-    assert dc.estimate(2_000) is None  # one window: rate unknown
+    dc.add(1_001_000, 1_050_400)
+    dc.add(1_002_000, 1_051_000)
+    dc.add(1_300_000, 1_349_300)
+    # provisional until two windows are complete: rate 1 through the fastest frame, error = lag spread
+    assert dc.estimate(1_400_000) == ClockEstimate(1_400_000, 1_449_000, 1.0, FLOOR_US + 400 + 398, 0)  # 1000 ppm of 398 ms
     x, host, truth = link(3.0, -50.0, 1.0, 0.0, seed=2)
     for xi, hi in zip(x, host):
         dc.add(int(xi), int(hi))
@@ -90,7 +92,7 @@ def test_estimate_needs_two_windows_and_restart_starts_a_new_epoch():
     e = dc.estimate(int(x[-1]))
     assert e is not None and e.epoch == 2 and abs(e.host_us - truth[-1]) <= e.error_us
     dc.reset()
-    assert dc.estimate(int(x[-1])) is None and dc.epoch == 3
+    assert dc.estimate(int(x[-1])) is None and dc.epoch == 3 and dc.resets == 1
 
 
 def test_a_forward_jump_of_the_device_clock_resets_instead_of_bending_the_line():

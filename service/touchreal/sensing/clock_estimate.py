@@ -39,6 +39,7 @@ FLOOR_US = 100  #: error floor: host read granularity and unmodelled clock wande
 SIGMA_FLOOR_US = 20.0  #: smallest scatter assumed for the window minima (us)
 OUTLIER_FLOOR_US = 200.0  #: minima this close to the envelope are never treated as bursts (us)
 JUMP_US = 50_000  #: a window minimum this far below the line (beyond its error) is a clock jump (us)
+PROVISIONAL_PPM = 1000.0  #: rate uncertainty assumed before two windows are complete (ppm)
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,9 @@ class _Line:
 
 class DeviceClock:
     """Fed ``add(device_us, host_us)`` per frame; ``estimate(device_us)`` maps device time to host
-    time (the same clock as ``host_us``, us). ``None`` until two windows are complete."""
+    time (the same clock as ``host_us``, us): ``None`` before the first frame, provisional (rate 1,
+    the fastest frame's arrival, error = the spread of arrival lags + PROVISIONAL_PPM of the distance)
+    until two windows are complete."""
 
     def __init__(self, window_us: int = WINDOW_US, horizon_us: int = HORIZON_US):
         if window_us <= 0 or horizon_us < 2 * window_us:
@@ -85,6 +88,7 @@ class DeviceClock:
         self.resets = 0  #: estimates dropped because the device clock jumped
         self._minima: deque[list[int]] = deque()  # [window index, device_us, host_us - device_us]
         self._newest_us: int | None = None
+        self._max_lag = 0  # largest host - device seen this epoch (the provisional error)
         self._line: _Line | None = None
         self._stale = False
 
@@ -92,6 +96,7 @@ class DeviceClock:
         """The device clock restarted: forget every point, start a new epoch."""
         self._minima.clear()
         self._newest_us = None
+        self._max_lag = 0
         self._line = None
         self._stale = False
         self.epoch += 1
@@ -105,6 +110,7 @@ class DeviceClock:
         device_us, lag = int(device_us), int(host_us) - int(device_us)
         if self._newest_us is not None and device_us < self._newest_us - self.window_us:
             self._jumped()
+        self._max_lag = lag if self._newest_us is None else max(self._max_lag, lag)
         self._newest_us = device_us if self._newest_us is None else max(self._newest_us, device_us)
         k = device_us // self.window_us
         if self._minima and k <= self._minima[-1][0]:  # same window (or a late frame): keep the lowest
@@ -121,9 +127,13 @@ class DeviceClock:
 
     def estimate(self, device_us: int) -> ClockEstimate | None:
         """Host time (us, the clock of ``host_us``) at which device time ``device_us`` was sampled."""
+        if not self._minima:
+            return None
         line = self._fit()
         if line is None:
-            return None
+            _, x, lag = min(self._minima, key=lambda m: m[2])
+            err = FLOOR_US + self._max_lag - lag + PROVISIONAL_PPM * 1e-6 * abs(device_us - x)
+            return ClockEstimate(int(device_us), int(device_us) + lag, 1.0, int(np.ceil(err)), self.epoch)
         lag, err = line.at(device_us)
         return ClockEstimate(int(device_us), int(round(device_us + lag)), 1.0 + line.b, int(np.ceil(err)), self.epoch)
 
