@@ -12,6 +12,7 @@ import httpx
 from helpers import synthetic_trial
 from server_harness import collect, connect, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
+from touchreal_client.clock import ClockPoint
 
 from touchreal.recording import write_dataset
 from touchreal.server.settings import RuntimeConfig
@@ -34,10 +35,12 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
             time.sleep(0.05)
         with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{port}")) as (addr, svc):
 
+            clocks: list[dict] = []
+
             async def go():
                 async with connect(addr) as ws:
                     await hello_and_subscribe(ws, streams=["spikes", "channels"])
-                    return await collect(ws, 8.0)
+                    return await collect(ws, 8.0, clock=clocks)
 
             frames = asyncio.run(asyncio.wait_for(go(), 40))
             status = httpx.get(f"http://{addr}/v1/status").json()
@@ -59,3 +62,9 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
     assert faults["source_reconnects"] >= 1 and faults["source_crc_errors"] >= 1 and faults["source_gaps"] >= 1
     assert status["source"]["state"] in ("streaming", "connecting", "disconnected")
     assert 'touchreal_input_faults{kind="source_reconnects"}' in metrics
+    # the device clock's mapping: restated at >= 1 Hz, a new epoch after the unplug, the rate near 1
+    points = [ClockPoint.from_json(m) for m in clocks]
+    assert len(points) >= 6 and all(abs(p.rate - 1) < 1e-3 for p in points[1:])
+    assert [p.epoch for p in points] == sorted(p.epoch for p in points) and points[-1].epoch > points[0].epoch
+    assert all(a.sensor_us <= b.sensor_us for a, b in zip(points, points[1:]))
+    assert points[-1].error_us <= 3000

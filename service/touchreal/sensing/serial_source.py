@@ -10,6 +10,10 @@ trouble: it is visible in :meth:`SerialSource.status`.
 
 Values are passed through unchanged, NaN and Inf included: the ``Sanitizer`` holds the last good
 value and counts them (docs/architecture.md, input policy).
+
+The device clock is mapped onto the host's by a :class:`~touchreal.sensing.clock_estimate.DeviceClock`
+fed every frame's newest sample time and its arrival on the host's monotonic clock;
+:meth:`SerialSource.clock` states it on the wall clock (docs/serial-protocol.md, host clock).
 """
 
 from __future__ import annotations
@@ -21,7 +25,9 @@ from collections.abc import Iterable
 
 import numpy as np
 import serial
+from touchreal_client.clock import ClockPoint
 
+from .clock_estimate import DeviceClock
 from .raw import RawChunk
 from .scene import taxel_grid
 from .serial_frame import MAX_TAXELS, PERIOD_US, Channel, Event, Frame, FrameParser, Restart
@@ -38,7 +44,8 @@ class SampleCollector:
     Frames with another taxel count than ``n_taxels`` are rejected and counted
     (``wrong_taxels``). After a device restart (:class:`Restart`: its clock starts again at 0) the
     device clock is re-based so the new samples continue after the last delivered ones, spaced by
-    the host time that passed (``now_s``), so sensor time never runs backwards. If nobody takes the
+    the host time that passed (``now_s``), so sensor time never runs backwards, and :attr:`clock`
+    (device clock -> host time of acquisition) starts a new epoch. If nobody takes the
     samples, at most ``MAX_PENDING_S`` of each channel are kept; older frames are dropped and
     counted (``overflowed``), so a stalled consumer cannot exhaust memory.
     """
@@ -50,7 +57,8 @@ class SampleCollector:
         self.samples = {Channel.SINGLETACT: 0, Channel.PVDF: 0}
         self._offset_us = 0  # sensor clock = device clock + offset
         self._rebase = False
-        self._last_us: int | None = None  # sensor time of the latest sample delivered
+        self.clock = DeviceClock()  #: sensor clock -> host monotonic time of acquisition (us)
+        self.last_us: int | None = None  #: sensor time of the latest sample delivered (us)
         self._last_host_s = 0.0  # host time it arrived
         self._pending: dict[Channel, deque[tuple[np.ndarray, np.ndarray]]] = {c: deque() for c in Channel}
         self._n_pending = {c: 0 for c in Channel}
@@ -59,19 +67,21 @@ class SampleCollector:
         """Take the frames of ``events``; ``now_s`` is the host's monotonic time of arrival (s)."""
         for ev in events:
             if isinstance(ev, Restart):
-                self._rebase = self._last_us is not None
+                self._rebase = self.last_us is not None
+                self.clock.reset()
             elif isinstance(ev, Frame):
                 if ev.samples.shape[1] != self.n_taxels:
                     self.wrong_taxels += 1
                     continue
                 if self._rebase:
                     elapsed_us = max(round((now_s - self._last_host_s) * 1e6), PERIOD_US[ev.channel])
-                    self._offset_us = self._last_us + elapsed_us - ev.t0_us
+                    self._offset_us = self.last_us + elapsed_us - ev.t0_us
                     self._rebase = False
                 t_us = ev.times_us + self._offset_us
                 self._keep(ev.channel, t_us, ev.samples)
                 self.samples[ev.channel] += ev.samples.shape[0]
-                self._last_us = max(int(t_us[-1]), self._last_us if self._last_us is not None else int(t_us[-1]))
+                self.clock.add(int(t_us[-1]), round(now_s * 1e6))
+                self.last_us = max(int(t_us[-1]), self.last_us if self.last_us is not None else int(t_us[-1]))
                 self._last_host_s = now_s
 
     def _keep(self, channel: Channel, t_us: np.ndarray, samples: np.ndarray) -> None:
@@ -147,6 +157,20 @@ class SerialSource:
         with self._lock:
             return self._collector.take()
 
+    def clock(self) -> ClockPoint | None:
+        """The clock model at the newest sample received: its sensor time (the re-based device
+        clock, us), the wall time (Unix, us) it was acquired, estimated from the host's monotonic
+        arrival times (docs/serial-protocol.md), moved onto the wall clock by the current
+        wall - monotonic difference (both run at the system clock's rate); rate = wall us per
+        device us; epoch + 1 on a device restart or reconnect. None before the first frame."""
+        with self._lock:
+            last = self._collector.last_us
+            est = None if last is None else self._collector.clock.estimate(last)
+        if est is None:
+            return None
+        wall_minus_mono_us = (time.time_ns() - time.monotonic_ns()) // 1000
+        return ClockPoint(est.device_us, est.host_us + wall_minus_mono_us, est.rate, est.error_us, est.epoch)
+
     def status(self) -> dict[str, int | float | str]:
         """State (connecting | streaming | disconnected | closed), cumulative counters and
         ``seconds_since_frame`` (-1 before the first frame; a silent device shows here)."""
@@ -206,6 +230,9 @@ class SerialSource:
             self._closed.wait(delay)
 
     def _stream(self, dev: serial.SerialBase) -> None:
+        with self._lock:
+            if self._connects > 1:  # a reconnect: the mapping is announced anew
+                self._collector.clock.mark_jump()
         while not self._closed.is_set():
             data = dev.read(dev.in_waiting or 1)
             if not data:
