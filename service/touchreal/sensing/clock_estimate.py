@@ -8,17 +8,18 @@ frames that arrived fastest trace ``A`` from above, and a lower-envelope fit rec
 
 1. Device time is cut into windows of ``window_us``; each window keeps only the pair with the
    smallest ``h - x`` (one point per window, at most ``horizon_us / window_us`` points: bounded
-   memory, O(1) per frame).
+   memory, O(1) per frame). The fit uses the complete windows (a window just begun has seen too
+   few frames for its minimum to mean much).
 2. The lower convex hull of those minima gives a first line under all of them (the edge spanning
    their mean ``x``, i.e. the line minimising the total height of the points above it); minima
-   more than ``max(3 x median height, outlier_floor_us)`` above it are bursts, dropped.
+   more than ``max(3 x median height, OUTLIER_FLOOR_US)`` above it are stalls, dropped.
 3. A least-squares line through the remaining minima gives the rate; it is lowered until it
    touches the lowest of them (the envelope), which gives the offset.
 
-The stated error (``error_us``) at device time ``x`` is ``floor_us`` + the median height of the
-minima above the line + 3 standard errors of the slope times the distance from the touching
-point. It does not include the fixed minimum transport delay (the fastest frame's delay), which is
-indistinguishable from the offset.
+The stated error (``error_us``) at device time ``x`` is ``FLOOR_US`` + the median height of the
+minima above the line + 3 x (their scatter + the slope's standard error x the distance from the
+touching point). It does not include the fixed minimum transport delay (the fastest frame's
+delay), which is indistinguishable from the offset. Settling and bounds: docs/serial-protocol.md.
 
 ``epoch`` counts mapping jumps: :meth:`DeviceClock.reset` (device restart: new clock, points
 forgotten) and :meth:`DeviceClock.mark_jump` (reconnect: same clock, announced anew). A device time
