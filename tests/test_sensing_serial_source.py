@@ -194,6 +194,16 @@ def test_device_restart_rebases_the_clock_so_time_keeps_increasing():
     assert est is not None and est.epoch == 1 and est.host_us == 100_755_000  # provisional: rate 1 through the fastest frame
 
 
+def test_frames_stamped_beyond_the_sensor_clock_are_dropped_and_counted():
+    parser, coll = FrameParser(), SampleCollector(n_taxels=1)
+    x = np.ones((2, 1), np.float32)
+    for seq, t0 in enumerate([1_000, 2**63 + 5, 2**64 - 1, (1 << 62) - 500, 3_000]):  # a device clock gone wild
+        coll.add(parser.feed(encode_frame(Channel.PVDF, seq, 1, t0, x)), now_s=1.0 + seq / 1000)
+    chunk = coll.take()
+    assert coll.bad_times == 3 and chunk.pvdf_t.tolist() == [0.001, 0.0015, 0.003, 0.0035]
+    assert coll.last_us == 3_500 and coll.clock.estimate(coll.last_us) is not None
+
+
 def test_samples_nobody_takes_are_bounded_and_counted():
     parser, coll = FrameParser(), SampleCollector(n_taxels=1)
     data = b"".join(encode_frame(Channel.SINGLETACT, k, 1, 10_000 * k, [[float(k)]]) for k in range(1500))

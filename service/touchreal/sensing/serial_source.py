@@ -36,13 +36,15 @@ DEFAULT_BAUDRATE = 921_600
 BACKOFF_S = (0.1, 2.0)  #: first and largest reconnect delay
 READ_TIMEOUT_S = 0.05  #: longest a blocking read waits (bounds how fast close() is noticed)
 MAX_PENDING_S = 10.0  #: samples kept for a consumer that stopped calling next_chunk (s per channel)
+MAX_SENSOR_US = 1 << 62  #: sensor times must stay below this (146 000 years; int64 arithmetic downstream)
 
 
 class SampleCollector:
     """Sans-I/O: parser events -> pending samples on the sensor clock, per channel.
 
     Frames with another taxel count than ``n_taxels`` are rejected and counted
-    (``wrong_taxels``). After a device restart (:class:`Restart`: its clock starts again at 0) the
+    (``wrong_taxels``), as are frames whose times fall outside 0 .. MAX_SENSOR_US on the sensor
+    clock (``bad_times``: a device clock gone wild). After a device restart (:class:`Restart`: its clock starts again at 0) the
     device clock is re-based so the new samples continue after the last delivered ones, spaced by
     the host time that passed (``now_s``), so sensor time never runs backwards, and :attr:`clock`
     (device clock -> host time of acquisition) starts a new epoch. If nobody takes the
@@ -53,6 +55,7 @@ class SampleCollector:
     def __init__(self, n_taxels: int):
         self.n_taxels = n_taxels
         self.wrong_taxels = 0
+        self.bad_times = 0
         self.overflowed = 0
         self.samples = {Channel.SINGLETACT: 0, Channel.PVDF: 0}
         self._offset_us = 0  # sensor clock = device clock + offset
@@ -77,7 +80,11 @@ class SampleCollector:
                     elapsed_us = max(round((now_s - self._last_host_s) * 1e6), PERIOD_US[ev.channel])
                     self._offset_us = self.last_us + elapsed_us - ev.t0_us
                     self._rebase = False
-                t_us = ev.times_us + self._offset_us
+                first_us = ev.t0_us + self._offset_us
+                if first_us < 0 or first_us + PERIOD_US[ev.channel] * ev.samples.shape[0] >= MAX_SENSOR_US:
+                    self.bad_times += 1
+                    continue
+                t_us = first_us + PERIOD_US[ev.channel] * np.arange(ev.samples.shape[0], dtype=np.int64)
                 self._keep(ev.channel, t_us, ev.samples)
                 self.samples[ev.channel] += ev.samples.shape[0]
                 self.clock.add(int(t_us[-1]), round(now_s * 1e6))
@@ -181,6 +188,7 @@ class SerialSource:
                 "port": self.port,
                 **self._parser.stats.as_dict(),
                 "wrong_taxels": self._collector.wrong_taxels,
+                "bad_times": self._collector.bad_times,
                 "overflowed": self._collector.overflowed,
                 "samples_st": self._collector.samples[Channel.SINGLETACT],
                 "samples_pvdf": self._collector.samples[Channel.PVDF],
