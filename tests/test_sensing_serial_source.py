@@ -189,8 +189,8 @@ def test_device_restart_rebases_the_clock_so_time_keeps_increasing():
     assert chunk.pvdf_t[10] == pytest.approx(5.0045 + 0.75) and chunk.pvdf_t[20] == pytest.approx(5.7545 + 0.005)
     assert parser.stats.restarts == 1 and parser.stats.gaps == 0 and coll.wrong_taxels == 1
     assert coll.take().pvdf_t.size == 0
-    assert coll.clock.epoch == 1 and coll.last_us == round(chunk.pvdf_t[-1] * 1e6)  # a new device clock, a new epoch
-    est = coll.clock.estimate(coll.last_us)
+    assert coll.device_clock.epoch == 1 and coll.last_us == round(chunk.pvdf_t[-1] * 1e6)  # a new device clock, a new epoch
+    est = coll.device_clock.estimate(coll.last_us)
     assert est is not None and est.epoch == 1 and est.host_us == 100_755_000  # provisional: rate 1 through the fastest frame
 
 
@@ -201,7 +201,7 @@ def test_frames_stamped_beyond_the_sensor_clock_are_dropped_and_counted():
         coll.add(parser.feed(encode_frame(Channel.PVDF, seq, 1, t0, x)), now_s=1.0 + seq / 1000)
     chunk = coll.take()
     assert coll.bad_times == 3 and chunk.pvdf_t.tolist() == [0.001, 0.0015, 0.003, 0.0035]
-    assert coll.last_us == 3_500 and coll.clock.estimate(coll.last_us) is not None
+    assert coll.last_us == 3_500 and coll.device_clock.estimate(coll.last_us) is not None
 
 
 def test_samples_nobody_takes_are_bounded_and_counted():
@@ -271,7 +271,7 @@ def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
         src = SerialSource(str(path), update_s=0.02)
         try:
             got, states = drain(src, lambda: proc.poll() is not None, timeout_s=30)
-            status = src.status()
+            status, clock = src.status(), src.clock()
         finally:
             src.close()
         device = json.loads(proc.stdout.read().strip().splitlines()[-1])
@@ -288,6 +288,7 @@ def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
     assert status["frames"] + status["frames_missed"] == (i_st[-1] + 1) + (i_pv[-1] // 10 + 1)
     assert status["frames"] == got.st_t.size + got.pvdf_t.size // 10
     assert device["plugs"] >= 3 and device["frames_unread"] > 0
+    assert clock is not None and clock.epoch == status["reconnects"]  # one device clock, a new epoch per reconnect
     # the stream went on after each unplug: samples arrived in the last 0.5 s of the trial
     assert got.st_t[-1] > trial.st_t[-1] - 0.5
     assert states[0] in ("connecting", "streaming") and "disconnected" in states

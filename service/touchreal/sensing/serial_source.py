@@ -44,12 +44,12 @@ class SampleCollector:
 
     Frames with another taxel count than ``n_taxels`` are rejected and counted
     (``wrong_taxels``), as are frames whose times fall outside 0 .. MAX_SENSOR_US on the sensor
-    clock (``bad_times``: a device clock gone wild). After a device restart (:class:`Restart`: its clock starts again at 0) the
-    device clock is re-based so the new samples continue after the last delivered ones, spaced by
-    the host time that passed (``now_s``), so sensor time never runs backwards, and :attr:`clock`
-    (device clock -> host time of acquisition) starts a new epoch. If nobody takes the
-    samples, at most ``MAX_PENDING_S`` of each channel are kept; older frames are dropped and
-    counted (``overflowed``), so a stalled consumer cannot exhaust memory.
+    clock (``bad_times``: a device clock gone wild). After a device restart (:class:`Restart`: its
+    clock starts again at 0) the device clock is re-based so the new samples continue after the
+    last delivered ones, spaced by the host time that passed (``now_s``), so sensor time never runs
+    backwards, and :attr:`device_clock` (sensor clock -> host time of acquisition) starts a new
+    epoch. If nobody takes the samples, at most ``MAX_PENDING_S`` of each channel are kept; older
+    frames are dropped and counted (``overflowed``), so a stalled consumer cannot exhaust memory.
     """
 
     def __init__(self, n_taxels: int):
@@ -60,7 +60,7 @@ class SampleCollector:
         self.samples = {Channel.SINGLETACT: 0, Channel.PVDF: 0}
         self._offset_us = 0  # sensor clock = device clock + offset
         self._rebase = False
-        self.clock = DeviceClock()  #: sensor clock -> host monotonic time of acquisition (us)
+        self.device_clock = DeviceClock()  #: sensor clock -> host monotonic time of acquisition (us)
         self.last_us: int | None = None  #: sensor time of the latest sample delivered (us)
         self._last_host_s = 0.0  # host time it arrived
         self._pending: dict[Channel, deque[tuple[np.ndarray, np.ndarray]]] = {c: deque() for c in Channel}
@@ -71,7 +71,7 @@ class SampleCollector:
         for ev in events:
             if isinstance(ev, Restart):
                 self._rebase = self.last_us is not None
-                self.clock.reset()
+                self.device_clock.reset()
             elif isinstance(ev, Frame):
                 if ev.samples.shape[1] != self.n_taxels:
                     self.wrong_taxels += 1
@@ -87,7 +87,7 @@ class SampleCollector:
                 t_us = first_us + PERIOD_US[ev.channel] * np.arange(ev.samples.shape[0], dtype=np.int64)
                 self._keep(ev.channel, t_us, ev.samples)
                 self.samples[ev.channel] += ev.samples.shape[0]
-                self.clock.add(int(t_us[-1]), round(now_s * 1e6))
+                self.device_clock.add(int(t_us[-1]), round(now_s * 1e6))
                 self.last_us = max(int(t_us[-1]), self.last_us if self.last_us is not None else int(t_us[-1]))
                 self._last_host_s = now_s
 
@@ -172,7 +172,7 @@ class SerialSource:
         device us; epoch + 1 on a device restart or reconnect. None before the first frame."""
         with self._lock:
             last = self._collector.last_us
-            est = None if last is None else self._collector.clock.estimate(last)
+            est = None if last is None else self._collector.device_clock.estimate(last)
         if est is None:
             return None
         wall_minus_mono_us = (time.time_ns() - time.monotonic_ns()) // 1000
@@ -240,7 +240,7 @@ class SerialSource:
     def _stream(self, dev: serial.SerialBase) -> None:
         with self._lock:
             if self._connects > 1:  # a reconnect: the mapping is announced anew
-                self._collector.clock.mark_jump()
+                self._collector.device_clock.mark_jump()
         while not self._closed.is_set():
             data = dev.read(dev.in_waiting or 1)
             if not data:
