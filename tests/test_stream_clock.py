@@ -171,6 +171,13 @@ def test_a_new_hello_follows_a_parameter_upload_and_a_window_change(tmp_path):
                                                                  and x["window_us"]["PC"] == 64000 for x in fs))
                     second = next(x for x in got if isinstance(x, dict) and x.get("type") == "hello"
                                   and x["window_us"]["PC"] == 64000)
+                    r = await http.post(base + "/v1/params/rollback", json={"rev": 1})
+                    assert r.status_code == 200, r.text
+                    rev = r.json()["rev"]  # a rollback is recorded as a new revision
+                    got = await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello"
+                                                                 and x["params"]["rev"] == rev for x in fs))
+                    assert any(isinstance(x, dict) and x.get("type") == "hello" and x["params"]["rev"] == rev
+                               and x["window_us"]["PC"] == 128000 for x in got)
                 return first, second
 
         first, second = run(go())
@@ -199,3 +206,33 @@ def test_clock_messages_pass_through_a_gateway_unchanged(tmp_path):
     assert all(m["wall_us"] - m["sensor_us"] == direct.wall_us - direct.sensor_us for m in clocks)
     lat = _latencies(hello, cm, frames)
     assert all(v.min() >= -2.0 for v in lat.values()), {c: v.min() for c, v in lat.items()}
+
+
+def test_a_replay_states_its_speed_and_a_new_epoch_for_each_trial(tmp_path):
+    """Replayed at 4x: rate 0.25 wall us per sensor us; each trial's wire offset begins a new epoch, and
+    within an epoch the points lie on one line (a trial is played at a steady pace)."""
+    from test_server_stream import _replay_dataset
+
+    from touchreal.server.settings import RuntimeConfig
+
+    ds, trials = _replay_dataset(tmp_path)
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=4.0)) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws)
+                clocks: list[dict] = []
+                await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended", clock=clocks)
+                return clocks
+
+        clocks = run(go())
+    points = [ClockPoint.from_json(m) for m in clocks]
+    assert {p.rate for p in points} == {0.25}
+    epochs = sorted({p.epoch for p in points})
+    assert len(epochs) >= len(trials), epochs  # a trial, or a resume after waiting for the subscriber
+    for e in epochs:
+        same = [p for p in points if p.epoch == e]
+        lines = [p.wall_us - p.sensor_us * 0.25 for p in same]
+        assert max(lines) - min(lines) <= 2.0  # rounding of the us stamps only
+    starts = [min(p.sensor_us for p in points if p.epoch == e) for e in epochs]
+    assert starts == sorted(starts)  # the wire clock keeps increasing across trials
