@@ -127,7 +127,7 @@ def test_missing_port_never_raises_and_close_ends_the_stream(tmp_path):
     status = src.status()
     assert status["state"] in ("connecting", "disconnected") and status["connects"] == 0
     wait_until(lambda: "could not open port" in src.status()["last_error"])
-    assert src.clock() is None
+    assert src.clock() is None and src.status()["clock_error_us"] == -1
     src.close()
     assert src.next_chunk() is None and src.status()["state"] == "closed"
 
@@ -333,6 +333,7 @@ def test_clock_of_a_drifting_device_behind_a_jittery_link_through_a_pty(tmp_path
         src = SerialSource(str(path), update_s=0.02)
         try:
             drain(src, lambda: proc.poll() is not None, lambda c: points.append(src.clock()), timeout_s=30)
+            status = src.status()
         finally:
             src.close()
     finally:
@@ -350,3 +351,5 @@ def test_clock_of_a_drifting_device_behind_a_jittery_link_through_a_pty(tmp_path
     assert np.abs(err).max() <= 2000, np.abs(err).max()
     assert settled[-1].rate == pytest.approx(1 / (1 + 100e-6), abs=50e-6)  # the drift is seen (6 s, loaded host)
     assert max(p.error_us for p in settled) <= 3000
+    assert status["clock_drift_ppm"] == pytest.approx(100, abs=50) and status["clock_resets"] == 0
+    assert 0 < status["clock_error_us"] <= 3000

@@ -27,7 +27,7 @@ import numpy as np
 import serial
 from touchreal_client.clock import ClockPoint
 
-from .clock_estimate import DeviceClock
+from .clock_estimate import ClockEstimate, DeviceClock
 from .raw import RawChunk
 from .scene import taxel_grid
 from .serial_frame import MAX_TAXELS, PERIOD_US, Channel, Event, Frame, FrameParser, Restart
@@ -171,18 +171,25 @@ class SerialSource:
         wall - monotonic difference (both run at the system clock's rate); rate = wall us per
         device us; epoch + 1 on a device restart or reconnect. None before the first frame."""
         with self._lock:
-            last = self._collector.last_us
-            est = None if last is None else self._collector.device_clock.estimate(last)
+            est = self._estimate()
         if est is None:
             return None
         wall_minus_mono_us = (time.time_ns() - time.monotonic_ns()) // 1000
         return ClockPoint(est.device_us, est.host_us + wall_minus_mono_us, est.rate, est.error_us, est.epoch)
 
+    def _estimate(self) -> ClockEstimate | None:
+        """The device clock's estimate at the newest sample (the caller holds the lock)."""
+        last = self._collector.last_us
+        return None if last is None else self._collector.device_clock.estimate(last)
+
     def status(self) -> dict[str, int | float | str]:
-        """State (connecting | streaming | disconnected | closed), cumulative counters and
-        ``seconds_since_frame`` (-1 before the first frame; a silent device shows here)."""
+        """State (connecting | streaming | disconnected | closed), cumulative counters,
+        ``seconds_since_frame`` (-1 before the first frame; a silent device shows here), the device
+        clock's estimated drift (``clock_drift_ppm``, + when it runs fast) and stated error
+        (``clock_error_us``, -1 before the first frame) and its jumps (``clock_resets``)."""
         with self._lock:
             age = -1.0 if self._last_frame_s is None else time.monotonic() - self._last_frame_s
+            est = self._estimate()
             return {
                 "state": self._state,
                 "port": self.port,
@@ -197,6 +204,9 @@ class SerialSource:
                 "reconnects": max(0, self._connects - 1),
                 "last_error": self._last_error,
                 "seconds_since_frame": round(age, 3),
+                "clock_drift_ppm": 0.0 if est is None else round((1 / est.rate - 1) * 1e6, 1),
+                "clock_error_us": -1 if est is None else est.error_us,
+                "clock_resets": self._collector.device_clock.resets,
             }
 
     def close(self) -> None:
