@@ -158,6 +158,26 @@ def test_non_finite_samples_pass_through_and_the_encoder_stays_finite(tmp_path):
     assert len(events) > 0 and np.all(np.isfinite(events.t_s))
 
 
+def test_a_step_of_the_wall_clock_moves_the_mapping_in_a_new_epoch(tmp_path):
+    step_ns = 0
+    port = PtyPort(tmp_path / "ttyTR0")
+    port.plug()
+    src = SerialSource(str(port.path), update_s=0.02, wall_ns=lambda: time.time_ns() + step_ns)
+    try:
+        wait_until(lambda: src.status()["connects"] > 0)
+        with emulated(port, [synthetic_trial(duration_s=1.0)], speed=1.0):
+            wait_until(lambda: src.clock() is not None)
+            before = src.clock()
+            step_ns = 5_000_000_000  # the wall clock is stepped 5 s ahead (NTP at boot)
+            after, again = src.clock(), src.clock()
+    finally:
+        src.close()
+        port.close()
+    assert after.epoch == again.epoch == before.epoch + 1
+    moved = after.wall_us - before.wall_us - (after.sensor_us - before.sensor_us) * after.rate
+    assert abs(moved - 5_000_000) <= before.error_us + after.error_us
+
+
 def test_a_second_reader_of_the_same_port_is_refused_and_says_why(tmp_path):
     with reading(tmp_path / "ttyTR0") as (port, first):
         second = SerialSource(str(port.path), update_s=0.01)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 import serial
@@ -37,6 +37,7 @@ BACKOFF_S = (0.1, 2.0)  #: first and largest reconnect delay
 READ_TIMEOUT_S = 0.05  #: longest a blocking read waits (bounds how fast close() is noticed)
 MAX_PENDING_S = 10.0  #: samples kept for a consumer that stopped calling next_chunk (s per channel)
 MAX_SENSOR_US = 1 << 62  #: sensor times must stay below this (146 000 years; int64 arithmetic downstream)
+WALL_STEP_US = 1000  #: wall - monotonic moving by more than this is a step of the wall clock (a new epoch)
 
 
 class SampleCollector:
@@ -129,6 +130,7 @@ class SerialSource:
         update_s: float = 0.032,
         baudrate: int = DEFAULT_BAUDRATE,
         backoff_s: tuple[float, float] = BACKOFF_S,
+        wall_ns: Callable[[], int] = time.time_ns,
     ):
         if update_s <= 0:
             raise ValueError("update_s must be positive")
@@ -149,6 +151,9 @@ class SerialSource:
         self._bytes = 0
         self._last_error = ""
         self._last_frame_s: float | None = None  # host monotonic time of the latest valid frame
+        self._wall_ns = wall_ns
+        self._wall_minus_mono_us: int | None = None
+        self._wall_steps = 0
         self._next_tick = time.monotonic() + self.update_s
         self._thread = threading.Thread(target=self._run, name=f"serial-source {port}", daemon=True)
         self._thread.start()
@@ -166,16 +171,28 @@ class SerialSource:
 
     def clock(self) -> ClockPoint | None:
         """The clock model at the newest sample received: its sensor time (the re-based device
-        clock, us), the wall time (Unix, us) it was acquired, estimated from the host's monotonic
-        arrival times (docs/serial-protocol.md), moved onto the wall clock by the current
-        wall - monotonic difference (both run at the system clock's rate); rate = wall us per
-        device us; epoch + 1 on a device restart or reconnect. None before the first frame."""
+        clock, us), the wall time (Unix, us, from ``wall_ns``) it was acquired, estimated from the
+        host's monotonic arrival times (docs/serial-protocol.md) and moved onto the wall clock by
+        the current wall - monotonic difference (both run at the system clock's rate, so it only
+        changes when the wall clock is stepped); rate = wall us per device us; epoch + 1 on a device
+        restart, a reconnect or a step of the wall clock. None before the first frame."""
+        mono0 = time.monotonic_ns()
+        wall = self._wall_ns()
+        mono1 = time.monotonic_ns()
+        offset = (wall - (mono0 + mono1) // 2) // 1000
+        clean = mono1 - mono0 < WALL_STEP_US * 500  # ns: not preempted between the readings
         with self._lock:
             est = self._estimate()
+            known = self._wall_minus_mono_us
+            if known is not None and clean and abs(offset - known) > WALL_STEP_US:
+                self._wall_steps += 1
+                known = None
+            if known is None:
+                self._wall_minus_mono_us = known = offset
+            steps = self._wall_steps
         if est is None:
             return None
-        wall_minus_mono_us = (time.time_ns() - time.monotonic_ns()) // 1000
-        return ClockPoint(est.device_us, est.host_us + wall_minus_mono_us, est.rate, est.error_us, est.epoch)
+        return ClockPoint(est.device_us, est.host_us + known, est.rate, est.error_us, est.epoch + steps)
 
     def _estimate(self) -> ClockEstimate | None:
         """The device clock's estimate at the newest sample (the caller holds the lock)."""
