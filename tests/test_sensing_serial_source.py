@@ -273,6 +273,10 @@ def test_emulator_command_reports_bad_arguments_clearly(tmp_path, capsys):
     assert "values per frame" in capsys.readouterr().err and not (tmp_path / "p").exists()
     assert main(["mcu-emulate", str(tmp_path), "--port", str(tmp_path / "p")]) == 2
     assert "no manifest.json" in capsys.readouterr().err
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--clock-drift-ppm", "1e6"]) == 2
+    assert "drift_ppm must be in" in capsys.readouterr().err and not (tmp_path / "p").exists()
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--jitter-ms", "nan"]) == 2
+    assert "jitter_ms must be in" in capsys.readouterr().err
 
 
 def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
