@@ -22,7 +22,8 @@ from touchreal_client import protocol as P
 
 from .. import __version__
 from ..decoding.model import ModelStore, params_warning
-from ..params import EncoderParams
+from ..dryrun import prove_runnable
+from ..params import EncoderParams, ParamsError
 from .hub import Hub
 from .metrics import Metrics
 from .params_store import ParamsStore
@@ -34,18 +35,8 @@ log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
 
 
-def warm_up(params: EncoderParams) -> None:
-    """Compile the pipeline's numba kernels (cached on disk after the first run) on a short
-    synthetic stream, so the first client does not wait for the JIT."""
-    import numpy as np
-
-    from ..sensing.raw import RawChunk
-    from ..stream import StreamEncoder
-
-    se = StreamEncoder(params, 1)
-    st_t, pv_t = np.arange(50) / 100.0, np.arange(1000) / 2000.0
-    se.process(RawChunk(st_t, np.ones((50, 1)), pv_t, np.zeros((1000, 1))))
-    se.finish()
+class SourceOpenError(ValueError):
+    """A source change whose source cannot be opened (the previous source was restored)."""
 
 
 class Service:
@@ -78,10 +69,34 @@ class Service:
 
     async def _warm_and_open(self) -> None:
         try:
-            await asyncio.to_thread(warm_up, self.store.active)
+            await asyncio.to_thread(self._prove_active)
             await self._open_runtime()
         finally:
             self.opened.set()
+
+    def _prove_active(self) -> None:
+        """The dry run of the active set (which also compiles the numba kernels, cached on disk
+        after the first run); a set that does not run is replaced by the shipped one, logged."""
+        rev, params = self.store.current
+        try:
+            prove_runnable(params)
+        except ParamsError as exc:
+            self.store.fall_back(None, f"parameter revision {rev} does not run: {exc}")
+            prove_runnable(self.store.active)
+
+    def _fall_back(self, failed: int, good: int | None, exc: Exception) -> bool:
+        """Called on the acquisition thread when revision ``failed`` raised in the pipeline: activate
+        the last revision that ran (else the shipped set) unless ``failed`` is itself a fallback."""
+        if self.store.active_rev != failed:
+            return True  # a newer set is already active: the runtime takes it up next update
+        if self.store.info(failed).origin.startswith("fallback:"):
+            return False
+        reason = f"parameter revision {failed} failed in the pipeline: {type(exc).__name__}: {exc}"
+        try:
+            self.store.fall_back(good if good not in (None, failed) else None, reason)
+        except (KeyError, ParamsError):  # the good revision left the history meanwhile
+            self.store.fall_back(None, reason)
+        return True
 
     async def stop(self) -> None:
         if self._startup is not None and not self._startup.done():
@@ -92,26 +107,29 @@ class Service:
             rt, self.runtime = self.runtime, None
             await asyncio.to_thread(rt.stop)
 
-    async def _open_runtime(self) -> None:
+    async def _open_runtime(self) -> str | None:
+        """Open the configured source and start the runtime on it; returns why it could not open (None: it did)."""
         update_s = self.store.active.preprocess.update_ms / 1000.0
         try:
             source = await asyncio.to_thread(open_source, self.config, self.settings, update_s)
         except (ValueError, OSError) as exc:
             self.source_error = str(exc)
             log.error("cannot open source %s: %s", self.config.source, exc)
-            return
+            return self.source_error
         self.source_error = None
         self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
-                               self.settings.taxel_block or None)
+                               self.settings.taxel_block or None, self._fall_back)
         self.runtime.start()
         hello = json.dumps(self.hello(), separators=(",", ":"))
         for sub in self.hub.subscribers.values():  # the address map may have changed: say it again
             sub.say(hello)
+        return None
 
-    async def restart_source(self) -> None:
+    async def restart_source(self) -> str | None:
+        """Close and reopen the source; returns why it could not open (None: it did)."""
         await self.stop()
-        await self._open_runtime()
+        return await self._open_runtime()
 
     # -- acquisition thread -> event loop ------------------------------------------------------------
     def _post(self, upd: Update) -> None:
@@ -154,13 +172,11 @@ class Service:
         return self.hub.n_taxels
 
     def latency_us(self) -> dict[str, int]:
-        """Per class: algorithmic latency of the pipeline (us), as the encoder states it."""
-        enc = self.runtime.encoder if self.runtime is not None else None
-        if enc is None:
-            from ..stream import StreamEncoder
+        """Per class of the active set: algorithmic latency of the pipeline (us)."""
+        from ..stream import class_latency_s
 
-            enc = StreamEncoder(self.store.active, 1)
-        return {c: int(round(v * 1e6)) for c, v in enc.latency_s.items()}
+        params = self.store.active
+        return {c: int(round(class_latency_s(params, c) * 1e6)) for c in params.classes}
 
     def hello(self) -> dict[str, Any]:
         params = self.store.active
@@ -233,7 +249,8 @@ class Service:
             "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
                         for s in self.hub.subscribers.values()],
             "faults": dict(rt.counters) if rt else {},
-            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
+            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256,
+                       "fallback": self.store.fallback_reason},
             **{name: section() for name, section in self.status_sections.items()},
         }
 
@@ -250,7 +267,14 @@ class Service:
             return False, f"source {st}"
         if rt.state == "starting":
             return False, "pipeline warming up"
-        return True, "ok"
+        return True, self.health()
+
+    def health(self) -> str:
+        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback; ``failed`` once the
+        acquisition thread has failed."""
+        if self.runtime is not None and self.runtime.state == "failed":
+            return "failed"
+        return f"degraded: {self.store.fallback_reason}" if self.store.fallback_reason else "ok"
 
     def config_view(self) -> dict[str, Any]:
         p = self.store.active.preprocess
@@ -258,7 +282,9 @@ class Service:
 
     # -- changes --------------------------------------------------------------------------------
     async def patch_config(self, patch: ConfigPatch) -> dict[str, Any]:
-        """Apply a validated patch; returns the new config and what was restarted."""
+        """Apply a validated patch; returns the new config and what was restarted. Raises ValueError
+        (nothing changed), ParamsError (the new preprocessing does not run; nothing changed) or
+        :class:`SourceOpenError` (the new source cannot be opened; the previous one runs again)."""
         changes = patch.model_dump(exclude_none=True)
         if "source" in changes:
             parse_source(changes["source"])
@@ -271,18 +297,32 @@ class Service:
         if pre:
             params = self.store.active
             new = params.model_copy(update={"preprocess": params.preprocess.model_copy(update=pre)})
-            self.store.put(EncoderParams.parse(new.to_json()), "config")
+            await self.put_params(EncoderParams.parse(new.to_json()), "config")
             restarted.append("pipeline")
-        cfg = self.config.model_copy(update=changes)
-        source_change = any(getattr(cfg, k) != getattr(self.config, k) for k in ("source", "taxels", "speed", "loop"))
+        old, cfg = self.config, self.config.model_copy(update=changes)
+        source_change = any(getattr(cfg, k) != getattr(old, k) for k in ("source", "taxels", "speed", "loop"))
         self.config = cfg
         if source_change or "update_ms" in pre:
-            await self.restart_source()
+            error = await self.restart_source()
+            if error is not None and source_change:
+                self.config = old
+                await self.restart_source()
+                raise SourceOpenError(f"cannot open source: {error} (the previous source {old.source!r} runs again)")
             restarted.append("source")
         elif "classes" in changes:
             self.hub.configure(self.n_taxels, cfg.classes, self.decoder_classes())
         return {"config": self.config_view(), "restarted": restarted}
 
-    def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
-        """Validated parameters become active at the start of the next update."""
-        return self.store.put(params, origin)
+    async def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
+        """A validated set, proved runnable (:func:`~touchreal.dryrun.prove_runnable`, raises
+        ParamsError), becomes active at the start of the next update; a failed runtime restarts."""
+        await asyncio.to_thread(prove_runnable, params)
+        rev = self.store.put(params, origin)
+        if self.runtime is not None and self.runtime.state == "failed":
+            await self.restart_source()
+        return rev
+
+    async def rollback(self, rev: int) -> int:
+        """Activate revision ``rev`` again as a new revision (KeyError: not kept; ParamsError: it no
+        longer validates or runs)."""
+        return await self.put_params(self.store.load(rev), f"rollback:{rev}")

@@ -29,8 +29,16 @@ class ServeSettings(BaseSettings):
     max_clients: int = Field(default=1000, ge=1)
     taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
                              "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
+    max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
+                                "larger ones get 413 without being read")
     seed: int = 0
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
+
+
+#: Replay speeds (x real time) the service accepts: slow enough to step through, fast enough to
+#: skim, and the replay's stamp arithmetic stays finite over any recording.
+SPEED_RANGE = (0.01, 1000.0)
+SOURCE_SPEC = "sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT"
 
 
 class RuntimeConfig(BaseModel):
@@ -38,24 +46,26 @@ class RuntimeConfig(BaseModel):
     the source; ``update_ms`` or ``window_ms`` restart the pipeline; ``classes`` only changes what is
     computed (classes outside it are never encoded, whoever subscribes)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
-    source: str = Field(default="sim", description="sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT")
+    source: str = Field(default="sim", max_length=4096, description=SOURCE_SPEC)
     taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
-    speed: float = Field(default=1.0, gt=0.0, le=1000.0, description="replay speed (x real time)")
+    speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], allow_inf_nan=False,
+                         description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
-    classes: list[str] = Field(default_factory=lambda: list(CLASSES), description="classes the service may compute")
+    classes: list[str] = Field(default_factory=lambda: list(CLASSES), max_length=len(CLASSES),
+                               description="classes the service may compute")
 
 
 class ConfigPatch(BaseModel):
-    """A partial :class:`RuntimeConfig` (``PATCH /v1/config``)."""
+    """A partial :class:`RuntimeConfig` (``PATCH /v1/config``); strict types (``loop: 0`` is not a bool)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
-    source: str | None = None
+    source: str | None = Field(default=None, max_length=4096, description=SOURCE_SPEC)
     taxels: int | None = Field(default=None, ge=1, le=4096)
-    speed: float | None = Field(default=None, gt=0.0, le=1000.0)
+    speed: float | None = Field(default=None, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool | None = None
     update_ms: float | None = Field(default=None, ge=1.0, le=1000.0)
     window_ms: float | None = Field(default=None, ge=4.0, le=512.0)
-    classes: list[str] | None = None
+    classes: list[str] | None = Field(default=None, max_length=len(CLASSES))

@@ -1,0 +1,159 @@
+"""Hostile REST against a real uvicorn server on 127.0.0.1: parameter sets that do not run, pipeline
+failures, persisted bad sets, config patches that cannot be applied (issue 20)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from pathlib import Path
+
+import httpx
+from server_harness import collect, connect, hello_and_subscribe, running_server
+from touchreal_client import protocol as P
+
+from touchreal.params import default_params
+from touchreal.server.params_store import ParamsStore
+
+
+def params_json(**preprocess) -> dict:
+    d = json.loads(default_params().to_json())
+    d["preprocess"].update(preprocess)
+    return d
+
+
+#: valid field by field, but 19 notches of Q 0.5 make the PVDF filter blow up (non-finite channels)
+UNSTABLE_NOTCHES = {"notch_q": 0.5001, "notch_harmonics": list(range(1, 20))}
+
+
+def wait_for(predicate, seconds: float = 20.0, what: str = "condition"):
+    """Poll ``predicate()`` until it returns something truthy; fail after ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while True:
+        got = predicate()
+        if got:
+            return got
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def spikes_frames(addr: str, seconds: float = 3.0, **sub) -> list:
+    """Spike frames a fresh client gets within ``seconds`` of a subscription (bare by default)."""
+
+    async def go():
+        async with connect(addr) as ws:
+            await hello_and_subscribe(ws, **sub)
+            got = await collect(ws, seconds, lambda fs: sum(isinstance(f, P.SpikesFrame) for f in fs) >= 5)
+            return [f for f in got if isinstance(f, P.SpikesFrame)]
+
+    return asyncio.run(asyncio.wait_for(go(), seconds + 30))
+
+
+def rev_of(frame) -> int:
+    """The parameter revision a spikes frame was made by (0 for anything else)."""
+    return frame.header.params_rev if isinstance(frame, P.SpikesFrame) else 0
+
+
+def test_a_set_that_does_not_run_is_refused_naming_why_and_the_old_set_stays(tmp_path):
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        r = http.put("/v1/params", json=params_json(**UNSTABLE_NOTCHES))
+        assert r.status_code == 422 and "non-finite channels" in r.json()["detail"]
+        r = http.put("/v1/params", json=params_json(mains_hz=1e-300))
+        assert r.status_code == 422
+        assert [e["loc"] for e in r.json()["detail"]] == [["body", "preprocess", "mains_hz"]]
+        assert http.get("/v1/params").json()["rev"] == 1
+        assert http.get("/v1/health").json()["status"] == "ok"
+        assert spikes_frames(addr)
+
+
+def test_a_pipeline_failure_falls_back_to_the_last_good_revision_and_keeps_streaming(tmp_path):
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        good = http.put("/v1/params", json=params_json(st_alpha=0.4)).json()["rev"]
+        assert spikes_frames(addr)  # revision 2 has run
+        # what a set the dry run missed does: the old schema let mains_hz=1e-300 through (LinAlgError)
+        bad = svc.store.active.model_copy(update={"preprocess": svc.store.active.preprocess.model_copy(
+            update={"mains_hz": 1e-300})})
+        svc.store.put(bad, "upload")
+
+        async def stream_through_the_failure():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws)
+                return await collect(ws, 20.0, lambda fs: svc.store.fallback_reason is not None
+                                     and sum(rev_of(f) == good + 2 for f in fs) >= 3)
+
+        frames = asyncio.run(asyncio.wait_for(stream_through_the_failure(), 60))
+        assert any(rev_of(f) == good + 2 for f in frames)  # the fallback copy streams
+        health = http.get("/v1/health").json()
+        assert health["status"] == "degraded" and "revision 3 failed in the pipeline: LinAlgError" in health["reason"]
+        ready = http.get("/v1/ready")
+        assert ready.status_code == 200 and ready.json()["reason"].startswith("degraded")
+        st = http.get("/v1/status").json()
+        assert st["pipeline"]["state"] in ("running", "idle") and "LinAlgError" in st["params"]["fallback"]
+        hist = http.get("/v1/params/history").json()["revisions"]
+        assert hist[-1]["origin"] == f"fallback:{good}" and hist[-1]["sha256"] == hist[good - 1]["sha256"]
+        # a good upload clears the degraded state
+        assert http.put("/v1/params", json=params_json()).status_code == 200
+        assert http.get("/v1/health").json() == {"status": "ok", "session": svc.session, "reason": None}
+
+
+def _persist(state_dir: Path, params: dict) -> None:
+    """A state directory whose active revision 2 is ``params`` as raw JSON (as an older build wrote it)."""
+    ParamsStore(state_dir)  # revision 1: shipped
+    store_dir = state_dir / "params"
+    (store_dir / "rev-000002.json").write_text(json.dumps(params))
+    hist = json.loads((store_dir / "history.json").read_text())
+    hist["revisions"].append({**hist["revisions"][0], "rev": 2, "origin": "upload"})
+    hist["active"] = 2
+    (store_dir / "history.json").write_text(json.dumps(hist))
+
+
+def test_a_persisted_set_that_no_longer_validates_falls_back_at_start_and_says_so(tmp_path, caplog):
+    _persist(tmp_path, params_json(mains_hz=1e-300))
+    caplog.set_level(logging.ERROR, "touchreal.server")
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="ready")
+        health = http.get("/v1/health").json()
+        assert health["status"] == "degraded" and "revision 2 cannot be used" in health["reason"]
+        assert "preprocess.mains_hz" in health["reason"]
+        assert http.get("/v1/params/history").json()["revisions"][-1]["origin"] == "fallback:1"
+        assert spikes_frames(addr)
+    assert any("revision 2 cannot be used" in r.getMessage() for r in caplog.records)
+
+
+def test_a_persisted_set_that_does_not_run_falls_back_to_the_shipped_set_at_start(tmp_path):
+    _persist(tmp_path, params_json(**UNSTABLE_NOTCHES))
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="ready")
+        health = http.get("/v1/health").json()
+        assert health["status"] == "degraded" and "revision 2 does not run" in health["reason"]
+        assert http.get("/v1/params").json()["params"] == json.loads(default_params().to_json())
+        assert http.get("/v1/params/history").json()["revisions"][-1]["origin"] == "fallback:shipped"
+
+
+def test_a_pc_only_set_serves_a_bare_subscription_with_what_it_has(tmp_path):
+    d = json.loads(default_params().to_json())
+    d["classes"] = {"PC": d["classes"]["PC"]}
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        assert http.put("/v1/params", json=d).status_code == 200
+        frames = spikes_frames(addr)
+        assert frames and all(rev_of(f) == 2 for f in frames[-2:])
+        assert svc.runtime.state == "running" and svc.runtime.active == {"PC": (0,)}
+        assert http.get("/v1/health").json()["status"] == "ok"
+
+
+def test_config_patches_are_validated_and_a_source_that_cannot_open_keeps_the_old_one(tmp_path):
+    not_a_dataset = tmp_path / "empty"
+    not_a_dataset.mkdir()
+    with running_server(tmp_path, data_roots=[tmp_path]) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        for body, field in [({"speed": 5e-324}, "speed"), ({"speed": 1e309}, "speed"), ({"loop": 0}, "loop"),
+                            ({"taxels": True}, "taxels"), ({"update_ms": "32"}, "update_ms")]:
+            r = http.patch("/v1/config", content=json.dumps(body), headers={"Content-Type": "application/json"})
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", field], (body, r.text)
+        r = http.patch("/v1/config", json={"source": f"replay:{not_a_dataset}"})
+        assert r.status_code == 409 and "the previous source 'sim' runs again" in r.json()["detail"]
+        assert http.get("/v1/config").json()["source"] == "sim"
+        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="the old source to stream again")
+        assert http.get("/v1/health").json()["status"] == "ok" and spikes_frames(addr)
+        r = http.patch("/v1/config", json={"update_ms": 1.0, "window_ms": 512.0})
+        assert r.status_code == 200 and r.json()["restarted"] == ["pipeline", "source"]
