@@ -11,11 +11,13 @@ from typing import Protocol
 
 import uvicorn
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 from fastapi.staticfiles import StaticFiles
 from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
 from . import rest, ws
+from .security import BodyGuard, validation_error
 from .service import Service
 
 #: The live dashboard: plain static files (no build step), package data of the wheel.
@@ -53,6 +55,8 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
         lifespan=lifespan,
     )
     app.state.service = service
+    app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_middleware(BodyGuard, token=lambda: service.settings.token, max_body_bytes=service.settings.max_body_bytes)
     app.include_router(rest.router)
     app.include_router(ws.router)
     # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed
