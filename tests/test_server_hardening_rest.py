@@ -157,3 +157,99 @@ def test_config_patches_are_validated_and_a_source_that_cannot_open_keeps_the_ol
         assert http.get("/v1/health").json()["status"] == "ok" and spikes_frames(addr)
         r = http.patch("/v1/config", json={"update_ms": 1.0, "window_ms": 512.0})
         assert r.status_code == 200 and r.json()["restarted"] == ["pipeline", "source"]
+
+
+def send_raw(http: httpx.Client, method: str, path: str, text: str) -> httpx.Response:
+    """A request whose body is ``text`` as given (NaN, Infinity, huge literals: what json= would refuse)."""
+    return http.request(method, path, content=text.encode(), headers={"Content-Type": "application/json"})
+
+
+def test_hostile_bodies_get_422_naming_the_field_never_500(tmp_path):
+    nested = '{"a":' * 500 + "1" + "}" * 500
+    with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        good = json.dumps(default_params().model_dump(by_alias=True, mode="json"))
+        cases = [
+            ("PUT", "/v1/params", '{"classes":{},"x":NaN}', ["body", "x"]),
+            ("PUT", "/v1/params", good[:-1] + ', "provenance": {"p": ' + nested + "}}", ["body"]),
+            ("PUT", "/v1/params", good[:-1] + ', "provenance": {"p": ' + '{"a":' * 9 + "1" + "}" * 9 + "}}",
+             ["body", "provenance"]),
+            ("PUT", "/v1/params", good[:-1] + ', "provenance": {"n": Infinity}}', ["body", "provenance"]),
+            ("PATCH", "/v1/config", '{"speed":NaN}', ["body", "speed"]),
+            ("PATCH", "/v1/config", '{"speed":-Infinity}', ["body", "speed"]),
+            ("PATCH", "/v1/config", '{"loop":0}', ["body", "loop"]),
+            ("PATCH", "/v1/config", '{"taxels":' + "9" * 900 + "}", ["body", "taxels"]),
+            ("PATCH", "/v1/config", '{"taxels":' + "9" * 5000 + "}", ["body"]),
+            ("PATCH", "/v1/config", "[" * 30000 + "]" * 30000, ["body"]),
+            ("POST", "/v1/params/rollback", '{"rev":NaN}', ["body", "rev"]),
+            ("POST", "/v1/params/rollback", '{"rev":1.0}', ["body", "rev"]),
+        ]
+        for method, path, text, loc in cases:
+            r = send_raw(http, method, path, text)
+            assert r.status_code == 422, (method, path, text[:80], r.status_code, r.text[:300])
+            assert any(e["loc"][: len(loc)] == loc for e in r.json()["detail"]), (text[:80], r.json())
+        d = json.loads(good)
+        d["classes"]["SA1"]["i_sat"] = True
+        r = http.put("/v1/params", json=d)
+        assert r.status_code == 422 and ["body", "classes", "SA1", "i_sat"] in [e["loc"] for e in r.json()["detail"]]
+        assert http.get("/v1/params").json()["rev"] == 1 and http.get("/v1/config").json()["loop"] is False
+        assert http.get("/v1/health").json()["status"] == "ok"
+
+
+def _vm_rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS in /proc/self/status")
+
+
+def _stream_body(addr: str, head: str, chunk: bytes, total: int) -> tuple[str, int]:
+    """Send ``head`` then up to ``total`` bytes of ``chunk``s while watching for the answer; returns the
+    status line the server sent and how many body bytes it had been sent by then."""
+    import select
+    import socket
+
+    host, port = addr.split(":")
+    sent = 0
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(head.encode())
+        while sent < total:
+            if select.select([sock], [], [], 0)[0]:
+                break
+            try:
+                sock.sendall(chunk)
+            except OSError:  # the server answered and closed: read what it said
+                break
+            sent += len(chunk)
+        sock.settimeout(10)
+        answer = b""
+        while b"\r\n" not in answer:
+            part = sock.recv(4096)
+            if not part:
+                break
+            answer += part
+    return answer.split(b"\r\n", 1)[0].decode(), sent
+
+
+def test_a_200_mb_put_is_refused_before_it_is_read_and_rss_stays_flat(tmp_path):
+    big = 200 * 1024 * 1024
+    chunk = b" " * (256 * 1024)
+    with running_server(tmp_path, token="s3cret") as (addr, svc):
+        rss0 = _vm_rss_mb()
+        head = (f"PUT /v1/params HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {big}\r\n\r\n")
+        status, sent = _stream_body(addr, head, chunk, big)
+        assert status.startswith("HTTP/1.1 401") and sent < big // 10
+        # with the token, a declared 200 MB body is 413 at once
+        status, sent = _stream_body(addr, head.replace("\r\n\r\n", "\r\nAuthorization: Bearer s3cret\r\n\r\n"),
+                                    chunk, big)
+        assert status.startswith("HTTP/1.1 413") and sent < big // 10
+        # and so is one that does not say its size (chunked), once it passes the limit
+        chunked = (f"PUT /v1/params HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n"
+                   "Authorization: Bearer s3cret\r\nTransfer-Encoding: chunked\r\n\r\n")
+        frame = f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n"
+        status, sent = _stream_body(addr, chunked, frame, big)
+        assert status.startswith("HTTP/1.1 413") and sent < big // 10
+        grown = _vm_rss_mb() - rss0
+        assert grown < 50, f"RSS grew by {grown:.0f} MB"
+        with httpx.Client(base_url=f"http://{addr}") as http:
+            assert http.get("/v1/health").json()["status"] == "ok"
