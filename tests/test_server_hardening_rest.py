@@ -6,14 +6,19 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import select
+import socket
 import time
 from pathlib import Path
 
 import httpx
+import pytest
+from helpers import synthetic_trial
 from server_harness import collect, connect, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
+from touchreal.recording import write_dataset
 from touchreal.server.params_store import ParamsStore
 
 
@@ -205,9 +210,6 @@ def _vm_rss_mb() -> float:
 def _stream_body(addr: str, head: str, chunk: bytes, total: int) -> tuple[str, int]:
     """Send ``head`` then up to ``total`` bytes of ``chunk``s while watching for the answer; returns the
     status line the server sent and how many body bytes it had been sent by then."""
-    import select
-    import socket
-
     host, port = addr.split(":")
     sent = 0
     with socket.create_connection((host, int(port)), timeout=10) as sock:
@@ -253,3 +255,42 @@ def test_a_200_mb_put_is_refused_before_it_is_read_and_rss_stays_flat(tmp_path):
         assert grown < 50, f"RSS grew by {grown:.0f} MB"
         with httpx.Client(base_url=f"http://{addr}") as http:
             assert http.get("/v1/health").json()["status"] == "ok"
+
+
+def test_sources_are_confined_to_device_paths_and_data_roots(tmp_path):
+    state, roots, outside = tmp_path / "state", tmp_path / "roots", tmp_path / "outside"
+    entries = [{"id": "a", "protocol": "ramp", "condition": "c", "repeat": 0, "params": {}, "onset_s": 0.3,
+                "stim_end_s": 1.05}]
+    for ds in (roots / "ds", outside / "ds", state / "datasets" / "ds"):
+        write_dataset(ds, {"name": "t", "trials": entries}, {"a": synthetic_trial(duration_s=1.0)})
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.5)
+    with running_server(state, data_roots=[roots]) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        refused = {f"serial:spy://loop://?file={victim}": "pyserial URLs are off",
+                   f"serial:socket://127.0.0.1:{listener.getsockname()[1]}": "pyserial URLs are off",
+                   f"serial:{victim}": "device path under /dev",
+                   f"serial:{tmp_path}/no-such-tty": "device path under /dev",
+                   f"replay:{outside / 'ds'}": "data roots",
+                   f"replay:{outside / 'nothing-here'}": "data roots",
+                   f"replay:{roots}/../outside/ds": "data roots"}
+        answers = {}
+        for spec, why in refused.items():
+            r = http.patch("/v1/config", json={"source": spec})
+            assert r.status_code == 403 and why in r.json()["detail"], (spec, r.text)
+            answers.setdefault(why, set()).add(r.json()["detail"])
+        assert all(len(a) == 1 for a in answers.values())  # the same words whether the path exists or not
+        with pytest.raises(TimeoutError):
+            listener.accept()  # nothing connected out
+        assert victim.read_text() == "keep me"
+        assert http.get("/v1/config").json()["source"] == "sim"
+        for ds in (roots / "ds", state / "datasets" / "ds"):
+            r = http.patch("/v1/config", json={"source": f"replay:{ds}", "speed": 4.0})
+            assert r.status_code == 200 and r.json()["config"]["source"] == f"replay:{ds}"
+    listener.close()
+    with running_server(state, source_changes=False) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
+        for body in ({"source": f"replay:{state / 'datasets' / 'ds'}"}, {"taxels": 2}, {"speed": 2.0}):
+            r = http.patch("/v1/config", json=body)
+            assert r.status_code == 403 and "source changes are off" in r.json()["detail"]
+        assert http.patch("/v1/config", json={"classes": ["SA1"]}).status_code == 200

@@ -19,6 +19,7 @@ from ..params import EncoderParams, ParamsError
 from .params_store import params_sha256
 from .security import token_ok
 from .service import SourceOpenError
+from .sources import SourceRefused
 from .settings import ConfigPatch
 
 router = APIRouter()
@@ -93,6 +94,7 @@ def get_config(request: Request) -> dict[str, Any]:
 
 @router.patch("/v1/config", tags=["config"], dependencies=[Depends(require_token)],
               responses={400: {"description": "invalid value"}, 401: {"description": "token missing or wrong"},
+                         403: {"description": "a source outside what this service lets clients open"},
                          409: {"description": "the source cannot be opened; the previous source runs again"},
                          422: {"description": "invalid value, or the new preprocessing does not run"}})
 async def patch_config(patch: ConfigPatch, request: Request) -> dict[str, Any]:
@@ -100,6 +102,8 @@ async def patch_config(patch: ConfigPatch, request: Request) -> dict[str, Any]:
     the answer says what was restarted (``source``, ``pipeline``)."""
     try:
         return await service_of(request).patch_config(patch)
+    except SourceRefused as exc:
+        raise HTTPException(403, str(exc)) from exc
     except SourceOpenError as exc:
         raise HTTPException(409, str(exc)) from exc
     except ParamsError as exc:

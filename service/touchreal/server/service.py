@@ -29,7 +29,7 @@ from .metrics import Metrics
 from .params_store import ParamsStore
 from .runtime import Runtime, Update, wall_us
 from .settings import ConfigPatch, RuntimeConfig, ServeSettings
-from .sources import open_source, parse_source
+from .sources import SourceRefused, confine_source, open_source, parse_source
 
 log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
@@ -41,8 +41,11 @@ class SourceOpenError(ValueError):
 
 class Service:
     def __init__(self, settings: ServeSettings, config: RuntimeConfig):
-        parse_source(config.source)  # fail early on a bad spec
+        kind, arg = parse_source(config.source)  # fail early on a bad spec
         self.settings, self.config = settings, config
+        #: where PATCH /v1/config may open replays: STATE_DIR/datasets, the settings' roots, serve's own --source folder
+        self.data_roots = [Path(settings.state_dir) / "datasets", *settings.data_roots,
+                           *([Path(arg.partition(":")[0])] if kind == "replay" else [])]
         self.session = uuid.uuid4().hex
         self.started_us = wall_us()
         self.store = ParamsStore(settings.state_dir, settings.params)
@@ -286,8 +289,10 @@ class Service:
         (nothing changed), ParamsError (the new preprocessing does not run; nothing changed) or
         :class:`SourceOpenError` (the new source cannot be opened; the previous one runs again)."""
         changes = patch.model_dump(exclude_none=True)
+        if not self.settings.source_changes and changes.keys() & {"source", "taxels", "speed", "loop"}:
+            raise SourceRefused("source changes are off on this service (TOUCHREAL_SOURCE_CHANGES)")
         if "source" in changes:
-            parse_source(changes["source"])
+            confine_source(changes["source"], self.data_roots, self.settings.serial_urls)
         if "classes" in changes:
             bad = [c for c in changes["classes"] if c not in P.CLASSES]
             if bad:

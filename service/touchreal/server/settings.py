@@ -31,6 +31,11 @@ class ServeSettings(BaseSettings):
                              "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
     max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
                                 "larger ones get 413 without being read")
+    data_roots: list[Path] = Field(default_factory=list, description="folders under which PATCH /v1/config may "
+                                   "open replay: datasets, besides STATE_DIR/datasets and serve's own --source folder")
+    serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
+                              "serial: ports; they can reach files and hosts")
+    source_changes: bool = Field(default=True, description="PATCH /v1/config may change source, taxels, speed, loop")
     seed: int = 0
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 
