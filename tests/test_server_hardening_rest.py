@@ -294,3 +294,39 @@ def test_sources_are_confined_to_device_paths_and_data_roots(tmp_path):
             r = http.patch("/v1/config", json=body)
             assert r.status_code == 403 and "source changes are off" in r.json()["detail"]
         assert http.patch("/v1/config", json={"classes": ["SA1"]}).status_code == 200
+
+
+def _handshake_status(addr: str, **kw) -> int:
+    """101 if /v1/stream accepts the handshake (and says hello), else the HTTP status it answered."""
+    import websockets
+
+    async def go():
+        try:
+            async with connect(addr, **kw) as ws:
+                assert json.loads(await ws.recv())["type"] == "hello"
+                return 101
+        except websockets.InvalidStatus as exc:
+            return exc.response.status_code
+
+    return asyncio.run(asyncio.wait_for(go(), 30))
+
+
+def test_dns_rebinding_gets_4xx_host_allowlist_and_origin_check(tmp_path):
+    with running_server(tmp_path, allowed_origins=["http://app.example"]) as (addr, svc):
+        port = addr.split(":")[1]
+        with httpx.Client(base_url=f"http://{addr}") as http:
+            assert http.get("/v1/health").status_code == 200
+            assert http.get("/v1/health", headers={"Host": f"localhost:{port}"}).status_code == 200
+            assert http.get("/v1/health", headers={"Host": f"rebind.attacker.example:{port}"}).status_code == 400
+            r = http.patch("/v1/config", json={"taxels": 2}, headers={"Host": "rebind.attacker.example"})
+            assert r.status_code == 400 and http.get("/v1/config").json()["taxels"] == 1
+        assert _handshake_status(addr) == 101  # no Origin: not a browser
+        assert _handshake_status(addr, origin=f"http://{addr}") == 101  # the dashboard's own page
+        assert _handshake_status(addr, origin="http://app.example") == 101  # listed
+        assert _handshake_status(addr, origin="http://attacker.example") == 403
+        assert _handshake_status(addr, origin=f"http://rebind.attacker.example:{port}",
+                                 additional_headers={"Host": f"rebind.attacker.example:{port}"}) == 400
+        assert not svc.hub.subscribers
+    with running_server(tmp_path, allowed_hosts=["touchreal.example"]) as (addr, svc):
+        assert httpx.get(f"http://{addr}/v1/health", headers={"Host": "touchreal.example"}).status_code == 200
+        assert httpx.get(f"http://{addr}/v1/health").status_code == 400

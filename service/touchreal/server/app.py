@@ -13,6 +13,7 @@ import uvicorn
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi.staticfiles import StaticFiles
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
@@ -55,8 +56,10 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
         lifespan=lifespan,
     )
     app.state.service = service
+    app.state.allowed_origins = service.settings.allowed_origins  # /v1/stream's Origin check (security.admit)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_middleware(BodyGuard, token=lambda: service.settings.token, max_body_bytes=service.settings.max_body_bytes)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=service.settings.allowed_hosts)  # outermost: first
     app.include_router(rest.router)
     app.include_router(ws.router)
     # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed

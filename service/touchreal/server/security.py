@@ -8,6 +8,8 @@
 * :func:`validation_error` : a 422 that names each bad field and never echoes the input, so NaN,
   Infinity or a huge value in a body cannot turn the answer into a 500.
 * :func:`token_ok`: the one token comparison, shared by the middleware and the OpenAPI dependency.
+* :func:`admit`: the Origin check of ``/v1/stream`` (a browser page of another origin, e.g. after
+  DNS rebinding, gets 403); the Host allowlist is starlette's ``TrustedHostMiddleware`` (app.py).
 """
 
 from __future__ import annotations
@@ -16,9 +18,10 @@ import json
 import re
 import secrets
 from collections.abc import Awaitable, Callable
+from urllib.parse import urlsplit
 
 import numpy as np
-from fastapi import Request
+from fastapi import Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -136,3 +139,23 @@ async def validation_error(request: Request, exc: RequestValidationError) -> JSO
     detail = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))}
               for e in exc.errors()]
     return _problem(422, detail)
+
+
+def origin_allowed(origin: str | None, host: str | None, allowed: list[str]) -> bool:
+    """A WebSocket handshake's ``Origin`` is acceptable: absent (not a browser), the page's own
+    ``Host`` (same origin), or listed in ``allowed`` (``scheme://host[:port]``, or ``*``)."""
+    if origin is None:
+        return True
+    if "*" in allowed or origin.rstrip("/") in allowed:
+        return True
+    return host is not None and urlsplit(origin).netloc.lower() == host.lower()
+
+
+async def admit(ws: WebSocket) -> bool:
+    """The Origin check of ``/v1/stream`` before the handshake is accepted: False after refusing it
+    (HTTP 403). The allowlist is ``app.state.allowed_origins`` (none: same origin only)."""
+    allowed = list(getattr(ws.app.state, "allowed_origins", ()))
+    if origin_allowed(ws.headers.get("origin"), ws.headers.get("host"), allowed):
+        return True
+    await ws.close(code=1008)  # before accept: the server answers the handshake with 403
+    return False

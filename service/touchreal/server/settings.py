@@ -31,6 +31,10 @@ class ServeSettings(BaseSettings):
                              "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
     max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
                                 "larger ones get 413 without being read")
+    allowed_hosts: list[str] = Field(default_factory=lambda: ["127.0.0.1", "localhost"], description="Host header "
+                                     "values served (others: 400), e.g. the name behind a proxy; '*' = any")
+    allowed_origins: list[str] = Field(default_factory=list, description="browser origins (scheme://host[:port]) "
+                                       "that may open /v1/stream besides the service's own; '*' = any")
     data_roots: list[Path] = Field(default_factory=list, description="folders under which PATCH /v1/config may "
                                    "open replay: datasets, besides STATE_DIR/datasets and serve's own --source folder")
     serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
