@@ -134,17 +134,14 @@ def test_compose_and_kubernetes_manifests_reference_the_real_ports_paths_setting
     assert service["spec"]["ports"][0]["targetPort"] == cport["name"]
     assert service["spec"]["selector"] == dep["spec"]["selector"]["matchLabels"] == dep["spec"]["template"]["metadata"]["labels"]
     assert pod["securityContext"]["runAsNonRoot"] is True
-    # args: $(VAR) references resolve from the ConfigMap and the result is a valid `touchreal serve`
-    resolved = []
-    for a in c["args"]:
-        for k, v in cm.items():
-            a = a.replace(f"$({k})", v)
-        assert "$(" not in a, a
-        resolved.append(a)
-    parsed = serve_parser().parse_args(["serve", *resolved])
-    assert parsed.source == cm["TOUCHREAL_SOURCE"] and parsed.taxels == int(cm["TOUCHREAL_TAXELS"])
-    settings_env = {k for k in cm if k not in ("TOUCHREAL_SOURCE", "TOUCHREAL_TAXELS")} | {e["name"] for e in c["env"]}
+    # no args: the ConfigMap's and the Deployment's variables are valid settings of `touchreal serve`
+    assert "args" not in c
+    settings_env = set(cm) | {e["name"] for e in c["env"]}
     assert settings_env <= setting_names()
+    settings = ServeSettings(**{k.removeprefix("TOUCHREAL_").lower(): v for k, v in cm.items()})
+    assert settings.source == "sim" and "localhost" in settings.allowed_hosts
+    for probe in ("livenessProbe", "readinessProbe", "startupProbe"):
+        assert {"name": "Host", "value": "localhost"} in c[probe]["httpGet"]["httpHeaders"]
     env_values = {e["name"]: e["value"] for e in c["env"]}
     mounts = {m["mountPath"] for m in c["volumeMounts"]}
     assert {env_values["TOUCHREAL_STATE_DIR"]} == mounts
