@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, OSError) as exc:  # clear message, no traceback, for user errors
+    except (ValueError, OSError, ImportError) as exc:  # clear message, no traceback: bad input, a missing extra
         print(f"touchreal {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
 
