@@ -95,7 +95,7 @@ def test_dockerfile_is_multi_stage_non_root_with_healthcheck_volumes_and_a_valid
     entry, cmd = exec_form("ENTRYPOINT"), exec_form("CMD")
     assert entry == ["touchreal", "serve"]
     args = serve_parser().parse_args(entry[1:] + cmd)
-    assert args.source == "sim" and args.func is command.run
+    assert command.settings_from(args).source == "sim" and args.func is command.run
     for w, rest in steps:  # everything COPYed from the context exists and is let through .dockerignore
         if w == "COPY" and "--from" not in rest:
             for src in shlex.split(rest)[:-1]:
@@ -172,7 +172,7 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
                    TOUCHREAL_STATE_DIR=str(tmp_path / "state"),
                    NUMBA_CACHE_DIR=str(tmp_path / "numba"))
         # the image compiles the numba kernels at build time: run that step the same way
-        (warm,) = [r for w, r in dockerfile() if w == "RUN" and "warm_up" in r]
+        (warm,) = [r for w, r in dockerfile() if w == "RUN" and "prove_runnable" in r]
         warm_cmd = shlex.split(warm.split("&&")[0])
         assert warm_cmd[0] == "python"
         subprocess.run([py, *warm_cmd[1:]], env=env, cwd=tmp_path, check=True, timeout=600)
