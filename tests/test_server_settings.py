@@ -121,3 +121,17 @@ def test_connections_that_never_finish_their_headers_are_closed(tmp_path):
         with httpx.Client(base_url=f"http://{addr}") as http:
             assert http.get("/v1/health").status_code == 200
             assert http.get("/v1/health").status_code == 200
+
+
+def test_connections_beyond_limit_concurrency_get_503(tmp_path):
+    with running_server(tmp_path, limit_concurrency=10) as (addr, svc):
+        host, port = addr.split(":")
+        with httpx.Client(base_url=f"http://{addr}") as http:
+            assert http.get("/v1/health").status_code == 200  # this connection is one of the 10
+            idle = [socket.create_connection((host, int(port)), timeout=10) for _ in range(9)]
+            try:
+                wait_for(lambda: httpx.get(f"http://{addr}/v1/health").status_code == 503, 10, "the limit")
+            finally:
+                for s in idle:
+                    s.close()
+            wait_for(lambda: http.get("/v1/health").status_code == 200, 10, "room again")
