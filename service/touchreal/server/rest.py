@@ -1,7 +1,9 @@
 """The ``/v1`` REST surface: thin handlers over the :class:`~.service.Service` (OpenAPI at /openapi.json).
 
 Reads are open; writes (PATCH /v1/config, PUT /v1/params, POST /v1/params/rollback) need
-``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``).
+``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``),
+checked before the body is read, and bodies are bounded before they are parsed
+(:class:`~.security.BodyGuard`); 422s name the field and never echo the input.
 """
 
 from __future__ import annotations
