@@ -102,7 +102,7 @@ def test_connections_that_never_finish_their_headers_are_closed(tmp_path):
     if hard < 1500:
         pytest.skip(f"needs 1500 descriptors (hard limit {hard})")
     resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 1500), hard))
-    with running_server(tmp_path, header_timeout_s=1.0) as (addr, svc):
+    with running_server(tmp_path, header_timeout_s=3.0) as (addr, svc):
         host, port = addr.split(":")
         before = _fds()
         socks = []
@@ -110,7 +110,8 @@ def test_connections_that_never_finish_their_headers_are_closed(tmp_path):
             s = socket.create_connection((host, int(port)), timeout=10)
             s.sendall(b"GET /v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
             socks.append(s)
-        assert _fds() >= before + 900  # both ends of each connection live in this process
+        # both ends of each connection live in this process, once the server has accepted them all
+        wait_for(lambda: _fds() >= before + 900, 10, "the server to accept the connections")
         t0 = time.monotonic()
         for s in socks:
             s.settimeout(max(30 - (time.monotonic() - t0), 0.1))
