@@ -35,7 +35,7 @@ from touchreal_client import protocol as P
 
 from .. import __version__
 from ..server import ws
-from ..server.hub import Hub
+from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
 from ..server.runtime import wall_us
 from . import subjects
@@ -93,6 +93,7 @@ class Gateway:
         self._demand_dirty = asyncio.Event()
         self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty)
         self.metrics = Metrics()
+        self.hub.on_drop = self.metrics.count_drop
         r = self.metrics.registry
         self.m_lost = Counter("touchreal_gateway_upstream_lost_frames", "frames lost between publisher and gateway "
                               "(seq jumps on any subject: spikes, channels, decoded)", registry=r)
@@ -240,8 +241,7 @@ class Gateway:
                 "streams": {**up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}),
                             "decoded": {"decoders": self._decoders()}},
                 "encodings": list(P.ENCODINGS), "default_encoding": "binary",
-                "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": s.queue_frames,
-                           "slow_timeout_s": s.slow_timeout_s}}
+                "limits": limits(s)}
 
     def latency_us(self) -> dict[str, int]:
         return dict((self.upstream_hello or {}).get("latency_us", {}))

@@ -185,7 +185,7 @@ class Runtime:
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
             self.decoders = {}
         self._follow_decoder_demand(demand)
-        columns = dict(demand.columns)
+        columns = {c: t for c, t in demand.columns.items() if c in self.encoder.classes}  # demand may predate the set
         if columns != self.active or demand.channel_taxels != self.active_channels:
             self.encoder.set_active(columns, demand.channel_taxels)
             self.active, self.active_channels = columns, demand.channel_taxels

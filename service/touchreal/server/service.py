@@ -23,7 +23,7 @@ from touchreal_client import protocol as P
 from .. import __version__
 from ..decoding.model import ModelStore, params_warning
 from ..params import EncoderParams
-from .hub import Hub
+from .hub import Hub, limits
 from .metrics import Metrics
 from .params_store import ParamsStore
 from .runtime import Runtime, Update, wall_us
@@ -58,6 +58,7 @@ class Service:
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest update
@@ -101,7 +102,7 @@ class Service:
             log.error("cannot open source %s: %s", self.config.source, exc)
             return
         self.source_error = None
-        self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
+        self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None)
         self.runtime.start()
@@ -146,12 +147,21 @@ class Service:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
         if upd.final_us:
             self.anchor = (max(upd.final_us.values()), upd.emit_us)
+        self._follow_served_classes()  # whichever way a parameter set became active
         self.hub.publish(upd)
 
     # -- views ----------------------------------------------------------------------------------
     @property
     def n_taxels(self) -> int:
         return self.hub.n_taxels
+
+    def _follow_served_classes(self) -> None:
+        if self.served_classes() != self.hub.allowed_classes:
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
+
+    def served_classes(self) -> list[str]:
+        """Classes computed for subscribers: those the active parameters define and the config allows."""
+        return [c for c in P.CLASSES if c in self.store.active.classes and c in self.config.classes]
 
     def latency_us(self) -> dict[str, int]:
         """Per class: algorithmic latency of the pipeline (us), as the encoder states it."""
@@ -178,7 +188,7 @@ class Service:
             "update_us": int(round(params.preprocess.update_ms * 1000)),
             "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
             "latency_us": self.latency_us(),
-            "classes": [c for c in P.CLASSES if c in params.classes and c in self.config.classes],
+            "classes": self.served_classes(),
             "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
             "streams": {
                 "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
@@ -189,8 +199,7 @@ class Service:
             "encodings": list(P.ENCODINGS),
             "default_encoding": "binary",
             "params": {"rev": info.rev, "sha256": info.sha256},
-            "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": self.settings.queue_frames,
-                       "slow_timeout_s": self.settings.slow_timeout_s},
+            "limits": limits(self.settings),
         }
 
     def decoder_classes(self) -> dict[str, list[str]]:
@@ -280,9 +289,11 @@ class Service:
             await self.restart_source()
             restarted.append("source")
         elif "classes" in changes:
-            self.hub.configure(self.n_taxels, cfg.classes, self.decoder_classes())
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
         return {"config": self.config_view(), "restarted": restarted}
 
     def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
         """Validated parameters become active at the start of the next update."""
-        return self.store.put(params, origin)
+        rev = self.store.put(params, origin)
+        self._follow_served_classes()
+        return rev
