@@ -11,7 +11,7 @@ import time
 import httpx
 import psutil
 import websockets
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -174,3 +174,60 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
     assert growth_mb < 100, f"server RSS grew {growth_mb:.0f} MB while {sent_valid / 2**20:.1f} MB of requests arrived"
     seqs = [f.header.seq for f in frames]
     assert len(frames) >= 20 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # the other client: no loss
+
+
+def _metric(addr: str, name: str, labels: str = "") -> float:
+    """One sample of the server's /metrics, e.g. ``_metric(addr, "x_total", 'reason="queue_full"')``."""
+    wanted = f"{name}{{{labels}}}" if labels else name
+    for line in httpx.get(f"http://{addr}/metrics").text.splitlines():
+        if line.startswith(wanted + " "):
+            return float(line.split()[-1])
+    raise AssertionError(f"{wanted} not in /metrics")
+
+
+def test_dropped_frames_are_counted_by_reason_and_stay_after_the_client_left(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=8, slow_timeout_s=0.5) as (addr, svc):
+        assert _metric(addr, "touchreal_dropped_frames_total", 'reason="queue_full"') == 0
+        _, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 8.0))
+        queue_full = _metric(addr, "touchreal_dropped_frames_total", 'reason="queue_full"')
+        upstream = _metric(addr, "touchreal_dropped_frames_total", 'reason="upstream_loss"')
+        slow = _metric(addr, "touchreal_clients_closed_slow_total")
+        per_client = [line for line in httpx.get(f"http://{addr}/metrics").text.splitlines()
+                      if line.startswith("touchreal_client_dropped_frames{")]
+        remaining = sum(s.dropped for s in svc.hub.subscribers.values())
+    assert rcvd.code == P.CLOSE_SLOW_CONSUMER and gone and slow == 1
+    assert queue_full >= 1 and queue_full >= remaining and upstream == 0
+    assert per_client == []  # the stalled client's gauge left with it; the counter kept its drops
+
+
+def test_a_client_that_stops_reading_is_closed_by_the_keepalive_with_1011(tmp_path):
+    """At normal rates a stalled client's queue does not fill before the keepalive notices: the
+    server's WebSocket layer closes it with 1011 "keepalive ping timeout" after at most
+    ping_interval_s + ping_timeout_s (20 s + 20 s by default; shortened here). Others are unaffected."""
+    with running_server(tmp_path, ping_interval_s=0.5, ping_timeout_s=1.0) as (addr, svc):
+        host, port = addr.split(":")
+
+        async def go():
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect((host, int(port)))
+            async with connect(addr, sock=sock, max_queue=1, ping_interval=None) as stalled, connect(addr) as good:
+                hello, _ = await hello_and_subscribe(stalled)
+                stalled_id = min(svc.hub.subscribers)
+                await hello_and_subscribe(good)
+                frames = await collect(good, 30.0, lambda fs: stalled_id not in svc.hub.subscribers and len(fs) > 60)
+                gone = stalled_id not in svc.hub.subscribers
+                try:
+                    while True:
+                        await asyncio.wait_for(stalled.recv(), 10)
+                except websockets.ConnectionClosed as closed:
+                    return hello, frames, gone, closed.rcvd
+
+        hello, frames, gone, rcvd = run(go())
+        slow = svc.metrics.kicked._value.get()
+    assert hello["limits"]["ping_interval_s"] == 0.5 and hello["limits"]["ping_timeout_s"] == 1.0
+    assert gone and rcvd is not None and (rcvd.code, rcvd.reason) == (1011, "keepalive ping timeout")
+    assert slow == 0  # not the slow-consumer close: its queue never stayed full
+    spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
+    seqs = [f.header.seq for f in spikes]
+    assert len(spikes) > 60 and seqs == list(range(seqs[0], seqs[0] + len(seqs))) and spikes[-1].header.dropped == 0

@@ -61,6 +61,10 @@ class GatewaySettings(BaseSettings):
     pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
                                 "dropping them (each loss becomes a gap its clients see)")
     demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
+    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
+                                   "client this often (s)")
+    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
+                                  "within this time is closed with 1011 (s)")
 
 
 class AnnouncingHub(Hub):

@@ -121,12 +121,14 @@ class Subscriber:
 
 
 def limits(settings) -> dict[str, int | float]:
-    """The hello's ``limits``: what one connection may send and have queued (``settings``: serve's or a
-    gateway's, with ``queue_frames``, ``slow_timeout_s`` in s, ``max_clients``)."""
+    """The hello's ``limits``: what one connection may send and have queued, and the keepalive (``settings``:
+    serve's or a gateway's: ``queue_frames``, ``slow_timeout_s``, ``max_clients``, ``ping_interval_s``,
+    ``ping_timeout_s``; times in s)."""
     return {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": settings.queue_frames,
             "slow_timeout_s": settings.slow_timeout_s, "control_messages": P.CONTROL_QUEUE_MESSAGES,
             "control_bytes": P.CONTROL_QUEUE_BYTES, "max_errors_in_a_row": P.MAX_ERRORS_IN_A_ROW,
-            "max_clients": settings.max_clients}
+            "max_clients": settings.max_clients, "ping_interval_s": settings.ping_interval_s,
+            "ping_timeout_s": settings.ping_timeout_s}
 
 
 class Hub:
