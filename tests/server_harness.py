@@ -88,3 +88,21 @@ async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[lis
                 await asyncio.wait_for(stalled.recv(), 10)
         except websockets.ConnectionClosed as closed:
             return frames, closed.rcvd, gone
+
+
+async def until(predicate, seconds: float, what: str) -> None:
+    """Poll ``predicate()`` every 20 ms until it is true; fail naming ``what`` after ``seconds``."""
+    end = time.monotonic() + seconds
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"not within {seconds} s: {what}")
+        await asyncio.sleep(0.02)
+
+
+def wait_until(predicate, seconds: float, what: str) -> None:
+    """:func:`until` for synchronous code."""
+    end = time.monotonic() + seconds
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"not within {seconds} s: {what}")
+        time.sleep(0.02)

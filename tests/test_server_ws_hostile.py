@@ -6,12 +6,11 @@ import asyncio
 import json
 import os
 import socket
-import time
 
 import httpx
 import psutil
 import websockets
-from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two
+from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two, until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -39,13 +38,6 @@ async def _next_control(ws) -> dict:
             if m["type"] not in ("spikes", "channels", "decoded"):
                 return m
 
-
-async def _until(predicate, seconds: float, what: str) -> None:
-    end = time.monotonic() + seconds
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"not within {seconds} s: {what}")
-        await asyncio.sleep(0.02)
 
 
 HOSTILE = {
@@ -131,7 +123,7 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             sock.connect((host, int(port)))
             async with connect(addr, sock=sock, max_size=None, max_queue=4) as ws:
-                await _until(lambda: len(svc.hub.subscribers) == 2, 10, "the flooder joined")
+                await until(lambda: len(svc.hub.subscribers) == 2, 10, "the flooder joined")
                 me = max(svc.hub.subscribers)
                 sent = 0
 
@@ -142,7 +134,7 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
                         sent += len(message)
 
                 spammer = asyncio.create_task(spam())
-                await _until(lambda: me not in svc.hub.subscribers or spammer.done(), 60, "the flooder was closed")
+                await until(lambda: me not in svc.hub.subscribers or spammer.done(), 60, "the flooder was closed")
                 spammer.cancel()
                 left_hub_rss = proc.memory_info().rss
                 try:  # now it reads what was buffered for it, then the close frame

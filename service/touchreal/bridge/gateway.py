@@ -39,6 +39,7 @@ from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
 from ..server.runtime import wall_us
 from . import subjects
+from .auth import NatsAuth
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 
@@ -54,7 +55,7 @@ class GatewaySettings(BaseSettings):
     nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
     host: str = "127.0.0.1"
-    port: int = Field(default=8765, ge=0, le=65535)
+    port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
     queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1)
@@ -90,8 +91,9 @@ class Gateway:
     """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
     ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
 
-    def __init__(self, settings: GatewaySettings):
+    def __init__(self, settings: GatewaySettings, auth: NatsAuth | None = None):
         self.settings = settings
+        self.auth = auth or NatsAuth()
         self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
         self.id = uuid.uuid4().hex[:12]
         self._demand_dirty = asyncio.Event()
@@ -135,7 +137,8 @@ class Gateway:
         s = self.settings
         self.nc = await nats.connect(
             s.nats.split(","), name=f"touchreal-gateway-{self.sensor_id}-{self.id}", max_reconnect_attempts=-1,
-            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
+            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn,
+            **self.auth.connect_options())
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
         for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id),
@@ -148,7 +151,7 @@ class Gateway:
     async def _fetch_hello(self) -> None:
         while True:
             try:
-                msg = await self.nc.request(subjects.hello(self.sensor_id), b"", timeout=HELLO_RETRY_S)
+                msg = await self.nc.request(subjects.hello_request(self.sensor_id), b"", timeout=HELLO_RETRY_S)
                 self._set_hello(json.loads(msg.data))
                 return
             except (NatsError, asyncio.TimeoutError, ValueError) as exc:
@@ -166,7 +169,7 @@ class Gateway:
         return [d for d in decs if subjects.token_ok(d.get("name", ""))]
 
     async def _on_hello(self, msg) -> None:
-        if msg.reply or not msg.data:  # a gateway's request, not an announcement
+        if not msg.data:
             return
         try:
             self._set_hello(json.loads(msg.data))
@@ -259,7 +262,7 @@ class Gateway:
 
     def status(self) -> dict[str, Any]:
         u = self.upstream
-        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats,
+        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats, "auth": self.auth.describe(),
                 "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
                 "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,

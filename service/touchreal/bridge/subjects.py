@@ -9,8 +9,10 @@
 * ``decoded.<name>``: binary decoded frames of decoder ``<name>`` for the taxels some gateway wants,
   with their own ``seq`` per decoder (a jump = that decoder's frames lost); only while demanded, and
   only for decoders whose name is one subject token (:func:`token_ok`).
-* ``hello``: the service's ``hello`` JSON; a request (any payload, with a reply subject) is answered
-  with the current one, and the publisher announces a new one here when it changes.
+* ``hello``: the publisher announces the service's ``hello`` JSON here when it changes.
+* ``hello.request``: a request (any payload, with a reply subject) is answered with the current
+  hello. Requests and announcements have their own subjects so broker permissions can let gateways
+  ask without letting them announce (deploy/nats/nats-server.conf).
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
 
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
@@ -47,6 +49,10 @@ def channels(sensor_id: str) -> str:
 
 def hello(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.hello"
+
+
+def hello_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.hello.request"
 
 
 def demand(sensor_id: str) -> str:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..bridge import auth as nats_auth
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="stream spikes over WebSockets (REST config, parameter uploads)")
@@ -29,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--retain-s", type=float, default=0.0, metavar="S",
                    help="with --publish: keep the last S seconds of published frames in an in-memory JetStream "
                         "stream touchreal_<ID> for late joiners (nats-server -js)")
+    nats_auth.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.sensor_id:
             raise ValueError("--publish needs --sensor-id (the NATS subjects are touchreal.<ID>.*)")
         companions.append(NatsPublisher(service, args.publish, args.sensor_id, publish_all=args.publish_all,
-                                        retain_s=args.retain_s))
+                                        retain_s=args.retain_s, auth=nats_auth.from_args(args)))
     app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "
