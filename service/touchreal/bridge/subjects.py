@@ -14,6 +14,7 @@
   hello. Requests and announcements have their own subjects so broker permissions can let gateways
   ask without letting them announce (deploy/nats/nats-server.conf).
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+* ``clock``: the service's ``clock`` messages (its clock model), as it tells its own clients.
 
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
 JetStream stream :func:`stream_name`.
@@ -53,6 +54,10 @@ def hello(sensor_id: str) -> str:
 
 def hello_request(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.hello.request"
+
+
+def clock(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.clock"
 
 
 def demand(sensor_id: str) -> str:
