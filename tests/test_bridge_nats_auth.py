@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 import json
 import secrets
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -14,13 +16,15 @@ import nats
 import nkeys
 import pytest
 from nats.errors import Error as NatsError
-from server_harness import collect, connect, hello_and_subscribe, until
+from server_harness import collect, connect, hello_and_subscribe, until, wait_until
 from test_bridge_nats import SENSOR, gateway, publishing
 from touchreal_client import protocol as P
 
 from touchreal.bridge import natsd, subjects
 from touchreal.bridge.auth import NatsAuth
 from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES, MAX_GATEWAYS, Announced, announcement
+from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.server.app import serving_app
 from touchreal.server.settings import RuntimeConfig
 
 CONF = Path(__file__).resolve().parents[1] / "deploy" / "nats" / "nats-server.conf"
@@ -189,3 +193,36 @@ def test_deploy_nats_wires_the_config_credentials_and_ports_the_commands_have():
     assert gw["ports"][0]["containerPort"] == port and {e["name"] for e in gw["env"]} <= known_env
     (nats_c,) = docs["nats/Deployment"]["spec"]["template"]["spec"]["containers"]
     assert nats_c["args"][:2] == ["-c", f"/etc/nats/{CONF.name}"]
+
+
+def test_grasp_force_example_runs_through_a_gateway(tmp_path, broker):
+    """clients/examples/grasp_force.py against a gateway: the decoder routes are the publisher's,
+    asked over the authenticated broker; the model it downloads decodes the gateway's spikes exactly
+    as the service's own decoder does (--check)."""
+    pytest.importorskip("onnxruntime")
+    example = Path(__file__).resolve().parents[1] / "clients" / "examples" / "grasp_force.py"
+    url, pub_auth, gw_auth = broker
+    with publishing(tmp_path, url, publisher={"auth": pub_auth}) as (addr, svc, pub), \
+            gateway(url, auth=gw_auth) as (ga, gw):
+        listed = httpx.get(f"http://{ga}/v1/decoders").json()
+        one = httpx.get(f"http://{ga}/v1/decoders/force")
+        missing = httpx.get(f"http://{ga}/v1/decoders/nope/model.onnx")
+        onnx = httpx.get(f"http://{ga}/v1/decoders/force/model.onnx")
+        direct = httpx.get(f"http://{addr}/v1/decoders/force/model.onnx")
+        run_ = subprocess.run([sys.executable, example, "--url", f"http://{ga}", "--seconds", "5", "--check"],
+                              capture_output=True, text=True, timeout=120)
+    assert listed == json.loads(json.dumps(svc.decoders_view())) and one.json()["name"] == "force"
+    assert missing.status_code == 404 and "nope" in missing.json()["detail"]
+    assert onnx.status_code == 200 and onnx.content == direct.content and len(onnx.content) > 1000
+    assert run_.returncode == 0, run_.stderr
+    assert len(run_.stdout.splitlines()) > 60 and "max |local - service| = 0 N" in run_.stderr
+
+
+def test_gateway_decoder_routes_say_503_without_a_publisher(broker):
+    url, _, gw_auth = broker
+    gw = Gateway(GatewaySettings(nats=url, sensor_id="nobody", host="127.0.0.1", port=0), gw_auth)
+    with serving_app(create_gateway_app(gw)) as ga:
+        wait_until(lambda: gw.nc is not None and gw.nc.is_connected, 10, "the gateway connected to NATS")
+        listed = httpx.get(f"http://{ga}/v1/decoders", timeout=30)
+        onnx = httpx.get(f"http://{ga}/v1/decoders/force/model.onnx", timeout=30)
+    assert listed.status_code == onnx.status_code == 503 and "did not answer" in listed.json()["detail"]

@@ -46,6 +46,11 @@ from .upstream import UpstreamTracker, update_from_frame
 
 log = logging.getLogger("touchreal.bridge")
 HELLO_RETRY_S = 0.5  #: how often a gateway asks for the hello until the publisher answers (s)
+UPSTREAM_REQUEST_S = 5.0  #: how long a decoders/model request waits for the publisher (s)
+
+
+class UpstreamUnavailable(RuntimeError):
+    """The publisher did not answer a request (not connected, not running, or too slow)."""
 
 
 class GatewaySettings(BaseSettings):
@@ -277,6 +282,26 @@ class Gateway:
     def latency_us(self) -> dict[str, int]:
         return dict((self.upstream_hello or {}).get("latency_us", {}))
 
+    async def _ask(self, subject: str, payload: bytes = b""):
+        if self.nc is None or not self.nc.is_connected:
+            raise UpstreamUnavailable(f"not connected to NATS at {self.settings.nats}")
+        try:
+            return await self.nc.request(subject, payload, timeout=UPSTREAM_REQUEST_S)
+        except (NatsError, asyncio.TimeoutError) as exc:
+            raise UpstreamUnavailable(f"the publisher of sensor {self.sensor_id!r} did not answer ({exc!r})") from exc
+
+    async def decoders(self) -> list[dict[str, Any]]:
+        """The publishing service's ``GET /v1/decoders``, asked over NATS."""
+        return json.loads((await self._ask(subjects.decoders_request(self.sensor_id))).data)
+
+    async def model(self, name: str) -> bytes:
+        """The publishing service's decoder model ``name`` (ONNX bytes); LookupError if it has none."""
+        msg = await self._ask(subjects.model_request(self.sensor_id), name.encode())
+        error = (msg.headers or {}).get(subjects.ERROR_HEADER)
+        if error:
+            raise LookupError(error)
+        return msg.data
+
     def ready(self) -> tuple[bool, str]:
         if self.nc is None or not self.nc.is_connected:
             return False, f"not connected to NATS at {self.settings.nats}"
@@ -317,6 +342,42 @@ def ready(request: Request) -> Any:
 @router.get("/v1/status", tags=["status"])
 def status(request: Request) -> dict[str, Any]:
     return request.app.state.service.status()
+
+
+@router.get("/v1/decoders", tags=["decoders"], responses={503: {"description": "the publisher does not answer"}})
+async def decoders(request: Request) -> Any:
+    """The publishing service's installed decoders (asked over NATS; docs/decoders.md)."""
+    try:
+        return await request.app.state.service.decoders()
+    except UpstreamUnavailable as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+
+
+@router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})
+async def decoder(name: str, request: Request) -> Any:
+    found = await decoders(request)
+    if isinstance(found, Response):
+        return found
+    for m in found:
+        if m["name"] == name:
+            return m
+    return JSONResponse({"detail": f"no decoder model named {name[:64]!r}"}, status_code=404)
+
+
+@router.get("/v1/decoders/{name}/model.onnx", tags=["decoders"],
+            responses={200: {"content": {"application/octet-stream": {}}}, 404: {"description": "no such decoder"}})
+async def decoder_onnx(name: str, request: Request) -> Response:
+    """The publishing service's ONNX file of decoder ``name`` (asked over NATS)."""
+    if len(name) > 128:
+        return JSONResponse({"detail": "no decoder model of that name"}, status_code=404)
+    try:
+        data = await request.app.state.service.model(name)
+    except UpstreamUnavailable as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+    except LookupError as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+    return Response(data, media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{name}.onnx"'} if subjects.token_ok(name) else {})
 
 
 @router.get("/metrics", tags=["status"])

@@ -33,6 +33,7 @@ from nats.js.errors import BadRequestError
 from prometheus_client import Counter, Gauge
 from touchreal_client import protocol as P
 
+from ..decoding.model import DecoderModelError
 from ..server.hub import Subscriber
 from ..server.service import Service
 from . import subjects
@@ -122,6 +123,8 @@ class NatsPublisher:
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello_request(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        await self.nc.subscribe(subjects.decoders_request(self.sensor_id), cb=self._on_decoders_request)
+        await self.nc.subscribe(subjects.model_request(self.sensor_id), cb=self._on_model_request)
         self.service.clock_listeners.append(self._on_clock)
         if self.retain_s:
             await self._retain()
@@ -223,6 +226,25 @@ class NatsPublisher:
     async def _on_hello_request(self, msg) -> None:
         if msg.reply:
             await self.nc.publish(msg.reply, self._hello_bytes())
+
+    async def _on_decoders_request(self, msg) -> None:
+        if msg.reply:
+            await self.nc.publish(msg.reply, json.dumps(self.service.decoders_view()).encode())
+
+    async def _on_model_request(self, msg) -> None:
+        """Reply with the named model's ONNX bytes, or with :data:`.subjects.ERROR_HEADER` saying why not."""
+        if not msg.reply:
+            return
+        try:
+            data = await asyncio.to_thread(self.service.models.path(msg.data.decode(errors="replace")).read_bytes)
+        except (DecoderModelError, OSError) as exc:
+            await self.nc.publish(msg.reply, b"", headers={subjects.ERROR_HEADER: str(exc)[:300]})
+            return
+        if len(data) > self.nc.max_payload:
+            await self.nc.publish(msg.reply, b"", headers={subjects.ERROR_HEADER: f"model of {len(data)} bytes exceeds "
+                                                           f"the broker's max_payload ({self.nc.max_payload})"})
+            return
+        await self.nc.publish(msg.reply, data)
 
     def _hello_bytes(self) -> bytes:
         return json.dumps(self.service.hello(), separators=(",", ":")).encode()

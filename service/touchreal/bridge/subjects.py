@@ -14,6 +14,9 @@
   hello. Requests and announcements have their own subjects so broker permissions can let gateways
   ask without letting them announce (deploy/nats/nats-server.conf).
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+* ``decoders.request``: answered with the service's ``GET /v1/decoders`` JSON; ``model.request``
+  (payload: a decoder name) with that model's ONNX bytes, or an empty reply with header
+  :data:`ERROR_HEADER` naming why not. So a gateway serves the decoder routes too.
 * ``clock``: the service's ``clock`` messages (its clock model), as it tells its own clients.
 
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
@@ -25,6 +28,7 @@ from __future__ import annotations
 import re
 
 SESSION_HEADER = "Touchreal-Session"
+ERROR_HEADER = "Touchreal-Error"
 _TOKEN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -58,6 +62,14 @@ def hello_request(sensor_id: str) -> str:
 
 def clock(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.clock"
+
+
+def decoders_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.decoders.request"
+
+
+def model_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.model.request"
 
 
 def demand(sensor_id: str) -> str:

@@ -251,6 +251,12 @@ class Service:
         """Usable installed decoders (name -> the classes they read), in the hello's order."""
         return {m["name"]: list(m["classes"]) for m in self.models.list() if "error" not in m}
 
+    def decoders_view(self) -> list[dict[str, Any]]:
+        """Installed decoder models (``GET /v1/decoders``, also through a gateway): metadata, and a
+        warning where the active parameters differ from the ones a model was trained on."""
+        params = self.store.active
+        return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in self.models.list()]
+
     def decoder_list(self) -> list[dict[str, Any]]:
         """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
         params = self.store.active
