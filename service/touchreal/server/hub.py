@@ -75,8 +75,8 @@ class Subscriber:
         if self.kick is not None:
             return
         if len(self.control) >= P.CONTROL_QUEUE_MESSAGES or self.control_chars + len(text) > P.CONTROL_QUEUE_BYTES:
-            self.kick = (P.CLOSE_FLOODING, f"flooding: {len(self.control)} replies ({self.control_chars} bytes) "
-                         "unread; read the replies before sending more requests")
+            self.kick = (P.CLOSE_FLOODING, f"flooding: {len(self.control)} control messages ({self.control_chars} "
+                         "bytes) unsent; read the replies before sending more requests")
             self.kicked.set()
             return
         self.control.append(text)
