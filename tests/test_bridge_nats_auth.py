@@ -226,3 +226,38 @@ def test_gateway_decoder_routes_say_503_without_a_publisher(broker):
         listed = httpx.get(f"http://{ga}/v1/decoders", timeout=30)
         onnx = httpx.get(f"http://{ga}/v1/decoders/force/model.onnx", timeout=30)
     assert listed.status_code == onnx.status_code == 503 and "did not answer" in listed.json()["detail"]
+
+
+def test_publisher_and_gateway_over_tls(tmp_path):
+    """The shipped permissions behind TLS: a self-signed certificate for 127.0.0.1, the clients verify
+    it with --nats-tls-ca; a client that does not speak TLS gets nowhere."""
+    import shutil
+
+    if not natsd.available() or shutil.which("openssl") is None:
+        pytest.skip("needs nats-server and openssl (Debian: apt-get install nats-server openssl)")
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+                    "-keyout", tmp_path / "key.pem", "-out", tmp_path / "cert.pem", "-days", "1", "-subj", "/CN=127.0.0.1",
+                    "-addext", "subjectAltName=IP:127.0.0.1"], check=True, capture_output=True)
+    shutil.copy(CONF, tmp_path / CONF.name)
+    conf = tmp_path / "tls.conf"
+    conf.write_text(f'tls {{cert_file: "{tmp_path / "cert.pem"}", key_file: "{tmp_path / "key.pem"}"}}\n'
+                    f'include "{CONF.name}"\n')
+    env = {"TOUCHREAL_NATS_PUBLISHER_PASSWORD": "p" * 16, "TOUCHREAL_NATS_GATEWAY_PASSWORD": "g" * 16}
+    ca = tmp_path / "cert.pem"
+    with natsd.local_nats_server(config=conf, env=env) as plain_url:
+        url = plain_url.replace("nats://", "tls://")
+        pub_auth = NatsAuth(user="publisher", password="p" * 16, tls_ca=ca)
+        with publishing(tmp_path / "state", url, publisher={"auth": pub_auth}) as (_, svc, _p), \
+                gateway(url, auth=NatsAuth(user="gateway", password="g" * 16, tls_ca=ca)) as (ga, gw):
+
+            async def go():
+                async with connect(ga) as ws:
+                    hello, _ = await hello_and_subscribe(ws)
+                    frames = await collect(ws, 10.0, lambda fs: len(fs) >= 10)
+                with pytest.raises((NatsError, OSError)):  # no TLS: refused
+                    await nats.connect(plain_url, max_reconnect_attempts=0, connect_timeout=2, allow_reconnect=False,
+                                       user="gateway", password="g" * 16)
+                return hello, frames
+
+            hello, frames = run(go())
+    assert hello["session"] == svc.session and len(frames) >= 10 and gw.status()["auth"] == "user gateway over TLS"
