@@ -30,12 +30,13 @@ def _strict(text: str) -> dict:
 
 
 async def _next_control(ws) -> dict:
-    """The next JSON control message (frames in between are skipped)."""
+    """The next reply to a request (``subscribed``, ``time``, ``error``); frames and what the server
+    says on its own (``hello``, ``clock``) in between are skipped."""
     while True:
         msg = await asyncio.wait_for(ws.recv(), 10)
         if isinstance(msg, str):
             m = _strict(msg)
-            if m["type"] not in ("spikes", "channels", "decoded"):
+            if m["type"] in ("subscribed", "time", "error"):
                 return m
 
 
