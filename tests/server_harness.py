@@ -71,6 +71,11 @@ async def collect(ws, seconds: float, until=None, clock: list | None = None) -> 
     return frames
 
 
+def n_spikes(frames: list) -> int:
+    """How many of ``collect``'s items are spikes frames (it also returns JSON messages such as ``clock``)."""
+    return sum(isinstance(f, P.SpikesFrame) for f in frames)
+
+
 async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[list, object, bool]:
     """Two clients subscribe to a heavy stream (5 kHz channels); one never reads (4 KiB receive buffer).
 

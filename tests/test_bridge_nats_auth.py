@@ -16,7 +16,7 @@ import nats
 import nkeys
 import pytest
 from nats.errors import Error as NatsError
-from server_harness import collect, connect, hello_and_subscribe, until, wait_until
+from server_harness import collect, connect, hello_and_subscribe, n_spikes, until, wait_until
 from test_bridge_nats import SENSOR, gateway, publishing
 from touchreal_client import protocol as P
 
@@ -35,7 +35,7 @@ def broker() -> Iterator[tuple[str, NatsAuth, NatsAuth]]:
     """(URL, publisher credentials, gateway credentials) of a nats-server running the shipped config."""
     if not natsd.available():
         pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
-    pw = {"TOUCHREAL_NATS_PUBLISHER_PASSWORD": secrets.token_hex(8), "TOUCHREAL_NATS_GATEWAY_PASSWORD": secrets.token_hex(8)}
+    pw = {"TOUCHREAL_NATS_PUBLISHER_PASSWORD": "tr_" + secrets.token_hex(16), "TOUCHREAL_NATS_GATEWAY_PASSWORD": "tr_" + secrets.token_hex(16)}
     with natsd.local_nats_server(config=CONF, env=pw) as url:
         yield (url, NatsAuth(user="publisher", password=pw["TOUCHREAL_NATS_PUBLISHER_PASSWORD"]),
                NatsAuth(user="gateway", password=pw["TOUCHREAL_NATS_GATEWAY_PASSWORD"]))
@@ -71,7 +71,7 @@ def test_authenticated_publisher_and_gateway_stream_and_nobody_else_gets_in(tmp_
         async def go():
             async with connect(ga) as ws:
                 hello, _ = await hello_and_subscribe(ws, taxels=[1])
-                frames = await collect(ws, 10.0, lambda fs: len(fs) >= 30)
+                frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 30)
             with pytest.raises((NatsError, OSError)):  # no credentials: the broker refuses the connection
                 await nats.connect(url, max_reconnect_attempts=0, connect_timeout=2, allow_reconnect=False)
             wrong = NatsAuth(user="gateway", password="not-the-password")
@@ -112,10 +112,10 @@ def test_a_gateway_authenticates_with_an_nkey(tmp_path):
         async def go():
             async with connect(ga) as ws:
                 hello, _ = await hello_and_subscribe(ws)
-                return hello, await collect(ws, 10.0, lambda fs: len(fs) >= 10)
+                return hello, await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10)
 
         hello, frames = run(go())
-    assert hello["session"] == svc.session and len(frames) >= 10 and gw.status()["auth"].startswith("nkey ")
+    assert hello["session"] == svc.session and n_spikes(frames) >= 10 and gw.status()["auth"].startswith("nkey ")
 
 
 def test_demand_announcements_are_bounded_dropped_and_counted(tmp_path, broker):
@@ -253,11 +253,12 @@ def test_publisher_and_gateway_over_tls(tmp_path):
             async def go():
                 async with connect(ga) as ws:
                     hello, _ = await hello_and_subscribe(ws)
-                    frames = await collect(ws, 10.0, lambda fs: len(fs) >= 10)
+                    frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10)
                 with pytest.raises((NatsError, OSError)):  # no TLS: refused
                     await nats.connect(plain_url, max_reconnect_attempts=0, connect_timeout=2, allow_reconnect=False,
                                        user="gateway", password="g" * 16)
                 return hello, frames
 
             hello, frames = run(go())
-    assert hello["session"] == svc.session and len(frames) >= 10 and gw.status()["auth"] == "user gateway over TLS"
+    assert hello["session"] == svc.session and n_spikes(frames) >= 10
+    assert gw.status()["auth"] == "user gateway over TLS"

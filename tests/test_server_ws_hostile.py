@@ -10,7 +10,7 @@ import socket
 import httpx
 import psutil
 import websockets
-from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two, until
+from server_harness import collect, connect, hello_and_subscribe, n_spikes, running_server, stall_one_of_two, until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -208,7 +208,7 @@ def test_a_client_that_stops_reading_is_closed_by_the_keepalive_with_1011(tmp_pa
                 hello, _ = await hello_and_subscribe(stalled)
                 stalled_id = min(svc.hub.subscribers)
                 await hello_and_subscribe(good)
-                frames = await collect(good, 30.0, lambda fs: stalled_id not in svc.hub.subscribers and len(fs) > 60)
+                frames = await collect(good, 30.0, lambda fs: stalled_id not in svc.hub.subscribers and n_spikes(fs) > 60)
                 gone = stalled_id not in svc.hub.subscribers
                 try:
                     while True:
