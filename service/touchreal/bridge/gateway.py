@@ -4,7 +4,8 @@ A gateway is stateless: it reads the publisher's hello (a NATS request), subscri
 subject and feeds every frame, as an :class:`~touchreal.server.runtime.Update`, into the same
 :class:`~touchreal.server.hub.Hub` and ``/v1/stream`` WebSocket layer the service uses (so
 subscriptions, per-client queues, slow-consumer closes and stamping are one code). What its clients
-subscribe to is forwarded to the publisher as demand (:mod:`.demand`).
+subscribe to is forwarded to the publisher as demand (:mod:`.demand`). Its decoder routes
+(``/v1/decoders``...) ask the publisher over NATS, so clients that download a model work through it.
 
 Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
 gateway's bounded pending buffer dropped) advances every spikes subscriber's ``seq`` and ``dropped``
