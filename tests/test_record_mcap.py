@@ -1,0 +1,112 @@
+"""``touchreal record`` -> MCAP, through a real server, read back with the ``mcap`` library."""
+
+from __future__ import annotations
+
+import json
+
+import httpx
+import jsonschema
+import numpy as np
+from mcap.reader import make_reader
+from mcap.records import Attachment, Chunk, Footer, Message, Metadata
+from mcap.stream_reader import StreamReader, breakup_chunk
+from server_harness import running_server
+from test_server_stream import _replay_dataset
+from touchreal_client import protocol as P
+from touchreal_client.clock import ClockMap
+from touchreal_client.session import read_mcap
+
+from touchreal.cli import main
+from touchreal.server.settings import RuntimeConfig
+
+
+def _mcap_contents(path):
+    """Every record read sequentially with CRC checks, then the summary through the seeking reader."""
+    with path.open("rb") as fp:
+        records = list(StreamReader(fp, emit_chunks=True, validate_crcs=True).records)
+    with path.open("rb") as fp:
+        reader = make_reader(fp, validate_crcs=True)
+        summary = reader.get_summary()
+        messages = list(reader.iter_messages())
+    return records, summary, messages
+
+
+def test_recording_a_replay_gives_touchreal_encode_spikes_in_a_valid_mcap(tmp_path):
+    ds, trials = _replay_dataset(tmp_path)
+    assert main(["encode", str(ds), "--out", str(tmp_path / "enc"), "--clock", "sensor"]) == 0
+    out = tmp_path / "rec.mcap"
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc):
+        assert main(["record", f"http://{addr}", "--out", str(out), "--seconds", "4"]) == 0
+        offsets, state = [0, svc.runtime.source.offset_us], svc.runtime.state
+        active = httpx.get(f"http://{addr}/v1/params").json()
+    assert state == "ended" and offsets[1] > 0  # both trials were played within the recording
+
+    # the spikes of each trial are encode --clock sensor's, to the microsecond
+    rec = read_mcap(out)
+    for i, name in enumerate(trials):
+        lo, hi = offsets[i], (offsets[i + 1] if i + 1 < len(offsets) else np.iinfo(np.int64).max)
+        written = json.loads((tmp_path / "enc" / f"{name}.json").read_text())
+        for k, cls in enumerate(P.CLASSES):
+            got = rec.t_us[(rec.cls == k) & (rec.t_us >= lo) & (rec.t_us < hi)] - lo
+            want = np.round(np.array(written[cls]) * 1e6).astype(np.int64)
+            assert got.size and np.array_equal(got, want[want >= 0]), (name, cls, got[:5], want[:5])
+
+    # a complete MCAP: CRCs, a summary with statistics, every message in an indexed chunk
+    records, summary, messages = _mcap_contents(out)
+    assert isinstance(records[-1], Footer) and summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count == len(messages) > rec.t_us.size
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    assert chunks and len(summary.chunk_indexes) == len(chunks)
+    in_chunks = [r for c in chunks for r in breakup_chunk(c, validate_crc=True) if isinstance(r, Message)]
+    assert len(in_chunks) == len(messages)
+    assert all(ci.message_index_offsets for ci in summary.chunk_indexes)
+    per_channel = {}
+    for _, channel, _m in messages:
+        per_channel[channel.topic] = per_channel.get(channel.topic, 0) + 1
+    assert summary.statistics.channel_message_counts == {cid: per_channel[ch.topic] for cid, ch in summary.channels.items()}
+    topics = set(per_channel)
+    assert {"/touchreal/spikes/SA1", "/touchreal/spikes/RA", "/touchreal/spikes/PC", "/touchreal/channels",
+            "/touchreal/clock", "/touchreal/decoded/force"} <= topics
+
+    # every message is valid against its channel's JSON schema (what Foxglove reads)
+    for schema_id, schema in summary.schemas.items():
+        assert schema.encoding == "jsonschema"
+        validator = jsonschema.Draft202012Validator(json.loads(schema.data))
+        for _, ch, m in messages:
+            if ch.schema_id == schema_id:
+                validator.validate(json.loads(m.data))
+
+    # log_time: acquisition by the recorded clock model (server wall clock minus the recorder's offset);
+    # publish_time: receipt, after it
+    meta = {r.name: r.metadata for r in records if isinstance(r, Metadata)}
+    clock = ClockMap()
+    for p in rec.clock:
+        clock.update(p)
+    clock.set_offset(float(meta["touchreal.recording"]["clock_offset_us"]))
+    assert rec.clock and len({p.epoch for p in rec.clock}) >= 2  # the second trial jumps the mapping
+    spikes = [(json.loads(m.data), m) for _, ch, m in messages if ch.topic.startswith("/touchreal/spikes/")]
+    t = np.array([b["t_us"] for b, _ in spikes])
+    log = np.array([m.log_time for _, m in spikes], np.int64)
+    pub = np.array([m.publish_time for _, m in spikes], np.int64)
+    assert np.array_equal(log, np.round(clock.to_local_us(t)).astype(np.int64) * 1000)
+    delay_ms = (pub - log) / 1e6
+    assert delay_ms.min() > -5 and delay_ms.max() < 2000, (delay_ms.min(), delay_ms.max())
+    assert json.loads(meta["touchreal.recording.end"]["log_time_from_receipt"]) == 0
+
+    # hello and the parameter revision the frames carry, as attachments
+    att = {r.name: json.loads(r.data) for r in records if isinstance(r, Attachment)}
+    assert att["hello.json"]["session"] == svc.session
+    assert att["params/rev-1.json"] == {"rev": 1, "sha256": active["sha256"], "params": active["params"],
+                                        "source": "GET /v1/params"}
+    assert meta["touchreal.recording.end"]["stop_reason"] == "seconds"
+
+
+def test_record_refuses_unknown_streams(tmp_path, capsys):
+    assert main(["record", "http://127.0.0.1:9", "--out", str(tmp_path / "x.mcap"), "--streams", "spikes,raw"]) == 2
+    assert "streams must be" in capsys.readouterr().err
+
+
+def test_record_of_an_unreachable_service_says_so(tmp_path, capsys):
+    assert main(["record", "http://127.0.0.1:9", "--out", str(tmp_path / "x.mcap"), "--seconds", "1"]) == 2
+    assert "cannot open" in capsys.readouterr().err
+    assert not (tmp_path / "x.mcap").exists()
