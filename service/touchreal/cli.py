@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "touchreal.server.command",
     "touchreal.bridge.command",
     "touchreal.commands.record",
+    "touchreal.commands.export",
 )
 
 

@@ -82,6 +82,17 @@ class Decoded:
     values: np.ndarray  # (n_steps, m, n_outputs) float32
 
 
+@dataclass(frozen=True)
+class Trial:
+    """A trial of an encode folder on the session's timeline (wire-clock us): it spans
+    [``start_us``, ``stop_us``) and its own t = 0 is at ``origin_us``."""
+
+    id: str
+    start_us: int
+    stop_us: int
+    origin_us: int
+
+
 @dataclass
 class Session:
     """What a recording holds. ``taxels``: ``[{"id", "x_mm", "y_mm"}]``; ``params``: one dict per
@@ -99,6 +110,12 @@ class Session:
     clock: list[ClockPoint] = field(default_factory=list)
     hello: dict[str, Any] | None = None
     source: str = ""
+    trials: list[Trial] = field(default_factory=list)
+    origin: int | None = None  #: the timeline's zero (us); None: the earliest recorded stamp
+    created_wall_us: int = 0  #: when the recording (or the encoding) was made, Unix epoch us
+
+    def origin_us(self) -> int:
+        return self.origin if self.origin is not None else self.first_stamp_us()
 
     def first_stamp_us(self) -> int:
         """The earliest stamp of anything recorded (spikes, coverage, channel samples, decoded steps)."""
@@ -155,6 +172,7 @@ def read_mcap(path: str | Path) -> Session:
     hellos = [a for n, a in attachments if n == "hello.json"]
     params = sorted((a for n, a in attachments if n.startswith("params/")), key=lambda a: a["rev"])
     end = meta.get("touchreal.recording.end", {})
+    started = int(json.loads(meta.get("touchreal.recording", {}).get("started_wall_us", "0")))
     coverage = {c: (int(s), int(e)) for c, (s, e) in json.loads(end.get("coverage_us", "{}")).items()}
     spikes.sort(key=lambda b: (b["t_us"], b["taxel"], P.CLASSES.index(b["class"])))
     hello = hellos[-1] if hellos else None
@@ -165,7 +183,61 @@ def read_mcap(path: str | Path) -> Session:
         taxels=list(hello["taxels"]) if hello else [],
         coverage_us=coverage, channels=_channels(ch_rows),
         decoded={name: _decoded(name, rows) for name, rows in dec_rows.items()},
-        params=params, clock=sorted(clock, key=lambda p: (p.epoch, p.sensor_us)), hello=hello, source=str(path))
+        params=params, clock=sorted(clock, key=lambda p: (p.epoch, p.sensor_us)), hello=hello, source=str(path),
+        created_wall_us=started)
+
+
+def read_encode_dir(folder: str | Path, durations_s: dict[str, float] | None = None,
+                    params: dict[str, Any] | None = None) -> Session:
+    """A ``touchreal encode`` output folder (``<trial>.json`` = ``{"SA1": [t_s, ...], ...}``, one
+    taxel) with its trials laid end to end on one timeline. ``durations_s``: trial id -> duration
+    (the dataset manifest's ``duration_s``, in its order); without it a trial lasts up to the whole
+    second after its last spike. A trial whose spikes start before its t = 0 (the reference clock)
+    begins that much earlier. ``params``: the parameter set it was encoded with
+    (``{"rev", "sha256", "params", "source"}``). ValueError for anything else in the folder."""
+    folder = Path(folder)
+    files = {f.stem: f for f in sorted(folder.glob("*.json"))}
+    order = [t for t in durations_s if t in files] if durations_s else list(files)
+    if not order:
+        raise ValueError(f"{folder}: no <trial>.json files of touchreal encode")
+    t_all, c_all, trials, cursor, classes = [], [], [], 0, set()
+    for tid in order:
+        trains = _trains(files[tid])
+        times = np.concatenate([np.zeros(1)] + list(trains.values()))
+        first, last = float(times.min()), float(times.max())
+        origin = cursor - int(round(first * 1e6))
+        dur = durations_s[tid] if durations_s else float(np.floor(last) + 1.0)
+        stop = origin + max(int(round(dur * 1e6)), int(round(last * 1e6)) + 1)
+        for c, t in trains.items():
+            t_all.append(origin + np.round(t * 1e6).astype(np.int64))
+            c_all.append(np.full(t.size, P.CLASSES.index(c), np.uint8))
+            classes.add(c)
+        trials.append(Trial(tid, cursor, stop, origin))
+        cursor = stop
+    t = np.concatenate(t_all)
+    order_ix = np.argsort(t, kind="stable")
+    return Session(t_us=t[order_ix], taxel=np.zeros(t.size, np.uint16), cls=np.concatenate(c_all)[order_ix],
+                   taxels=[{"id": 0, "x_mm": 0.0, "y_mm": 0.0}], coverage_us={c: (0, cursor) for c in P.CLASSES if c in classes},
+                   params=[params] if params else [], source=str(folder), trials=trials, origin=0,
+                   created_wall_us=int(max(f.stat().st_mtime for f in files.values()) * 1e6))
+
+
+def _trains(path: Path) -> dict[str, np.ndarray]:
+    try:
+        body = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not readable JSON ({exc})") from exc
+    if not isinstance(body, dict) or not body or set(body) - set(P.CLASSES):
+        raise ValueError(f"{path}: expected {{class: [spike times in s]}} with classes from {list(P.CLASSES)}")
+    out = {}
+    for c, v in body.items():
+        if not isinstance(v, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            raise ValueError(f"{path}: {c} must be a list of spike times (s)")
+        t = np.array(v, np.float64)
+        if not np.isfinite(t).all():
+            raise ValueError(f"{path}: {c} has non-finite spike times")
+        out[c] = t
+    return out
 
 
 def _floats(rows: Iterable[Any]) -> np.ndarray:
