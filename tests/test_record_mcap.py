@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import threading
+import time
 
 import httpx
 import jsonschema
@@ -110,3 +114,34 @@ def test_record_of_an_unreachable_service_says_so(tmp_path, capsys):
     assert main(["record", "http://127.0.0.1:9", "--out", str(tmp_path / "x.mcap"), "--seconds", "1"]) == 2
     assert "cannot open" in capsys.readouterr().err
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_each_parameter_revision_the_frames_carry_is_attached(tmp_path):
+    out = tmp_path / "rev.mcap"
+    with running_server(tmp_path / "state") as (addr, svc):
+        first = httpx.get(f"http://{addr}/v1/params").json()
+        done: list[int] = []
+        recorder = threading.Thread(target=lambda: done.append(main(
+            ["record", f"http://{addr}", "--out", str(out), "--seconds", "3", "--streams", "spikes"])))
+        recorder.start()
+        deadline = time.monotonic() + 20
+        while not any(sub.sent > 10 for sub in list(svc.hub.subscribers.values())):
+            assert time.monotonic() < deadline, "the recorder never received frames"
+            time.sleep(0.05)
+        changed = {**first["params"], "provenance": {**first["params"]["provenance"], "note": "uploaded mid-recording"}}
+        put = httpx.put(f"http://{addr}/v1/params", json=changed).json()
+        recorder.join(30)
+    assert done == [0] and put["rev"] == 2
+    with out.open("rb") as fp:
+        reader = make_reader(fp, validate_crcs=True)
+        att = {a.name: json.loads(a.data) for a in reader.iter_attachments()}
+        revs = {json.loads(m.data)["params_rev"] for _, ch, m in reader.iter_messages() if "/spikes/" in ch.topic}
+    assert revs == {1, 2}
+    assert att["params/rev-1.json"]["sha256"] == first["sha256"]
+    assert att["params/rev-2.json"] == {"rev": 2, "sha256": put["sha256"], "params": changed, "source": "GET /v1/params"}
+
+
+def test_the_base_client_imports_no_optional_library():
+    code = ("import sys, touchreal_client, touchreal_client.session; "
+            "print(sorted(m for m in ('mcap', 'pynwb', 'neo', 'quantities') if m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
