@@ -85,18 +85,18 @@ CLOCK_SCHEMA = _schema("touchreal.Clock", "the stream's clock point: wall(t) = w
     "error_us": _INT, "epoch": _INT})
 
 
-def _nulls(a: np.ndarray) -> list[Any]:
-    """A float array as a JSON-able list (NaN -> None)."""
+def _lists(a: np.ndarray) -> list[Any]:
+    """A float array as nested lists for JSON (NaN -> None)."""
     v = a.astype(np.float64)
     if np.isfinite(v).all():
         return v.tolist()
-    return [x if math.isfinite(x) else None for x in v.tolist()]
+    return np.where(np.isfinite(v), v, None).tolist()
 
 
 class McapRecorder:
     """Sans-I/O: the messages of one stream in, MCAP records out (``mcap``'s chunked, indexed
-    writer, zstd). ``clock``: the stream's clock map (read at every frame). Call :meth:`finish`
-    once; the file is valid only after it."""
+    writer, zstd). ``clock``: the stream's clock map (reassign it when the stream replaces it, as on
+    a new server session). Call :meth:`finish` once; the file is valid only after it."""
 
     def __init__(self, fp: IO[bytes], clock: ClockMap, chunk_size: int = 1 << 20):
         self.clock = clock
@@ -181,15 +181,15 @@ class McapRecorder:
             ch = self._channel(CHANNELS_TOPIC, CHANNELS_SCHEMA)
             t = frame.t0_us + frame.period_us * np.arange(frame.data.shape[0], dtype=np.uint64)
             taxels = frame.taxels.tolist()
-            for k, (t_k, log) in enumerate(zip(t.tolist(), self._log_ns(t, recv_us).tolist())):
-                body = {c: _nulls(frame.data[k, :, j]) for j, c in enumerate(P.CHANNELS)}
-                self._write(ch, log, pub, {"t_us": t_k, "taxels": taxels, **body, **meta})
+            rows = _lists(frame.data.transpose(0, 2, 1))  # [sample][channel][taxel]
+            for t_k, log, row in zip(t.tolist(), self._log_ns(t, recv_us).tolist(), rows):
+                self._write(ch, log, pub, {"t_us": t_k, "taxels": taxels, **dict(zip(P.CHANNELS, row)), **meta})
             self.counts["channel_samples"] += t.size
         else:
             ch = self._channel(decoded_topic(frame.name), DECODED_SCHEMA)
             taxels = frame.taxels.tolist()
-            for s, (t_s, log) in enumerate(zip(frame.t_us.tolist(), self._log_ns(frame.t_us, recv_us).tolist())):
-                values = [_nulls(frame.values[s, i]) for i in range(len(taxels))]
+            rows = _lists(frame.values)  # [step][taxel][output]
+            for t_s, log, values in zip(frame.t_us.tolist(), self._log_ns(frame.t_us, recv_us).tolist(), rows):
                 self._write(ch, log, pub, {"t_us": t_s, "taxels": taxels, "outputs": frame.outputs, "values": values, **meta})
             self.counts["decoded_steps"] += frame.t_us.size
 
@@ -276,6 +276,7 @@ async def _pump(s: AsyncStream, tr: AsyncClient, rec: McapRecorder, seconds: flo
         async with asyncio.timeout(seconds):
             async for f in s.frames():
                 recv = f.header.recv_us
+                rec.clock = s.clock  # a new server session comes with a new map
                 if s.hello is not hello_seen:
                     hello_seen = s.hello
                     rec.add_hello(hello_seen, recv)
