@@ -27,8 +27,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from touchreal_client.export.nwb import to_nwb
-    from touchreal_client.session import read_encode_dir, read_mcap
+    try:
+        from touchreal_client.export.nwb import to_nwb
+        from touchreal_client.session import read_encode_dir, read_mcap
+    except ModuleNotFoundError as exc:
+        raise ValueError(f"needs the nwb extra: pip install 'touchreal-client[nwb]' ({exc})") from exc
 
     if args.src.is_dir():
         params = EncoderParams.load(args.params) if args.params else default_params()

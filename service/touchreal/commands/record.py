@@ -25,7 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from touchreal_client import TouchRealError
-    from touchreal_client.record import record
+
+    try:
+        from touchreal_client.record import record
+    except ModuleNotFoundError as exc:
+        raise ValueError(f"needs the mcap extra: pip install 'touchreal-client[mcap]' ({exc})") from exc
 
     if args.seconds is not None and not args.seconds > 0:
         raise ValueError("--seconds must be > 0")
