@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from mcap.records import Attachment, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
 from server_harness import running_server
+from test_bridge_nats import gateway, nats_url, publishing  # noqa: F401 (nats_url: a fixture)
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockMap
@@ -139,6 +140,27 @@ def test_each_parameter_revision_the_frames_carry_is_attached(tmp_path):
     assert revs == {1, 2}
     assert att["params/rev-1.json"]["sha256"] == first["sha256"]
     assert att["params/rev-2.json"] == {"rev": 2, "sha256": put["sha256"], "params": changed, "source": "GET /v1/params"}
+
+
+def test_recording_through_a_gateway_gives_the_same_spikes_and_the_hellos_parameter_hash(tmp_path, nats_url):
+    ds, trials = _replay_dataset(tmp_path)
+    assert main(["encode", str(ds), "--out", str(tmp_path / "enc"), "--clock", "sensor"]) == 0
+    out = tmp_path / "gw.mcap"
+    with publishing(tmp_path / "state", nats_url, RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc, _), \
+            gateway(nats_url) as (ga, _gw):
+        assert main(["record", f"ws://{ga}/v1/stream", "--out", str(out), "--seconds", "4", "--streams", "spikes"]) == 0
+        offsets, state, sha = [0, svc.runtime.source.offset_us], svc.runtime.state, svc.hello()["params"]["sha256"]
+    assert state == "ended"
+    rec = read_mcap(out)
+    for i, name in enumerate(trials):
+        lo, hi = offsets[i], (offsets[i + 1] if i + 1 < len(offsets) else np.iinfo(np.int64).max)
+        written = json.loads((tmp_path / "enc" / f"{name}.json").read_text())
+        for k, cls in enumerate(P.CLASSES):
+            got = rec.t_us[(rec.cls == k) & (rec.t_us >= lo) & (rec.t_us < hi)] - lo
+            want = np.round(np.array(written[cls]) * 1e6).astype(np.int64)
+            assert np.array_equal(got, want[want >= 0]), (name, cls)
+    assert rec.params == [{"rev": 1, "sha256": sha, "params": None, "source": "hello"}]  # a gateway has no /v1/params
+    assert rec.clock and rec.hello["session"] == svc.session
 
 
 def test_the_base_client_imports_no_optional_library():
