@@ -46,6 +46,7 @@ PREFIX = "/touchreal"
 CLOCK_TOPIC = f"{PREFIX}/clock"
 CHANNELS_TOPIC = f"{PREFIX}/channels"
 PROFILE = "touchreal"
+IDLE_POLL_S = 0.2  #: with no frame for this long, the recorder checks whether the stream has ended
 
 
 def spikes_topic(cls: str) -> str:
@@ -270,22 +271,37 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
 
 
 async def _pump(s: AsyncStream, tr: AsyncClient, rec: McapRecorder, seconds: float | None) -> str:
-    """Frames into the recorder until ``seconds`` pass or the stream ends; returns the stop reason."""
+    """Frames into the recorder until ``seconds`` pass, the server says the stream has ``ended`` (a
+    replay finished: it comes after the last frame, so nothing is left once the queue is empty) or
+    the stream closes for good; returns the stop reason."""
+    loop = asyncio.get_running_loop()
+    deadline = math.inf if seconds is None else loop.time() + seconds
+    frames = s.frames().__aiter__()
+    nxt: asyncio.Future[P.Frame] | None = None
     hello_seen: dict[str, Any] | None = None
     try:
-        async with asyncio.timeout(seconds):
-            async for f in s.frames():
-                recv = f.header.recv_us
-                rec.clock = s.clock  # a new server session comes with a new map
-                if s.hello is not hello_seen:
-                    hello_seen = s.hello
-                    rec.add_hello(hello_seen, recv)
-                rec.add_clock_points(s.clock.points, recv)
-                if f.header.params_rev not in rec.params_revs:
-                    rec.add_params(await _params_at(tr, f.header.params_rev, s.hello), recv)
-                rec.add_frame(s.name_decoded(f) if isinstance(f, P.DecodedFrame) else f, recv)
-    except TimeoutError:
+        while loop.time() < deadline:
+            nxt = nxt or asyncio.ensure_future(anext(frames))
+            done, _ = await asyncio.wait({nxt}, timeout=min(IDLE_POLL_S, max(deadline - loop.time(), 0.0)))
+            if not done:
+                if getattr(s, "ended", None) is not None:  # AsyncStream.ended: the server's `ended` message
+                    return "ended"
+                continue
+            f, nxt = nxt.result(), None
+            recv = f.header.recv_us
+            rec.clock = s.clock  # a new server session comes with a new map
+            if s.hello is not hello_seen:
+                hello_seen = s.hello
+                rec.add_hello(hello_seen, recv)
+            rec.add_clock_points(s.clock.points, recv)
+            if f.header.params_rev not in rec.params_revs:
+                rec.add_params(await _params_at(tr, f.header.params_rev, s.hello), recv)
+            rec.add_frame(s.name_decoded(f) if isinstance(f, P.DecodedFrame) else f, recv)
         return "seconds"
+    except StopAsyncIteration:
+        return "stream ended"
     except StreamClosed as exc:
         return f"stream closed: {exc}"
-    return "stream ended"
+    finally:
+        if nxt is not None:
+            nxt.cancel()
