@@ -20,6 +20,7 @@ import numpy as np
 
 from ..recording import Dataset, Trial, write_dataset
 from ..settings import PVDF_FS_HZ, ST_FS_HZ
+from .build import SensorBuild
 from .eskin import SkinParams
 from .scene import Scene, SceneEvent, SceneSource
 from .stimuli import RampHold, RobotParams, SineBurst, Stimulus, TextureSlide
@@ -223,6 +224,7 @@ def simulate_dataset(
     reference: bool = True,
     skin: SkinParams | None = None,
     robot: RobotParams | None = None,
+    build: SensorBuild | None = None,
     progress=None,
 ) -> Dataset:
     """Write a dataset of ``trials`` trials per recording protocol to the folder ``out``.
@@ -232,7 +234,12 @@ def simulate_dataset(
 
     ``protocols``: one name or several, recording protocols (``ramp``, ``sine``, ``texture``,
     ``spatial_ramp``, ``spatial_sine``) or the CLI group ``spatial`` (both spatial protocols).
+
+    ``build``: a sensor build (:mod:`.build`) applied to ``skin`` and ``robot`` (default: nominal);
+    the manifest records it under ``simulator.build``.
     """
+    if build is not None:
+        skin, robot = build.skin(skin), build.robot(robot)
     protos: list[str] = []
     for p in [protocols] if isinstance(protocols, str) else protocols:
         for q in PROTOCOL_GROUPS.get(p, (p,)):
@@ -266,7 +273,8 @@ def simulate_dataset(
         "protocols": {k: v for k, v in PROTOCOL_DESIGN.items() if k in protos or k in ("offsets", "spatial_offsets")},
         "reference": _reference_meta(reference),
         "counts": counts,
-        "simulator": {"module": "touchreal.sensing", "seed": seed, "trials_per_protocol": trials},
+        "simulator": {"module": "touchreal.sensing", "seed": seed, "trials_per_protocol": trials,
+                      "build": (build or SensorBuild()).to_json()},
         "trials": entries,
     }
     return write_dataset(out, manifest, recorded)
