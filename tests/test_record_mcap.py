@@ -14,7 +14,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Attachment, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
-from server_harness import running_server
+from server_harness import free_port, running_server
 from test_bridge_nats import gateway, nats_url, publishing  # noqa: F401 (nats_url: a fixture)
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
@@ -23,6 +23,19 @@ from touchreal_client.session import read_mcap
 
 from touchreal.cli import main
 from touchreal.server.settings import RuntimeConfig
+
+
+def _check_spike_times(messages, clock: ClockMap, hello: dict) -> None:
+    """log_time is the spike's stamp by the clock model, exactly; publish_time (receipt) follows the
+    acquisition of the spike's causing sample (stamp - the class's delay) by less than 2 s."""
+    body = [json.loads(m.data) for m in messages]
+    t = np.array([b["t_us"] for b in body], np.int64)
+    delay = np.array([hello["delay_us"][b["class"]] for b in body], np.int64)
+    log = np.array([m.log_time for m in messages], np.int64)
+    pub = np.array([m.publish_time for m in messages], np.int64)
+    assert t.size and np.array_equal(log, np.round(clock.to_local_us(t)).astype(np.int64) * 1000)
+    after_ms = (pub / 1e3 - clock.to_local_us(t - delay)) / 1e3
+    assert after_ms.min() > -2 and after_ms.max() < 2000, (after_ms.min(), after_ms.max())
 
 
 def _mcap_contents(path):
@@ -89,13 +102,7 @@ def test_recording_a_replay_gives_touchreal_encode_spikes_in_a_valid_mcap(tmp_pa
         clock.update(p)
     clock.set_offset(float(meta["touchreal.recording"]["clock_offset_us"]))
     assert rec.clock and len({p.epoch for p in rec.clock}) >= 2  # the second trial jumps the mapping
-    spikes = [(json.loads(m.data), m) for _, ch, m in messages if ch.topic.startswith("/touchreal/spikes/")]
-    t = np.array([b["t_us"] for b, _ in spikes])
-    log = np.array([m.log_time for _, m in spikes], np.int64)
-    pub = np.array([m.publish_time for _, m in spikes], np.int64)
-    assert np.array_equal(log, np.round(clock.to_local_us(t)).astype(np.int64) * 1000)
-    delay_ms = (pub - log) / 1e6
-    assert delay_ms.min() > -5 and delay_ms.max() < 2000, (delay_ms.min(), delay_ms.max())
+    _check_spike_times([m for _, ch, m in messages if ch.topic.startswith("/touchreal/spikes/")], clock, rec.hello)
     assert json.loads(meta["touchreal.recording.end"]["log_time_from_receipt"]) == 0
 
     # hello and the parameter revision the frames carry, as attachments
@@ -125,10 +132,7 @@ def test_each_parameter_revision_the_frames_carry_is_attached(tmp_path):
         recorder = threading.Thread(target=lambda: done.append(main(
             ["record", f"http://{addr}", "--out", str(out), "--seconds", "3", "--streams", "spikes"])))
         recorder.start()
-        deadline = time.monotonic() + 20
-        while not any(sub.sent > 10 for sub in list(svc.hub.subscribers.values())):
-            assert time.monotonic() < deadline, "the recorder never received frames"
-            time.sleep(0.05)
+        _wait_for_frames(svc, 10)
         changed = {**first["params"], "provenance": {**first["params"]["provenance"], "note": "uploaded mid-recording"}}
         put = httpx.put(f"http://{addr}/v1/params", json=changed).json()
         recorder.join(30)
@@ -161,6 +165,47 @@ def test_recording_through_a_gateway_gives_the_same_spikes_and_the_hellos_parame
             assert np.array_equal(got, want[want >= 0]), (name, cls)
     assert rec.params == [{"rev": 1, "sha256": sha, "params": None, "source": "hello"}]  # a gateway has no /v1/params
     assert rec.clock and rec.hello["session"] == svc.session
+
+
+def _wait_for_frames(svc, n: int) -> None:
+    deadline = time.monotonic() + 20
+    while not any(sub.sent > n for sub in list(svc.hub.subscribers.values())):
+        assert time.monotonic() < deadline, "the recorder never received frames"
+        time.sleep(0.05)
+
+
+def test_a_recording_continues_across_a_server_restart(tmp_path):
+    """The recorder reconnects to the restarted server (a new session): both hellos are attached and
+    each session's spikes are placed by its own clock model."""
+    port, out, done = free_port(), tmp_path / "restart.mcap", []
+    recorder = threading.Thread(target=lambda: done.append(main(
+        ["record", f"http://127.0.0.1:{port}", "--out", str(out), "--seconds", "8", "--streams", "spikes"])))
+    sessions = []
+    with running_server(tmp_path / "s1", port=port) as (addr, svc):
+        recorder.start()
+        _wait_for_frames(svc, 20)
+        sessions.append(svc.session)
+    with running_server(tmp_path / "s2", port=port) as (addr, svc):
+        _wait_for_frames(svc, 20)
+        sessions.append(svc.session)
+        recorder.join(30)
+    assert done == [0] and sessions[0] != sessions[1]
+    with out.open("rb") as fp:
+        reader = make_reader(fp, validate_crcs=True)
+        hellos = [a for a in reader.iter_attachments() if a.name == "hello.json"]
+        messages = [(ch.topic, m) for _, ch, m in reader.iter_messages()]
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert [json.loads(h.data)["session"] for h in hellos] == sessions
+    assert json.loads(meta["touchreal.recording.end"]["log_time_from_receipt"]) == 0
+    second = hellos[1].log_time  # its receipt: what came later belongs to the second session
+    for i, part in enumerate((lambda m: m.publish_time < second, lambda m: m.publish_time >= second)):
+        clock = ClockMap()
+        clock.set_offset(float(meta["touchreal.recording"]["clock_offset_us"]))
+        for topic, m in messages:
+            if topic == "/touchreal/clock" and part(m):
+                clock.update(json.loads(m.data))
+        spikes = [m for topic, m in messages if "/spikes/" in topic and part(m)]
+        _check_spike_times(spikes, clock, json.loads(hellos[i].data))  # each session by its own clock
 
 
 def test_the_base_client_imports_no_optional_library():
