@@ -12,7 +12,7 @@ from pynwb import NWBHDF5IO
 from server_harness import running_server
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
-from touchreal_client.session import read_encode_dir, read_mcap
+from touchreal_client.session import read_mcap
 
 from touchreal.cli import main
 

@@ -1,5 +1,6 @@
 """A recorded session in memory: spikes, channels, decoded outputs, taxels, parameter revisions and
-clock points, read from an MCAP recording (:mod:`.record`; needs ``mcap``) or from spike frames.
+clock points, read from an MCAP recording (:func:`read_mcap`, of :mod:`.record`; needs ``mcap``) or a
+``touchreal encode`` folder (:func:`read_encode_dir`); :class:`SpikeLog` gathers received spike frames.
 
 Times are integer microseconds on the wire clock (the sensor clock plus a replay's segment offset).
 ``coverage_us[c] = (start, stop)``: the span in which every spike of class c was received (from
@@ -17,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from . import protocol as P
-from .clock import ClockPoint
+from .clock import ClockMap, ClockPoint
 
 
 @dataclass
@@ -95,9 +96,9 @@ class Trial:
 
 @dataclass
 class Session:
-    """What a recording holds. ``taxels``: ``[{"id", "x_mm", "y_mm"}]``; ``params``: one dict per
-    parameter revision (``rev``, ``sha256``, ``params`` or None, ``source``); ``start_wall_us``: the
-    server wall time of the earliest stamp by the clock model (None without clock points)."""
+    """What a recording holds: spikes as ``t_us`` (int64, wire clock), ``taxel``, ``cls`` (index into
+    ``CLASSES``), sorted by time; ``taxels``: ``[{"id", "x_mm", "y_mm"}]``; ``params``: one dict per
+    parameter revision (``rev``, ``sha256``, ``params`` or None, ``source``); ``clock``: the clock points."""
 
     t_us: np.ndarray
     taxel: np.ndarray
@@ -129,12 +130,13 @@ class Session:
         return min(cands)
 
     def wall_us_of(self, t_us: int) -> int | None:
-        """Server wall time (us) of the stamp ``t_us`` by the newest clock point at or before it."""
+        """Server wall time (us) of the stamp ``t_us`` by the clock model (None without clock points)."""
         if not self.clock:
             return None
-        before = [p for p in self.clock if p.sensor_us <= t_us]
-        p = before[-1] if before else self.clock[0]
-        return int(round(p.wall_of(t_us)))
+        m = ClockMap(history=len(self.clock))
+        for p in self.clock:
+            m.update(p)
+        return int(round(m.to_server_wall_us(t_us)))
 
 
 def read_mcap(path: str | Path) -> Session:
