@@ -78,6 +78,8 @@ def _sec(t_us: np.ndarray, origin: int) -> np.ndarray:
 
 
 def _units(nwb: NWBFile, s: Session, origin: int) -> None:
+    if not s.coverage_us:  # no spikes were recorded (e.g. channels only)
+        return
     rev = ", ".join(f"rev {p['rev']} sha256 {p['sha256']}" for p in s.params) or "unknown"
     nwb.units = Units(name="units", resolution=RESOLUTION_S,
                       description=f"afferent spike trains per (taxel, class); parameter set: {rev}")
