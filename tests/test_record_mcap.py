@@ -54,7 +54,7 @@ def test_recording_a_replay_gives_touchreal_encode_spikes_in_a_valid_mcap(tmp_pa
     assert main(["encode", str(ds), "--out", str(tmp_path / "enc"), "--clock", "sensor"]) == 0
     out = tmp_path / "rec.mcap"
     with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc):
-        assert main(["record", f"http://{addr}", "--out", str(out), "--seconds", "4"]) == 0
+        assert main(["record", f"http://{addr}", "--out", str(out), "--seconds", "3"]) == 0
         offsets, state = [0, svc.runtime.source.offset_us], svc.runtime.state
         active = httpx.get(f"http://{addr}/v1/params").json()
     assert state == "ended" and offsets[1] > 0  # both trials were played within the recording
@@ -152,7 +152,7 @@ def test_recording_through_a_gateway_gives_the_same_spikes_and_the_hellos_parame
     out = tmp_path / "gw.mcap"
     with publishing(tmp_path / "state", nats_url, RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc, _), \
             gateway(nats_url) as (ga, _gw):
-        assert main(["record", f"ws://{ga}/v1/stream", "--out", str(out), "--seconds", "4", "--streams", "spikes"]) == 0
+        assert main(["record", f"ws://{ga}/v1/stream", "--out", str(out), "--seconds", "3", "--streams", "spikes"]) == 0
         offsets, state, sha = [0, svc.runtime.source.offset_us], svc.runtime.state, svc.hello()["params"]["sha256"]
     assert state == "ended"
     rec = read_mcap(out)
