@@ -105,3 +105,14 @@ def test_simulate_command_writes_the_build_into_the_manifest(tmp_path, capsys):
     assert b == dataclasses.asdict(dataclasses.replace(load_build(str(spec)), rig_lag_ms=40.0, name="mine+custom"))
     with pytest.raises(ValueError, match="neither a shipped build"):
         load_build(str(tmp_path / "missing.json"))
+
+
+def test_the_fine_texture_set_has_eight_close_combs_at_three_speeds(tmp_path):
+    assert main(["simulate", "texture-fine", "--out", str(tmp_path / "ds"), "--trials", "24", "--quiet"]) == 0
+    ds = Dataset.open(tmp_path / "ds")
+    entries = ds.entries("texture")
+    assert len(entries) == 24 and ds.manifest["counts"] == {"texture_fine": 24}
+    assert {e["texture"] for e in entries} == {f"comb_{s:g}mm" for s in (1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75)}
+    assert {e["params"]["speed_mm_s"] for e in entries} == {25.0, 30.0, 35.0}  # one trial per (comb, speed)
+    trial = ds.load(entries[0]["id"])
+    assert trial.cmd_x is not None and trial.duration_s == pytest.approx(3.0, abs=0.01)

@@ -17,7 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(manifest.json + trials/*.npz) with TouchSim reference spike trains.",
     )
     p.add_argument("protocols", nargs="+", choices=sorted(PROTOCOL_GROUPS) + ["all"], metavar="PROTOCOL",
-                   help="ramp, sine, texture, spatial (spatial_ramp + spatial_sine) or all")
+                   help="ramp, sine, texture, spatial (spatial_ramp + spatial_sine), all (the paper's four), or "
+                   "texture-fine (eight close combs at three close speeds, for the texture decoder)")
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--trials", type=_trial_counts, default=4,
                    help="trials per protocol, spread over its conditions: N for every protocol, or "
@@ -79,10 +80,10 @@ def run(args: argparse.Namespace) -> int:
     from .simulate import simulate_dataset
 
     if isinstance(args.trials, dict):
-        unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS.get("spatial", ()))
+        unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS["spatial"]) - set(PROTOCOL_GROUPS["texture-fine"])
         if unknown:
             raise ValueError(f"--trials names protocols not being simulated: {sorted(unknown)}")
-    protocols = list(PROTOCOL_GROUPS) if "all" in args.protocols else args.protocols
+    protocols = [g for g in PROTOCOL_GROUPS if g != "texture-fine"] if "all" in args.protocols else args.protocols
     t0 = time.perf_counter()
     progress = None if args.quiet else (lambda tid: print(f"  {tid}", file=sys.stderr))
     build = build_from_args(args)
