@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import threading
@@ -206,6 +207,25 @@ def test_a_recording_continues_across_a_server_restart(tmp_path):
                 clock.update(json.loads(m.data))
         spikes = [m for topic, m in messages if "/spikes/" in topic and part(m)]
         _check_spike_times(spikes, clock, json.loads(hellos[i].data))  # each session by its own clock
+
+
+def test_ctrl_c_leaves_a_complete_file(tmp_path):
+    out = tmp_path / "int.mcap"
+    with running_server(tmp_path / "state") as (addr, svc):
+        proc = subprocess.Popen([sys.executable, "-m", "touchreal", "record", f"http://{addr}", "--out", str(out),
+                                 "--streams", "spikes"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            _wait_for_frames(svc, 10)
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert "interrupted" in stdout
+    records, summary, messages = _mcap_contents(out)
+    assert isinstance(records[-1], Footer) and summary.statistics.message_count == len(messages)
+    end = {r.name: r.metadata for r in records if isinstance(r, Metadata)}["touchreal.recording.end"]
+    assert end["stop_reason"].startswith("aborted: CancelledError")
 
 
 def test_the_base_client_imports_no_optional_library():

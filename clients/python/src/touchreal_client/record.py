@@ -246,7 +246,7 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
         raise ValueError(f"streams must be a non-empty subset of {list(P.STREAMS)}, got {list(streams)}")
     out = Path(out)
     sub = P.Subscription(taxels=taxels, streams=list(streams), decimation=decimation)
-    stop = "interrupted"  # unless the pump returns a reason (a cancelled task, Ctrl-C)
+    stop = ""
     async with AsyncClient(http_base(url)) as tr:
         s = tr.stream(sub, queue_frames=8192)
         await s.open()
@@ -260,6 +260,9 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
                     "clock_offset_error_us": s.clock.offset_error_us})
                 try:
                     stop = await _pump(s, tr, rec, seconds)
+                except BaseException as exc:  # Ctrl-C (a cancelled task) or a malformed message: still a complete file
+                    stop = f"aborted: {type(exc).__name__} {exc}".strip()
+                    raise
                 finally:
                     rec.add_metadata("touchreal.recording.end", {
                         "stop_reason": stop, "ended_wall_us": wall_us(), "missed_frames": s.stats.missed_frames,
