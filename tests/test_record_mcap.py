@@ -207,6 +207,8 @@ def test_a_recording_continues_across_a_server_restart(tmp_path):
                 clock.update(json.loads(m.data))
         spikes = [m for topic, m in messages if "/spikes/" in topic and part(m)]
         _check_spike_times(spikes, clock, json.loads(hellos[i].data))  # each session by its own clock
+    assert main(["export", "nwb", str(out), "--out", str(tmp_path / "x.nwb")]) == 2  # one timeline per NWB file
+    assert not (tmp_path / "x.nwb").exists()
 
 
 def test_ctrl_c_leaves_a_complete_file(tmp_path):

@@ -113,6 +113,7 @@ class Session:
     source: str = ""
     trials: list[Trial] = field(default_factory=list)
     origin: int | None = None  #: the timeline's zero (us); None: the earliest recorded stamp
+    sessions: list[str] = field(default_factory=list)  #: server sessions recorded (each restarts the wire clock)
     created_wall_us: int = 0  #: when the recording (or the encoding) was made, Unix epoch us
 
     def origin_us(self) -> int:
@@ -186,7 +187,7 @@ def read_mcap(path: str | Path) -> Session:
         coverage_us=coverage, channels=_channels(ch_rows),
         decoded={name: _decoded(name, rows) for name, rows in dec_rows.items()},
         params=params, clock=sorted(clock, key=lambda p: (p.epoch, p.sensor_us)), hello=hello, source=str(path),
-        created_wall_us=started)
+        created_wall_us=started, sessions=list(dict.fromkeys(str(h.get("session")) for h in hellos)))
 
 
 def read_encode_dir(folder: str | Path, durations_s: dict[str, float] | None = None,

@@ -37,7 +37,11 @@ RESOLUTION_S = 1e-6
 
 
 def to_nwb(session: Session, out: str | Path, description: str | None = None) -> Path:
-    """Write ``session`` as the NWB file ``out`` (overwritten); returns its path."""
+    """Write ``session`` as the NWB file ``out`` (overwritten); returns its path. ValueError for a
+    recording that spans several server sessions (their wire clocks overlap)."""
+    if len(session.sessions) > 1:
+        raise ValueError(f"{session.source} spans {len(session.sessions)} server sessions (the server restarted and "
+                         "its clock with it); NWB export takes a recording of one session")
     out = Path(out)
     origin = session.origin_us()
     wall = session.wall_us_of(origin)
