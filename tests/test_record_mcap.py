@@ -114,9 +114,12 @@ def test_recording_a_replay_gives_touchreal_encode_spikes_in_a_valid_mcap(tmp_pa
     assert meta["touchreal.recording.end"]["stop_reason"] == "seconds"
 
 
-def test_record_refuses_unknown_streams(tmp_path, capsys):
-    assert main(["record", "http://127.0.0.1:9", "--out", str(tmp_path / "x.mcap"), "--streams", "spikes,raw"]) == 2
-    assert "streams must be" in capsys.readouterr().err
+def test_record_refuses_a_bad_subscription_before_connecting(tmp_path, capsys):
+    for extra, words in ((["--streams", "spikes,raw"], "unknown streams ['raw']"), (["--streams", ","], "streams must name"),
+                         (["--decimation", "0"], "decimation must be an integer in 1..5000")):
+        assert main(["record", "http://127.0.0.1:9", "--out", str(tmp_path / "x.mcap"), *extra]) == 2
+        assert words in capsys.readouterr().err
+    assert not (tmp_path / "x.mcap").exists()
 
 
 def test_record_of_an_unreachable_service_says_so(tmp_path, capsys):

@@ -241,11 +241,11 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
     a gateway) into the MCAP file ``out`` for ``seconds`` (None: until the stream closes or the task
     is cancelled, e.g. Ctrl-C). ``streams``: any of spikes, channels, decoded (every decoder);
     ``decimation``: channels, one 5 kHz sample in this many. The file is complete however it stops."""
-    bad = [s for s in streams if s not in P.STREAMS]
-    if bad or not streams:
-        raise ValueError(f"streams must be a non-empty subset of {list(P.STREAMS)}, got {list(streams)}")
-    out = Path(out)
+    if not streams:
+        raise ValueError(f"streams must name some of {list(P.STREAMS)}")
     sub = P.Subscription(taxels=taxels, streams=list(streams), decimation=decimation)
+    P.parse_subscribe(sub.to_json())  # the server's own validation (ProtocolError, a ValueError), before connecting
+    out = Path(out)
     stop = ""
     async with AsyncClient(http_base(url)) as tr:
         s = tr.stream(sub, queue_frames=8192)
