@@ -251,6 +251,7 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
         s = tr.stream(sub, queue_frames=8192)
         await s.open()
         try:
+            await s.subscribe()  # the same subscription again, waiting for the server's answer: StreamError if refused
             await s.sync_clock()
             with out.open("wb") as fp:
                 rec = McapRecorder(fp, s.clock)
