@@ -71,6 +71,28 @@ def test_a_full_queue_drops_counts_and_finally_kicks_the_subscriber():
     assert sub.dropped == 4
 
 
+def test_a_frame_older_than_the_max_age_is_dropped_not_sent():
+    now, drops = [0.0], []
+
+    async def go():
+        sub = Subscriber(1, capacity=100, slow_timeout_s=1.0, clock=lambda: now[0], max_age_s=0.25,
+                         on_drop=lambda reason, n: drops.append((reason, n)))
+        for i in range(3):  # queued at 0, 0.1 and 0.2 s
+            sub.offer(P.KIND_SPIKES, bytes([i]))
+            now[0] += 0.1
+        now[0] = 0.36  # the first two are now older than 0.25 s
+        first = sub.next_frame()
+        return sub, first
+
+    sub, first = asyncio.run(go())
+    assert first is not None and first.seq == 2 and first.payload == bytes([2])  # the fresh one, seq 0 and 1 skipped
+    assert sub.dropped == 2 and drops == [("stale", 1), ("stale", 1)] and sub.next_frame() is None
+    unlimited = Subscriber(2, capacity=4, slow_timeout_s=1.0, clock=lambda: 100.0, max_age_s=None)
+    unlimited.offer(P.KIND_SPIKES, b"x")
+    unlimited.clock = lambda: 1e6
+    assert unlimited.next_frame() is not None and unlimited.dropped == 0
+
+
 def test_control_replies_are_bounded_by_count_and_bytes():
     async def go():
         by_count = Subscriber(1, capacity=2, slow_timeout_s=1.0)

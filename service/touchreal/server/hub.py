@@ -9,6 +9,10 @@ replies are never dropped but bounded (:data:`~touchreal_client.protocol.CONTROL
 ``CONTROL_QUEUE_BYTES``): a client that asks faster than it reads is marked for closing with
 :data:`~touchreal_client.protocol.CLOSE_FLOODING`.
 
+A queue is bounded in time as well: a frame that waited longer than ``max_age_s`` is dropped when
+the sender reaches it (:meth:`Subscriber.next_frame`; counted, a ``seq`` gap like any drop), so an
+overloaded server sends fresh frames late by at most that much instead of a backlog seconds late.
+
 Queued items are rendered frames without the per-connection fields; the sender stamps ``seq``,
 ``dropped`` and ``sent_us`` when it hands the frame to the socket (:meth:`Subscriber.render`).
 """
@@ -31,7 +35,9 @@ from .runtime import Update, wall_us
 
 DROP_QUEUE_FULL = "queue_full"  #: a frame that did not fit a client's queue
 DROP_UPSTREAM = "upstream_loss"  #: a frame lost before it reached the hub (a gateway's broker hop)
-DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM)
+DROP_STALE = "stale"  #: a frame that waited in a client's queue longer than its max age
+DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM, DROP_STALE)
+MAX_AGE_S = 0.25  #: default: a queued frame older than this (s) is dropped rather than sent
 
 
 def _uncounted(reason: str, n: int) -> None:
@@ -43,14 +49,16 @@ class Queued:
     kind: int  #: P.KIND_*
     payload: bytes | str  #: binary frame, or the JSON body text
     seq: int
+    queued_at: float = 0.0  #: the subscriber's clock (s) when it was queued
 
 
 class Subscriber:
     """One connection's subscription, queue and counters (the WebSocket layer drives it)."""
 
     def __init__(self, sub_id: int, capacity: int, slow_timeout_s: float, clock: Callable[[], float] = time.monotonic,
-                 on_drop: Callable[[str, int], None] = _uncounted):
+                 on_drop: Callable[[str, int], None] = _uncounted, max_age_s: float | None = MAX_AGE_S):
         self.id = sub_id
+        self.max_age_s = max_age_s  #: queued frames older than this (s) are dropped, not sent (None: no limit)
         self.on_drop = on_drop  #: told (reason, frames) of every drop: DROP_QUEUE_FULL or DROP_UPSTREAM
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
@@ -103,8 +111,19 @@ class Subscriber:
                 self.kicked.set()
             return
         self.full_since = None
-        self.queue.append(Queued(kind, payload, seq))
+        self.queue.append(Queued(kind, payload, seq, self.clock()))
         self.wakeup.set()
+
+    def next_frame(self) -> Queued | None:
+        """The oldest queued frame still fresh enough to send (None: none left); those that waited longer
+        than ``max_age_s`` are dropped on the way (DROP_STALE)."""
+        while self.queue:
+            item = self.queue.popleft()
+            if self.max_age_s is None or self.clock() - item.queued_at <= self.max_age_s:
+                return item
+            self.dropped += 1
+            self.on_drop(DROP_STALE, 1)
+        return None
 
     def skip(self, n: int) -> None:
         """``n`` frames meant for this subscriber were lost before they reached the hub (a broker hop):
@@ -130,15 +149,16 @@ def limits(settings) -> dict[str, int | float]:
             "slow_timeout_s": settings.slow_timeout_s, "control_messages": P.CONTROL_QUEUE_MESSAGES,
             "control_bytes": P.CONTROL_QUEUE_BYTES, "max_errors_in_a_row": P.MAX_ERRORS_IN_A_ROW,
             "max_clients": settings.max_clients, "ping_interval_s": settings.ping_interval_s,
-            "ping_timeout_s": settings.ping_timeout_s}
+            "ping_timeout_s": settings.ping_timeout_s, "max_frame_age_ms": settings.max_frame_age_ms}
 
 
 class Hub:
     """All subscribers of one service; lives on the event loop."""
 
-    def __init__(self, capacity: int, slow_timeout_s: float):
+    def __init__(self, capacity: int, slow_timeout_s: float, max_age_s: float | None = MAX_AGE_S):
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
+        self.max_age_s = max_age_s
         self.subscribers: dict[int, Subscriber] = {}
         self._ids = itertools.count(1)
         self.demand = Demand()
@@ -152,7 +172,7 @@ class Hub:
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
-        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s, on_drop=self.on_drop)
+        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s, on_drop=self.on_drop, max_age_s=self.max_age_s)
         self.subscribers[sub.id] = sub
         return sub
 

@@ -58,7 +58,7 @@ class Service:
         self.store = ParamsStore(settings.state_dir, settings.params)
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
-        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None)
         self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
