@@ -1,8 +1,10 @@
 """Live sources for the service: the blocking layer over the sans-I/O sources.
 
 Every live source hands the acquisition thread one :class:`~touchreal.sensing.raw.RawChunk` per
-update interval through ``next_chunk()`` (blocking about one interval; ``None`` once the source has
-ended or was closed), and reports its state and counters through ``status()``.
+hop (``touchreal serve --hop-ms``, 5 ms by default) through ``next_chunk()`` (blocking about one
+hop; ``None`` once the source has ended or was closed), and reports its state and counters through
+``status()``. The simulated e-skin puts its hop boundaries one PVDF tick after its SingleTact
+samples, so a SingleTact sample waits for no hop (the fast classes wait for the SingleTact).
 
 A source's stream is a sequence of *segments*: the simulated e-skin and the serial reader have
 one; a replay has one per trial, each on its own recording clock. ``segment`` counts them and
@@ -24,6 +26,7 @@ import numpy as np
 from ..recording import Dataset, Trial
 from .raw import RawChunk
 from .replay import ReplaySource
+from ..settings import PVDF_FS_HZ
 from .scene import SceneSource, default_scene, taxel_grid
 
 
@@ -58,10 +61,14 @@ class _Paced:
 
     def wait_next(self) -> bool:
         """Sleep until the next release; False once closed."""
+        self._k += 1
+        return self.wait_until(self._k * self.period_s)
+
+    def wait_until(self, t_s: float) -> bool:
+        """Sleep until ``t_s`` (s) after the schedule's start (the first call); False once closed."""
         if self._start is None:
             self._start = self.clock()
-        self._k += 1
-        wait = self._start + self._k * self.period_s - self.clock()
+        wait = self._start + t_s - self.clock()
         if wait > 0:
             self._closed.wait(wait)
         return not self._closed.is_set()
@@ -78,7 +85,12 @@ class SimLiveSource:
     """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
     taxels (a grid of 10 mm pitch) in real time, looping forever. With several taxels the script is
     played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
-    feel each touch differently (the skin's spatial response)."""
+    feel each touch differently (the skin's spatial response).
+
+    Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk ends
+    one PVDF tick after each SingleTact sample when the hop divides the SingleTact period (10 ms);
+    the chunk of the ticks before tick e is released at ``start + e / 2 kHz`` (tick 0 is the first
+    sample), the moment its last tick is over."""
 
     segment = 0
 
@@ -90,13 +102,16 @@ class SimLiveSource:
         self.scene = SceneSource(default_scene(spots), taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
         self.offset_us = 0
         self._pace = _Paced(update_s)
+        self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
         self._chunks = 0
 
     def next_chunk(self) -> RawChunk | None:
-        if not self._pace.wait_next():
+        tick, phase = self.scene.eskin.tick, self.scene.eskin.st_phase
+        end = tick + (phase - tick) % self._hop_ticks + 1  # the next tick just after phase (mod the hop)
+        if not self._pace.wait_until(end / PVDF_FS_HZ):
             return None
         self._chunks += 1
-        return self.scene.read(self.update_s)
+        return self.scene.advance(end - tick)
 
     def status(self) -> dict[str, int | float | str]:
         return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks}

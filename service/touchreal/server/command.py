@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--taxel-block", type=int, default=None,
                    help="taxels per preprocessing block; blocks nobody subscribes to run nothing (default 64; 0 = one "
                         "block; TOUCHREAL_TAXEL_BLOCK)")
+    p.add_argument("--hop-ms", type=float, default=None,
+                   help="hop (ms): how often the source hands over samples and the fast classes go out (default 5; "
+                        "at most update_ms; TOUCHREAL_HOP_MS)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level")
     p.add_argument("--publish", default=None, metavar="NATS_URL",
                    help="also publish the frames to NATS (docs/scale-out.md), e.g. nats://127.0.0.1:4222")
@@ -41,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("token", args.token),
                                    ("state_dir", args.state_dir), ("params", args.params),
-                                   ("taxel_block", args.taxel_block)) if v is not None}
+                                   ("taxel_block", args.taxel_block), ("hop_ms", args.hop_ms)) if v is not None}
     settings = ServeSettings(**overrides)
     config = RuntimeConfig(source=args.source, taxels=args.taxels, speed=args.speed, loop=args.loop)
     service = Service(settings, config)

@@ -181,7 +181,8 @@ class Runtime:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
         if self.encoder is None:
-            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block)
+            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block,
+                                         update_s=params.preprocess.update_ms / 1000.0)
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
             self.decoders = {}
         self._follow_decoder_demand(demand)

@@ -29,6 +29,9 @@ class ServeSettings(BaseSettings):
     max_clients: int = Field(default=1000, ge=1)
     taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
                              "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
+    hop_ms: float = Field(default=5.0, ge=1.0, le=1000.0, description="hop (ms): the source hands over samples and "
+                          "the SingleTact-only and short-window classes go out this often (at most update_ms); "
+                          "long windows keep update_ms (docs/architecture.md, Latency)")
     seed: int = 0
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 
