@@ -23,6 +23,8 @@ from typing import Protocol
 
 import numpy as np
 
+from touchreal_client.clock import ClockPoint
+
 from ..recording import Dataset, Trial
 from .raw import RawChunk
 from .replay import ReplaySource
@@ -43,21 +45,31 @@ class LiveSource(Protocol):
 
     def next_chunk(self) -> RawChunk | None: ...
 
+    def clock(self) -> ClockPoint | None:
+        """The clock model after the latest chunk: the wire-clock stamp of its end and the server
+        wall time (us) at which that instant was acquired, the rate (wall us per sensor us) and the
+        epoch (incremented whenever the mapping jumps); None before the first chunk."""
+        ...
+
     def status(self) -> dict[str, int | float | str]: ...
 
     def close(self) -> None: ...
 
 
 class _Paced:
-    """Wall-clock pacing: the k-th chunk is released at ``start + k * period_s`` (missed ones come
-    back to back, nothing is dropped). ``clock``/``sleep`` are injectable; ``close()`` wakes it."""
+    """Wall-clock pacing: the k-th chunk is released at ``start + k * period_s`` (:meth:`wait_next`),
+    or at a time the source names (:meth:`wait_until`); missed ones come back to back, nothing is
+    dropped. ``clock``/``sleep`` are injectable; ``close()`` wakes it."""
 
     def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic):
         self.period_s = period_s
         self.clock = clock
         self._closed = threading.Event()
         self._start: float | None = None
+        self._start_wall_us = 0
         self._k = 0
+        self._due_s = 0.0  #: the latest release, s after the start
+        self.epoch = -1  #: increments at every (re)start of the schedule
 
     def wait_next(self) -> bool:
         """Sleep until the next release; False once closed."""
@@ -68,6 +80,9 @@ class _Paced:
         """Sleep until ``t_s`` (s) after the schedule's start (the first call); False once closed."""
         if self._start is None:
             self._start = self.clock()
+            self._start_wall_us = time.time_ns() // 1000
+            self.epoch += 1
+        self._due_s = t_s
         wait = self._start + t_s - self.clock()
         if wait > 0:
             self._closed.wait(wait)
@@ -80,6 +95,10 @@ class _Paced:
         """Start a new schedule at the next call (after a pause: no catching up)."""
         self._start, self._k = None, 0
 
+    def release_wall_us(self) -> int:
+        """Scheduled wall time (us) of the latest release: when its chunk's last instant was acquired."""
+        return self._start_wall_us + int(round(self._due_s * 1e6))
+
 
 class SimLiveSource:
     """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
@@ -89,8 +108,8 @@ class SimLiveSource:
 
     Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk ends
     one PVDF tick after each SingleTact sample when the hop divides the SingleTact period (10 ms);
-    the chunk of the ticks before tick e is released at ``start + e / 2 kHz`` (tick 0 is the first
-    sample), the moment its last tick is over."""
+    a chunk is released when the pace's clock reaches its end instant (the sensor clock runs from
+    its zero at the pace's start), the moment its last tick is over."""
 
     segment = 0
 
@@ -103,15 +122,24 @@ class SimLiveSource:
         self.offset_us = 0
         self._pace = _Paced(update_s)
         self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
+        self._zero_s = self.scene.requested_s  #: the sensor clock's instant at the pace's start
         self._chunks = 0
+        self._clock: ClockPoint | None = None
 
     def next_chunk(self) -> RawChunk | None:
         tick, phase = self.scene.eskin.tick, self.scene.eskin.st_phase
         end = tick + (phase - tick) % self._hop_ticks + 1  # the next tick just after phase (mod the hop)
-        if not self._pace.wait_until(end / PVDF_FS_HZ):
+        end_s = self.scene.time_s + (end - tick) / PVDF_FS_HZ  # the chunk's end instant (sensor clock)
+        if not self._pace.wait_until(end_s - self._zero_s):
             return None
         self._chunks += 1
-        return self.scene.advance(end - tick)
+        chunk = self.scene.advance(end - tick)
+        # the skin is sampled in real time: the chunk's end instant is "now" on the pace's schedule
+        self._clock = ClockPoint(int(round(self.scene.requested_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
+        return chunk
+
+    def clock(self) -> ClockPoint | None:
+        return self._clock
 
     def status(self) -> dict[str, int | float | str]:
         return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks}
@@ -154,8 +182,12 @@ class ReplayLiveSource:
         self.trial_id = ""
         self._next_offset_us = 0
         self._player: ReplaySource | None = None
+        self.speed = speed
         self._pace = _Paced(update_s / speed)
         self._ended = False
+        self._clock: ClockPoint | None = None
+        self._epoch = -1
+        self._pace_epoch = -1
 
     def _open_next(self) -> bool:
         i = self.segment + 1
@@ -177,7 +209,17 @@ class ReplayLiveSource:
             if not self._open_next():
                 self._ended = True
                 return None
-        return self._player.read(self.update_s)
+            self._epoch += 1  # a new trial: the wire clock jumps to its offset
+        elif self._pace.epoch != self._pace_epoch:
+            self._epoch += 1  # resumed after a pause for demand
+        self._pace_epoch = self._pace.epoch
+        chunk = self._player.read(self.update_s)
+        self._clock = ClockPoint(self.offset_us + int(round(self._player.now_s * 1e6)), self._pace.release_wall_us(),
+                                 1.0 / self.speed, 0, self._epoch)
+        return chunk
+
+    def clock(self) -> ClockPoint | None:
+        return self._clock
 
     def resume(self) -> None:
         """Continue after a pause for demand, in real time from now."""
