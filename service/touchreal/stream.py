@@ -9,7 +9,7 @@ same object; offline encoding is the same object fed once.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -54,13 +54,14 @@ class _TaxelBlock:
         self.shows = shows
         self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else []))
 
-    def encode(self, due: Callable[[Source], bool]) -> tuple[Channels | None, list[SpikeEvents]]:
-        """Spikes of every active source that is ``due`` (global taxel indices), and the channels of
-        the channels source if this block shows them and it was due (else None)."""
+    def encode(self, slow: frozenset[Source] = frozenset()) -> tuple[Channels | None, list[SpikeEvents]]:
+        """Spikes of every active source (global taxel indices), and the channels of the channels
+        source if this block shows them and it ran (else None). A ``slow`` source runs only when its
+        gate has a new frame (:meth:`Preprocessor.frame_ready`)."""
         channels = None
         parts = []
         for s in self.pre.sources:
-            if not due(s):
+            if s in slow and not self.pre.frame_ready(s):
                 continue
             ch = self.pre.take(s)
             ev = self.encoders[s].process(ch)
@@ -86,11 +87,12 @@ class StreamEncoder:
 
     ``update_s`` (the service's ``preprocess.update_ms``) splits the sources into two cadences: a
     PVDF window whose gate emits at most once per update (window / 4 >= ``update_s``: the 128 ms
-    window at 32 ms) is read only when the sensor clock (the newest sample both sensors delivered)
-    has crossed a multiple of ``update_s`` since its last read; the SingleTact and the short windows
-    every call. A live source calls :meth:`process` on a short hop, so the fast classes go out on
-    the hop and the slow ones keep the update. None (offline, tests): every source every call.
-    Spikes are the same either way (chunk invariance); only when they are returned changes.
+    window at 32 ms) runs only in a call that completes one of its gate frames (once per frame,
+    32 ms for 128 ms, and then at once); the SingleTact and the short windows run every call. A live
+    source calls :meth:`process` on a short hop, so the fast classes go out on the hop and the slow
+    ones keep their frame cadence without paying the hop's per-call cost. None (offline, tests):
+    every source every call. Spikes are the same either way (chunk invariance); only when they are
+    returned changes.
 
     Not thread-safe: call :meth:`set_active` between :meth:`process` calls (same thread or lock).
     """
@@ -132,7 +134,6 @@ class StreamEncoder:
         #: sources read on the update interval only (the others every call)
         self.slow: frozenset[Source] = frozenset(
             s for s in windows if update_s is not None and frame_length(s, PVDF_FS_HZ) / 4 / PVDF_FS_HZ >= update_s - 1e-9)
-        self._update_no = -1  #: the last update interval (sensor clock) the slow sources were read in
 
     # -- demand ---------------------------------------------------------------------------------
     def set_active(self, columns: Mapping[str, Iterable[int]], channels: Iterable[int] = ()) -> None:
@@ -198,23 +199,10 @@ class StreamEncoder:
         for block in self.blocks:
             block.pre.consume(*new)
 
-    def _slow_due(self) -> bool:
-        """True once per update interval of the sensor clock (the slow sources are read then)."""
-        until = self.acq.until_s()
-        if until is None:
-            return False
-        n = int(until // self.update_s)
-        if n == self._update_no:
-            return False
-        self._update_no = n
-        return True
-
     def _encode(self, final: bool = False) -> tuple[Channels, SpikeEvents]:
-        slow = final or (bool(self.slow) and self._slow_due())
-        due = (lambda s: True) if slow else (lambda s: s not in self.slow)
         shown, parts = [], []
         for block in self.blocks:
-            ch, evs = block.encode(due)
+            ch, evs = block.encode(frozenset() if final else self.slow)
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs

@@ -273,6 +273,16 @@ class Preprocessor:
         if self.st is not None:
             self.st.finish(until)
 
+    def frame_ready(self, source: Source) -> bool:
+        """Whether a window source's gate has a new frame to run on the filtered PVDF received (a
+        source taken only then costs one gate call per frame and waits for nothing); True for the
+        SingleTact alone."""
+        if source is None:
+            return True
+        branch = self.pv_windows[float(source)]
+        unread = self.pv_filtered.end - branch.in_slot if self.pv_filtered.count else 0
+        return unread >= branch.gate.to_next_frame
+
     def take(self, source: Source) -> Channels:
         """The newly final 5 kHz channels of an active ``source`` (PVDF and dPVDF zero for None).
         A window's gate runs here, on the filtered PVDF received since its last take: a source

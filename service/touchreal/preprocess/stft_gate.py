@@ -47,6 +47,11 @@ class StftGate:
         self.frames = 0
         self.gated_fraction = 0.0  # fraction of bins attenuated in the last processed chunk
 
+    @property
+    def to_next_frame(self) -> int:
+        """Input samples still needed before the next frame is complete."""
+        return self.n - self._buf.shape[0]
+
     def process(self, x: np.ndarray) -> np.ndarray:
         """Consume input samples, return the newly finalised output samples (same units)."""
         x = np.asarray(x, dtype=self.dtype)

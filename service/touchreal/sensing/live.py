@@ -126,14 +126,23 @@ class SimLiveSource:
         self._chunks = 0
         self._clock: ClockPoint | None = None
 
+    def _hop_ticks_left(self) -> int:
+        """PVDF ticks in the next hop: up to the tick just after the SingleTact phase (mod the hop)."""
+        return (self.scene.eskin.st_phase - self.scene.eskin.tick) % self._hop_ticks + 1
+
+    def next_end_s(self) -> float:
+        """The next hop's end instant (s, sensor clock): it holds the samples before it."""
+        return self.scene.time_s + self._hop_ticks_left() / PVDF_FS_HZ
+
+    def read_hop(self) -> RawChunk:
+        """The next hop's samples at once (no pacing: benchmarks and tests)."""
+        return self.scene.advance(self._hop_ticks_left())
+
     def next_chunk(self) -> RawChunk | None:
-        tick, phase = self.scene.eskin.tick, self.scene.eskin.st_phase
-        end = tick + (phase - tick) % self._hop_ticks + 1  # the next tick just after phase (mod the hop)
-        end_s = self.scene.time_s + (end - tick) / PVDF_FS_HZ  # the chunk's end instant (sensor clock)
-        if not self._pace.wait_until(end_s - self._zero_s):
+        if not self._pace.wait_until(self.next_end_s() - self._zero_s):
             return None
         self._chunks += 1
-        chunk = self.scene.advance(end - tick)
+        chunk = self.read_hop()
         # the skin is sampled in real time: the chunk's end instant is "now" on the pace's schedule
         self._clock = ClockPoint(int(round(self.scene.requested_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
         return chunk
