@@ -252,7 +252,7 @@ def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
 
 
 def test_stalled_client_is_dropped_and_others_are_unaffected(tmp_path):
-    with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=8, slow_timeout_s=0.5) as (addr, svc):
+    with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=48, slow_timeout_s=0.5) as (addr, svc):
 
         frames, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 8.0))
         kicked = svc.metrics.kicked._value.get()

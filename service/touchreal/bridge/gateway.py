@@ -56,7 +56,8 @@ class GatewaySettings(BaseSettings):
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
     host: str = "127.0.0.1"
     port: int = Field(default=8765, ge=0, le=65535)
-    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
+                              "(512: 2.6 s of 5 ms hops)")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1)
     pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "

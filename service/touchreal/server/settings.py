@@ -24,7 +24,8 @@ class ServeSettings(BaseSettings):
     token: str | None = Field(default=None, description="bearer token required by write endpoints; None = open")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")
     params: Path | None = Field(default=None, description="initial parameter file (default: last active, else shipped)")
-    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
+                              "(512: 2.6 s of 5 ms hops)")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1)
     taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
