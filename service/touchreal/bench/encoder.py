@@ -13,7 +13,7 @@ short hop is per-call overhead.
 
 Part 1c is the service's own budget without the network: the simulated e-skin chunked as ``touchreal
 serve`` chunks it (hops ending right after the SingleTact samples), and per class the spike's
-emission (its chunk's end instant + the compute of that call) minus the sensor time of its causing
+emission (its chunk's newest sample + the compute of that call) minus the sensor time of its causing
 sample (stamp minus the class delay), p50/p95/max, on the 5 ms hop and on 32 ms updates.
 
 Part 2 measures each class's latency: the live scene fed in 1 ms chunks, every spike's emission
@@ -141,7 +141,8 @@ def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: 
 
 
 def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop_ms: float = 5.0) -> None:
-    """Per class: emission (hop end + compute) minus the causing sample, as the service chunks the sim."""
+    """Per class: emission (the hop's newest sample + compute) minus the causing sample, as the service
+    chunks the sim."""
     from ..sensing.live import SimLiveSource
 
     update_s = params.preprocess.update_ms / 1000.0
@@ -157,7 +158,7 @@ def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop
             lat: list[list[np.ndarray]] = [[] for _ in CLASSES]
             spent, calls = 0.0, 0
             while src.scene.time_s < seconds:
-                end = src.next_end_s()
+                end = src.next_newest_s()
                 chunk = src.read_hop()
                 t = time.perf_counter()
                 ev = se.process(chunk)

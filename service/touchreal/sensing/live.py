@@ -3,8 +3,8 @@
 Every live source hands the acquisition thread one :class:`~touchreal.sensing.raw.RawChunk` per
 hop (``touchreal serve --hop-ms``, 5 ms by default) through ``next_chunk()`` (blocking about one
 hop; ``None`` once the source has ended or was closed), and reports its state and counters through
-``status()``. The simulated e-skin puts its hop boundaries one PVDF tick after its SingleTact
-samples, so a SingleTact sample waits for no hop (the fast classes wait for the SingleTact).
+``status()``. The simulated e-skin ends a hop with each SingleTact sample and halfway between, so
+a SingleTact sample waits for no hop (the fast classes wait for the SingleTact).
 
 A source's stream is a sequence of *segments*: the simulated e-skin and the serial reader have
 one; a replay has one per trial, each on its own recording clock. ``segment`` counts them and
@@ -106,10 +106,10 @@ class SimLiveSource:
     played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
     feel each touch differently (the skin's spatial response).
 
-    Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk ends
-    one PVDF tick after each SingleTact sample when the hop divides the SingleTact period (10 ms);
-    a chunk is released when the pace's clock reaches its end instant (the sensor clock runs from
-    its zero at the pace's start), the moment its last tick is over."""
+    Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk's
+    newest sample is a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact
+    period (10 ms); a chunk is released when the pace's clock reaches the instant of its newest
+    sample (the sensor clock runs from its zero at the pace's start), and its clock point says so."""
 
     segment = 0
 
@@ -130,21 +130,22 @@ class SimLiveSource:
         """PVDF ticks in the next hop: up to the tick just after the SingleTact phase (mod the hop)."""
         return (self.scene.eskin.st_phase - self.scene.eskin.tick) % self._hop_ticks + 1
 
-    def next_end_s(self) -> float:
-        """The next hop's end instant (s, sensor clock): it holds the samples before it."""
-        return self.scene.time_s + self._hop_ticks_left() / PVDF_FS_HZ
+    def next_newest_s(self) -> float:
+        """The instant of the next hop's newest sample (s, sensor clock): the hop is over then."""
+        return self.scene.time_s + (self._hop_ticks_left() - 1) / PVDF_FS_HZ
 
     def read_hop(self) -> RawChunk:
         """The next hop's samples at once (no pacing: benchmarks and tests)."""
         return self.scene.advance(self._hop_ticks_left())
 
     def next_chunk(self) -> RawChunk | None:
-        if not self._pace.wait_until(self.next_end_s() - self._zero_s):
+        newest_s = self.next_newest_s()
+        if not self._pace.wait_until(newest_s - self._zero_s):
             return None
         self._chunks += 1
         chunk = self.read_hop()
-        # the skin is sampled in real time: the chunk's end instant is "now" on the pace's schedule
-        self._clock = ClockPoint(int(round(self.scene.requested_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
+        # the skin is sampled in real time: the chunk's newest sample is "now" on the pace's schedule
+        self._clock = ClockPoint(int(round(newest_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
         return chunk
 
     def clock(self) -> ClockPoint | None:
