@@ -32,6 +32,7 @@ from ..settings import PVDF_FS_HZ
 from .scene import SceneSource, default_scene, taxel_grid
 
 
+MAX_CATCH_UP_HOPS = 64  #: a sim that fell behind hands over up to this many hops at once
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 
 
@@ -88,6 +89,14 @@ class _Paced:
             self._closed.wait(wait)
         return not self._closed.is_set()
 
+    def passed(self, t_s: float) -> bool:
+        """Whether ``t_s`` (s after the start) is already past; if so it becomes the latest release
+        (a source that fell behind hands over that much more at once)."""
+        if self._start is None or self._start + t_s > self.clock():
+            return False
+        self._due_s = t_s
+        return True
+
     def close(self) -> None:
         self._closed.set()
 
@@ -109,7 +118,9 @@ class SimLiveSource:
     Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk's
     newest sample is a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact
     period (10 ms); a chunk is released when the pace's clock reaches the instant of its newest
-    sample (the sensor clock runs from its zero at the pace's start), and its clock point says so."""
+    sample (the sensor clock runs from its zero at the pace's start), and its clock point says so.
+    A consumer that fell behind gets every hop already due in one chunk (up to
+    :data:`MAX_CATCH_UP_HOPS`): fewer, larger calls until it has caught up."""
 
     segment = 0
 
@@ -143,7 +154,11 @@ class SimLiveSource:
         if not self._pace.wait_until(newest_s - self._zero_s):
             return None
         self._chunks += 1
-        chunk = self.read_hop()
+        hops = [self.read_hop()]
+        while len(hops) < MAX_CATCH_UP_HOPS and self._pace.passed(self.next_newest_s() - self._zero_s):
+            newest_s = self.next_newest_s()  # behind: the hops already acquired go in this chunk too
+            hops.append(self.read_hop())
+        chunk = hops[0] if len(hops) == 1 else RawChunk.concat(hops)
         # the skin is sampled in real time: the chunk's newest sample is "now" on the pace's schedule
         self._clock = ClockPoint(int(round(newest_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
         return chunk
