@@ -173,9 +173,10 @@ def test_a_new_hello_follows_a_parameter_upload_and_a_window_change(tmp_path):
                                   and x["window_us"]["PC"] == 64000)
                     r = await http.post(base + "/v1/params/rollback", json={"rev": 1})
                     assert r.status_code == 200, r.text
+                    rev = r.json()["rev"]  # a rollback is recorded as a new revision
                     got = await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello"
-                                                                 and x["params"]["rev"] == 1 for x in fs))
-                    assert any(isinstance(x, dict) and x.get("type") == "hello" and x["params"]["rev"] == 1
+                                                                 and x["params"]["rev"] == rev for x in fs))
+                    assert any(isinstance(x, dict) and x.get("type") == "hello" and x["params"]["rev"] == rev
                                and x["window_us"]["PC"] == 128000 for x in got)
                 return first, second
 
