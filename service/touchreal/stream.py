@@ -16,10 +16,10 @@ import numpy as np
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
 from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
+from .preprocess.stft_gate import frame_length
 from .recording import Trial
 from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
-from .preprocess.stft_gate import frame_length
 from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
@@ -137,8 +137,7 @@ class StreamEncoder:
                        for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
-        self.update_s = update_s
-        #: sources read on the update interval only (the others every call)
+        #: sources run only in a call that completes one of their gate frames (the others every call)
         self.slow: frozenset[Source] = frozenset(
             s for s in windows if update_s is not None and frame_length(s, PVDF_FS_HZ) / 4 / PVDF_FS_HZ >= update_s - 1e-9)
 
