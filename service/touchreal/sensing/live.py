@@ -26,9 +26,9 @@ import numpy as np
 from touchreal_client.clock import ClockPoint
 
 from ..recording import Dataset, Trial
+from ..settings import PVDF_FS_HZ
 from .raw import RawChunk
 from .replay import ReplaySource
-from ..settings import PVDF_FS_HZ
 from .scene import SceneSource, default_scene, taxel_grid
 
 
@@ -138,7 +138,7 @@ class SimLiveSource:
         self._clock: ClockPoint | None = None
 
     def _hop_ticks_left(self) -> int:
-        """PVDF ticks in the next hop: up to the tick just after the SingleTact phase (mod the hop)."""
+        """PVDF ticks in the next hop: up to and with the next tick on the SingleTact phase (mod the hop)."""
         return (self.scene.eskin.st_phase - self.scene.eskin.tick) % self._hop_ticks + 1
 
     def next_newest_s(self) -> float:
