@@ -136,3 +136,36 @@ def test_admit_fills_a_bare_subscribe_with_what_is_served_and_refuses_what_is_no
     hub.subscribe(hub.add(), P.Subscription(classes=["SA1", "PC"]))
     hub.subscribe(hub.add(), P.Subscription(taxels=[2, 9]))
     assert hub.demand.columns == {"PC": (0, 1, 2, 3)}
+
+
+def test_a_spikes_frame_with_nothing_new_for_a_subscription_is_not_sent():
+    """Updates come every hop: a subscriber gets a spikes frame when its classes' final_us moved, a
+    spike of its own arrived or a flag is set; never a frame that repeats what it already has."""
+    def hop(n: int, final: dict[str, int], cls: int | None = None, flags: int = 0) -> Update:
+        t = np.array([] if cls is None else [final["SA1"] - 1], np.uint64)
+        c = np.array([] if cls is None else [cls], np.uint8)
+        return Update(n, 1, flags, 0, 5, t, np.zeros(t.size, np.uint16), c, final)
+
+    async def go():
+        hub = Hub(capacity=64, slow_timeout_s=1.0)
+        hub.configure(1, P.CLASSES, {})
+        fast, slow, both = hub.add(), hub.add(), hub.add()
+        hub.subscribe(fast, P.Subscription(classes=["SA1", "RA"]))
+        hub.subscribe(slow, P.Subscription(classes=["PC"]))
+        hub.subscribe(both, P.Subscription())
+        updates = [
+            hop(1, {"SA1": 5000, "RA": 5000, "PC": 0}),  # first: everyone learns the finals
+            hop(2, {"SA1": 10000, "RA": 10000, "PC": 0}),  # the fast classes moved
+            hop(3, {"SA1": 15000, "RA": 15000, "PC": 32000}),  # PC's update
+            hop(4, {"SA1": 15000, "RA": 15000, "PC": 32000}),  # nothing moved
+            hop(5, {"SA1": 15000, "RA": 15000, "PC": 32000}, cls=2),  # a PC spike
+            hop(6, {"SA1": 15000, "RA": 15000, "PC": 32000}, flags=P.FLAG_SOURCE_GAP),  # a flag
+        ]
+        for u in updates:
+            hub.publish(u)
+        return [[P.decode_frame(q.payload).header.update for q in s.queue] for s in (fast, slow, both)]
+
+    fast, slow, both = asyncio.run(go())
+    assert fast == [1, 2, 3, 6]
+    assert slow == [1, 3, 5, 6]
+    assert both == [1, 2, 3, 5, 6]

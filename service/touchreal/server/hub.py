@@ -13,6 +13,11 @@ A queue is bounded in time as well: a frame that waited longer than ``max_age_s`
 the sender reaches it (:meth:`Subscriber.next_frame`; counted, a ``seq`` gap like any drop), so an
 overloaded server sends fresh frames late by at most that much instead of a backlog seconds late.
 
+An update whose spikes frame would tell a subscription nothing new (no spike of its classes and
+taxels, no flag, and the same ``final_us`` for its classes as the last one rendered for it) sends no
+spikes frame: updates come every hop (5 ms) and only the fast classes' ``final_us`` moves on most of
+them, so a PC-only subscriber gets one frame per PC update while an SA1 subscriber gets every hop's.
+
 Queued items are rendered frames without the per-connection fields; the sender stamps ``seq``,
 ``dropped`` and ``sent_us`` when it hands the frame to the socket (:meth:`Subscriber.render`).
 """
@@ -169,6 +174,7 @@ class Hub:
         self.decoder_names: list[str] = []
         self.known = False  #: configured: what is served is known (a gateway learns it from the publisher's hello)
         self.frames_rendered = 0
+        self._finals: dict[tuple, tuple] = {}  #: per distinct subscription: the final_us last rendered
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
@@ -236,10 +242,11 @@ class Hub:
                    s.decimation, None if s.decoders is None else tuple(s.decoders))
             frames = cache.get(key)
             if frames is None:
-                frames = cache[key] = self._render(upd, s)
+                frames = cache[key] = self._render(upd, s, key)
                 self.frames_rendered += len(frames)
             for kind, payload in frames:
                 sub.offer(kind, payload)
+        self._finals = {k: v for k, v in self._finals.items() if k in cache}  # forget subscriptions gone
 
     def skip(self, n_frames: int, stream: str, decoder: str | None = None) -> None:
         """``n_frames`` frames of ``stream`` (of ``decoder``'s outputs, for ``decoded``) were lost upstream (a
@@ -252,7 +259,9 @@ class Hub:
             if decoder is None or s.decoders is None or decoder in s.decoders:
                 sub.skip(n_frames)
 
-    def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
+    def _render(self, upd: Update, s: P.Subscription, key: tuple) -> list[tuple[int, bytes | str]]:
+        """The frames of ``upd`` for subscription ``s`` (``key``), without a spikes frame that has
+        nothing new for it."""
         out: list[P.Frame] = []
         taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
         if "spikes" in s.streams and upd.spikes:
@@ -261,7 +270,10 @@ class Hub:
             cls_idx = [P.CLASSES.index(c) for c in classes]
             sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
             final = {c: (upd.final_us.get(c) if c in classes else None) for c in P.CLASSES}
-            out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
+            mark = tuple(final.values())
+            if sel.any() or upd.flags or self._finals.get(key) != mark:
+                out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
+            self._finals[key] = mark
         if "channels" in s.streams and upd.channels is not None and upd.channels.n_samples:
             ch = upd.channels
             k = ch.k0 + np.arange(ch.n_samples)
