@@ -54,7 +54,7 @@ def test_a_full_queue_drops_counts_and_finally_kicks_the_subscriber():
     now = [0.0]
 
     async def go():
-        sub = Subscriber(1, capacity=2, slow_timeout_s=1.0, clock=lambda: now[0])
+        sub = Subscriber(1, capacity=2, slow_timeout_s=1.0, clock=lambda: now[0], max_age_s=None)
         for i in range(4):
             sub.offer(P.KIND_SPIKES, b"x")
         assert (len(sub.queue), sub.dropped, sub.seq, sub.kick) == (2, 2, 4, None)

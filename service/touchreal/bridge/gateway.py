@@ -64,7 +64,7 @@ class GatewaySettings(BaseSettings):
     port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
     queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
                               "(512: 2.6 s of 5 ms hops)")
-    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
+    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full, or that takes no frame while frames wait, this long is closed (4008)")
     max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
                                     "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
     max_clients: int = Field(default=1000, ge=1)

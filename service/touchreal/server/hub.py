@@ -3,8 +3,8 @@
 Sans-I/O apart from an ``asyncio.Event`` per subscriber for wake-up: :meth:`Hub.publish` never
 waits. Each :class:`Subscriber` has a bounded queue; a frame that does not fit is dropped for that
 subscriber only (its ``seq`` still advances, so the client sees the gap, and ``dropped`` counts
-it); a subscriber whose queue stays full for ``slow_timeout_s`` is marked for closing with
-:data:`~touchreal_client.protocol.CLOSE_SLOW_CONSUMER`. Other subscribers are unaffected. Its control
+it); a subscriber whose queue stays full, or whose sender takes no frame while frames wait, for
+``slow_timeout_s`` is marked for closing with :data:`~touchreal_client.protocol.CLOSE_SLOW_CONSUMER`. Other subscribers are unaffected. Its control
 replies are never dropped but bounded (:data:`~touchreal_client.protocol.CONTROL_QUEUE_MESSAGES` and
 ``CONTROL_QUEUE_BYTES``): a client that asks faster than it reads is marked for closing with
 :data:`~touchreal_client.protocol.CLOSE_FLOODING`.
@@ -74,6 +74,7 @@ class Subscriber:
         self.dropped = 0
         self.sent = 0
         self.full_since: float | None = None
+        self.taken_at = clock()  #: when the sender last took a frame (or the queue last became non-empty)
         self.kick: tuple[int, str] | None = None  #: (close code, reason) once it must go
         self.kicked = asyncio.Event()
         self.control: deque[str] = deque()  #: JSON messages (hello, clock, subscribed, time, error): never dropped
@@ -104,31 +105,45 @@ class Subscriber:
 
     def offer(self, kind: int, payload: bytes | str) -> None:
         seq, self.seq = self.seq, self.seq + 1
+        now = self.clock()
+        self._drop_stale()  # a sender stuck on a slow socket must not let stale frames fill the queue
+        if self.queue and now - self.taken_at >= self.slow_timeout_s and self.kick is None:
+            self._kick(f"slow consumer: no frame taken for {self.slow_timeout_s:g} s")
         if len(self.queue) >= self.capacity:
             self.dropped += 1
             self.on_drop(DROP_QUEUE_FULL, 1)
-            now = self.clock()
             if self.full_since is None:
                 self.full_since = now
             elif now - self.full_since >= self.slow_timeout_s and self.kick is None:
-                self.kick = (P.CLOSE_SLOW_CONSUMER, f"slow consumer: queue of {self.capacity} frames full for "
-                             f"{self.slow_timeout_s:g} s, {self.dropped} frames dropped")
-                self.kicked.set()
+                self._kick(f"slow consumer: queue of {self.capacity} frames full for {self.slow_timeout_s:g} s")
             return
         self.full_since = None
-        self.queue.append(Queued(kind, payload, seq, self.clock()))
+        if not self.queue:
+            self.taken_at = now  # waiting starts with the first queued frame
+        self.queue.append(Queued(kind, payload, seq, now))
         self.wakeup.set()
+
+    def _kick(self, why: str) -> None:
+        self.kick = (P.CLOSE_SLOW_CONSUMER, f"{why}, {self.dropped} frames dropped")
+        self.kicked.set()
 
     def next_frame(self) -> Queued | None:
         """The oldest queued frame still fresh enough to send (None: none left); those that waited longer
         than ``max_age_s`` are dropped on the way (DROP_STALE)."""
-        while self.queue:
-            item = self.queue.popleft()
-            if self.max_age_s is None or self.clock() - item.queued_at <= self.max_age_s:
-                return item
+        self._drop_stale()
+        if not self.queue:
+            return None
+        self.taken_at = self.clock()
+        return self.queue.popleft()
+
+    def _drop_stale(self) -> None:
+        if self.max_age_s is None:
+            return
+        limit = self.clock() - self.max_age_s
+        while self.queue and self.queue[0].queued_at < limit:
+            self.queue.popleft()
             self.dropped += 1
             self.on_drop(DROP_STALE, 1)
-        return None
 
     def skip(self, n: int) -> None:
         """``n`` frames meant for this subscriber were lost before they reached the hub (a broker hop):
