@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "touchreal.decoding.command",
     "touchreal.server.command",
     "touchreal.bridge.command",
+    "touchreal.commands.bridge",
 )
 
 

@@ -1,0 +1,265 @@
+"""A Foxglove live view of a ``/v1/stream``: ``touchreal bridge foxglove --from URL --port 8767``.
+
+Serves the Foxglove WebSocket protocol with foxglove-sdk (extra ``foxglove``) on its own port, one
+JSON channel (JSON schema advertised) per topic:
+
+* ``/touchreal/spikes/<class>``: one message per spike, ``{"t_us", "taxel", "class"}``;
+* ``/touchreal/channels``: one message per channel sample (200 Hz at the default decimation of 25),
+  ``{"t_us", "taxels", "ST", "dST", "PVDF", "dPVDF"}`` (N, N/s, V, V/s, one value per taxel);
+* ``/touchreal/force``: the preprocessed force, ``{"t_us", "taxels", "force_N"}`` (the ST channel);
+* ``/touchreal/decoded/<decoder>``: one message per decoding step, ``{"t_us", "taxels", "outputs":
+  {output_name: [value per taxel]}}`` (NaN sent as null).
+
+``t_us`` is the wire stamp (sensor clock, integer us). A message's log time is this machine's wall
+time (ns) of that stamp by the stream's clock model (``clock`` messages plus the ``time`` offset),
+not the time it arrived. Demand-driven: the bridge subscribes upstream to exactly what Foxglove
+clients are subscribed to (the SDK's subscribe/unsubscribe callbacks), and to nothing while no
+client subscribes, so an idle bridge costs the service nothing. A gateway speaks the same protocol,
+so ``--from`` may be a gateway.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+
+from .. import protocol as P
+from ..errors import StreamClosed, StreamError
+from ..stream import AsyncStream
+from . import keep_clock_synced
+
+log = logging.getLogger("touchreal_client.bridges.foxglove")
+
+DEFAULT_PORT = 8767  #: serve uses 8765, the gateway 8766
+PREFIX = "/touchreal"
+SPIKES_TOPIC = PREFIX + "/spikes/{}"
+CHANNELS_TOPIC = PREFIX + "/channels"
+FORCE_TOPIC = PREFIX + "/force"
+DECODED_TOPIC = PREFIX + "/decoded/{}"
+
+_T_US = {"type": "integer", "minimum": 0, "description": "wire stamp: sensor clock (+ replay segment offset), us"}
+_TAXELS = {"type": "array", "items": {"type": "integer", "minimum": 0}, "description": "taxel ids, in value order"}
+_PER_TAXEL = {"type": "array", "items": {"type": ["number", "null"]}}
+
+
+def spike_schema(classes: Iterable[str]) -> dict[str, Any]:
+    """JSON schema of one spike message."""
+    return {"title": "touchreal.Spike", "type": "object", "required": ["t_us", "taxel", "class"],
+            "properties": {"t_us": _T_US, "taxel": {"type": "integer", "minimum": 0},
+                           "class": {"type": "string", "enum": list(classes)}}}
+
+
+def channels_schema() -> dict[str, Any]:
+    """JSON schema of one channel sample (all taxels)."""
+    props: dict[str, Any] = {"t_us": _T_US, "taxels": _TAXELS}
+    for name, unit in zip(P.CHANNELS, P.CHANNEL_UNITS):
+        props[name] = {**_PER_TAXEL, "description": f"{name} [{unit}] per taxel"}
+    return {"title": "touchreal.Channels", "type": "object", "required": list(props), "properties": props}
+
+
+def force_schema() -> dict[str, Any]:
+    """JSON schema of one force sample (the preprocessed SingleTact force of every taxel)."""
+    return {"title": "touchreal.Force", "type": "object", "required": ["t_us", "taxels", "force_N"],
+            "properties": {"t_us": _T_US, "taxels": _TAXELS,
+                           "force_N": {**_PER_TAXEL, "description": "preprocessed force [N] per taxel"}}}
+
+
+def decoded_schema(name: str, outputs: Iterable[str]) -> dict[str, Any]:
+    """JSON schema of one decoding step of decoder ``name``."""
+    outs = {o: {**_PER_TAXEL, "description": f"output {o} per taxel (null: not yet defined)"} for o in outputs}
+    return {"title": f"touchreal.Decoded.{name}", "type": "object", "required": ["t_us", "taxels", "outputs"],
+            "properties": {"t_us": {**_T_US, "description": "end of the decoding window (wire clock, us)"},
+                           "taxels": _TAXELS,
+                           "outputs": {"type": "object", "required": list(outs), "properties": outs}}}
+
+
+def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
+    """The upstream subscription that feeds exactly ``topics`` (nothing at all for none)."""
+    topics = set(topics)
+    classes = [c for c in P.CLASSES if SPIKES_TOPIC.format(c) in topics]
+    decoders = sorted(t[len(DECODED_TOPIC.format("")):] for t in topics if t.startswith(DECODED_TOPIC.format("")))
+    streams = [s for s, on in (("spikes", bool(classes)), ("channels", bool(topics & {CHANNELS_TOPIC, FORCE_TOPIC})),
+                               ("decoded", bool(decoders))) if on]
+    return P.Subscription(taxels=None, classes=classes, streams=streams, decimation=decimation,
+                          decoders=decoders or None)
+
+
+def _nulls(a: np.ndarray) -> list[Any]:
+    """A float array as a JSON list with NaN as null (JSON has no NaN)."""
+    return [None if v != v else v for v in a.astype(np.float64).tolist()]
+
+
+class DemandListener:
+    """foxglove-sdk server listener: which (client, channel) pairs are subscribed. Called on the
+    SDK's threads; ``on_change`` is called after every change (it must be thread-safe)."""
+
+    def __init__(self, on_change: Callable[[], None]):
+        self._on_change = on_change
+        self._lock = threading.Lock()
+        self._subs: set[tuple[int, str]] = set()
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self._subs.add((client.id, channel.topic))
+        self._on_change()
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            self._subs.discard((client.id, channel.topic))
+        self._on_change()
+
+    def topics(self) -> set[str]:
+        with self._lock:
+            return {topic for _, topic in self._subs}
+
+
+class FoxgloveBridge:
+    """Foxglove WebSocket server on ``host:port`` fed from the stream at ``url`` (``ws://...`` or
+    ``http://HOST:PORT``). ``port=0`` binds a free port (:attr:`port` once :attr:`ready` is set).
+    ``decimation``: channels at 5 kHz / decimation."""
+
+    def __init__(self, url: str, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, decimation: int = 25,
+                 name: str = "TouchReal"):
+        self.url, self.host, self.port, self.decimation, self.name = url, host, port, decimation, name
+        self.ready = asyncio.Event()  #: set once the Foxglove server listens (then :attr:`port` is bound)
+        self.stream: AsyncStream | None = None
+        self._channels: dict[str, Any] = {}
+        self._changed = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._listener = DemandListener(self._demand_changed)
+
+    # -- life -----------------------------------------------------------------------------------
+    async def run(self) -> None:
+        """Serve until cancelled or until the upstream stream ends for good (then raises
+        :class:`~touchreal_client.errors.StreamClosed`)."""
+        import foxglove
+
+        self._loop = asyncio.get_running_loop()
+        idle = wanted_subscription((), self.decimation)
+        async with AsyncStream(self.url, idle) as stream:
+            self.stream = stream
+            self._context = foxglove.Context()
+            self._advertise(stream.hello)
+            server = foxglove.start_server(name=self.name, host=self.host, port=self.port,
+                                           server_listener=self._listener, context=self._context,
+                                           session_id=str(stream.hello.get("session", "")) or None)
+            self.port = server.port
+            helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_demand(idle))]
+            self.ready.set()
+            try:
+                async for frame in stream.frames():
+                    self._publish(frame)
+            finally:
+                for t in helpers:
+                    t.cancel()
+                await asyncio.gather(*helpers, return_exceptions=True)
+                server.stop()
+
+    # -- channels -------------------------------------------------------------------------------
+    def _channel(self, topic: str, schema: dict[str, Any], metadata: dict[str, str]) -> Any:
+        import foxglove
+
+        ch = self._channels.get(topic)
+        if ch is None:
+            data = json.dumps(schema).encode()
+            ch = foxglove.Channel(topic, message_encoding="json", context=self._context, metadata=metadata,
+                                  schema=foxglove.Schema(name=schema["title"], encoding="jsonschema", data=data))
+            self._channels[topic] = ch
+        return ch
+
+    def _advertise(self, hello: dict[str, Any]) -> None:
+        """Channels for what the service offers (from its hello); new decoders in a later hello get
+        theirs when their first frame comes."""
+        classes = [c for c in hello.get("classes", P.CLASSES) if c in P.CLASSES]
+        for c in classes:
+            self._channel(SPIKES_TOPIC.format(c), spike_schema([c]), {"class": c, "units": "t_us: us"})
+        self._channel(CHANNELS_TOPIC, channels_schema(),
+                      {"units": ", ".join(f"{n}: {u}" for n, u in zip(P.CHANNELS, P.CHANNEL_UNITS)),
+                       "rate_hz": str(5000 / self.decimation)})
+        self._channel(FORCE_TOPIC, force_schema(), {"units": "N", "rate_hz": str(5000 / self.decimation)})
+        for d in hello.get("streams", {}).get("decoded", {}).get("decoders", []):
+            self._decoded_channel(str(d.get("name")), [str(o) for o in d.get("outputs", [])])
+
+    def _decoded_channel(self, name: str, outputs: list[str]) -> Any:
+        return self._channel(DECODED_TOPIC.format(name), decoded_schema(name, outputs), {"decoder": name})
+
+    # -- demand ---------------------------------------------------------------------------------
+    def _demand_changed(self) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._changed.set)
+
+    async def _follow_demand(self, current: P.Subscription) -> None:
+        """Keep the upstream subscription equal to what the Foxglove clients subscribe to."""
+        assert self.stream is not None
+        while True:
+            await self._changed.wait()
+            self._changed.clear()
+            want = wanted_subscription(self._listener.topics(), self.decimation)
+            if want == current:
+                continue
+            try:
+                await self.stream.subscribe(want)
+                current = want
+            except (StreamError, StreamClosed, asyncio.TimeoutError) as exc:
+                log.warning("upstream subscribe %s failed: %r (retried on the next change)", want.to_json(), exc)
+
+    # -- publishing -----------------------------------------------------------------------------
+    def _log_times_ns(self, t_us: np.ndarray) -> list[int | None]:
+        """This machine's wall time (ns) of each wire stamp; None (the SDK stamps it now) before
+        the stream's first clock point."""
+        assert self.stream is not None
+        try:
+            local = np.atleast_1d(self.stream.to_local(np.asarray(t_us, np.float64)))
+        except LookupError:
+            return [None] * len(t_us)
+        return np.rint(local * 1000.0).astype(np.int64).tolist()
+
+    def _publish(self, frame: P.Frame) -> None:
+        if isinstance(frame, P.SpikesFrame):
+            self._publish_spikes(frame)
+        elif isinstance(frame, P.ChannelsFrame):
+            self._publish_channels(frame)
+        else:
+            self._publish_decoded(frame)
+
+    def _publish_spikes(self, f: P.SpikesFrame) -> None:
+        times = self._log_times_ns(f.t_us)
+        for i, name in enumerate(P.CLASSES):
+            ch = self._channels.get(SPIKES_TOPIC.format(name))
+            if ch is None or not ch.has_sinks():
+                continue
+            for k in np.flatnonzero(f.cls == i).tolist():
+                ch.log({"t_us": int(f.t_us[k]), "taxel": int(f.taxel[k]), "class": name}, log_time=times[k])
+
+    def _publish_channels(self, f: P.ChannelsFrame) -> None:
+        chans, force = self._channels.get(CHANNELS_TOPIC), self._channels.get(FORCE_TOPIC)
+        t_us = f.t0_us + f.period_us * np.arange(f.data.shape[0], dtype=np.uint64)
+        times = self._log_times_ns(t_us)
+        taxels = f.taxels.tolist()
+        for k, t in enumerate(t_us.tolist()):
+            if chans is not None and chans.has_sinks():
+                msg: dict[str, Any] = {"t_us": t, "taxels": taxels}
+                msg.update({n: _nulls(f.data[k, :, j]) for j, n in enumerate(P.CHANNELS)})
+                chans.log(msg, log_time=times[k])
+            if force is not None and force.has_sinks():
+                force.log({"t_us": t, "taxels": taxels, "force_N": _nulls(f.data[k, :, 0])}, log_time=times[k])
+
+    def _publish_decoded(self, f: P.DecodedFrame) -> None:
+        assert self.stream is not None
+        out = self.stream.name_decoded(f)
+        ch = self._decoded_channel(out.name, out.outputs)
+        if not ch.has_sinks():
+            return
+        times = self._log_times_ns(out.t_us)
+        taxels = out.taxels.tolist()
+        names = out.outputs or [f"#{j}" for j in range(out.values.shape[2])]
+        for s, t in enumerate(out.t_us.tolist()):
+            outputs = {n: _nulls(out.values[s, :, j]) for j, n in enumerate(names)}
+            ch.log({"t_us": t, "taxels": taxels, "outputs": outputs}, log_time=times[s])
