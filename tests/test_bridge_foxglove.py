@@ -151,7 +151,6 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                 assert not status["demand"]["channel_taxels"] and not status["demand"]["decoders"]
 
                 async with AsyncStream(f"ws://{addr}/v1/stream", Subscription(classes=["SA1"])) as direct:
-                    await direct.sync_clock()
                     frames: list[P.SpikesFrame] = []
 
                     async def read_direct():
@@ -165,15 +164,17 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                     reader.result()
                     n_before = len(fox.payloads(sub_id))  # one frame more on the Foxglove side closes the interval
                     await fox.read_until(lambda: len(fox.payloads(sub_id)) > n_before + 3, 20)
-                    mapped = {int(t): direct.to_local(int(t)) for f in frames for t in f.t_us.tolist()}
+                    # one machine, one wall clock: the server's wall time of a stamp is the local one
+                    mapped = {int(t): direct.clock.to_server_wall_us(int(t)) for f in frames for t in f.t_us.tolist()}
+                    sync_error_us = bridge.stream.clock.offset_error_us
 
                 await fox.unsubscribe("/touchreal/spikes/SA1")
                 await poll_status(addr, _no_demand)
-                return fox.payloads(sub_id), frames, mapped
+                return fox.payloads(sub_id), frames, mapped, sync_error_us
         finally:
             await _stop(task)
 
-    fox_msgs, frames, mapped = run(go())
+    fox_msgs, frames, mapped, sync_error_us = run(go())
     direct = sorted((int(t), int(x)) for f in frames for t, x, c in zip(f.t_us, f.taxel, f.cls) if c == 0)
     fox = sorted((m["t_us"], m["taxel"]) for _, m in fox_msgs)
     assert all(m["class"] == "SA1" for _, m in fox_msgs)
@@ -182,9 +183,10 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
     common_fox = [s for s in fox if lo <= s[0] <= hi]
     assert len(common_direct) >= 20, "too few spikes in the common interval to compare"
     assert common_fox == common_direct  # the same spikes, to the microsecond and taxel
-    # log times: the stamp's acquisition wall time by the clock model, not the arrival time
+    # log times: the stamp's acquisition wall time by the clock model, not the arrival time; within
+    # 2 ms plus the uncertainty the bridge states for its time sync (half its best round trip)
     errs = [abs(ns / 1000.0 - mapped[m["t_us"]]) for ns, m in fox_msgs if m["t_us"] in mapped]
-    assert errs and max(errs) < 2000.0, max(errs)
+    assert errs and max(errs) < 2000.0 + sync_error_us, (max(errs), sync_error_us)
 
 
 def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(server):

@@ -18,16 +18,19 @@ from ..stream import AsyncStream
 
 log = logging.getLogger("touchreal_client.bridges")
 
+#: Exchanges of the first ``time`` sync, before a bridge forwards anything.
+FIRST_SYNC_SAMPLES = 8
 #: How often a bridge repeats the ``time`` exchange that maps the server's wall clock onto its own (s).
 CLOCK_SYNC_PERIOD_S = 10.0
 
 
 async def keep_clock_synced(stream: AsyncStream, period_s: float = CLOCK_SYNC_PERIOD_S) -> None:
     """Repeat :meth:`AsyncStream.sync_clock` every ``period_s`` until cancelled (a failed exchange,
-    e.g. during a reconnect, is retried at the next period)."""
+    e.g. during a reconnect, is retried at the next period). The exchange with the least round trip
+    so far is the one in use, so the offset only gets better."""
     while True:
+        await asyncio.sleep(period_s)
         try:
-            await stream.sync_clock(3)
+            await stream.sync_clock(5)
         except (TouchRealError, asyncio.TimeoutError) as exc:
             log.info("clock sync failed (%r); retrying in %.0f s", exc, period_s)
-        await asyncio.sleep(period_s)

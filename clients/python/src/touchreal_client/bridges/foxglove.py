@@ -7,8 +7,11 @@ JSON channel (JSON schema advertised) per topic:
 * ``/touchreal/channels``: one message per channel sample (200 Hz at the default decimation of 25),
   ``{"t_us", "taxels", "ST", "dST", "PVDF", "dPVDF"}`` (N, N/s, V, V/s, one value per taxel);
 * ``/touchreal/force``: the preprocessed force, ``{"t_us", "taxels", "force_N"}`` (the ST channel);
-* ``/touchreal/decoded/<decoder>``: one message per decoding step, ``{"t_us", "taxels", "outputs":
-  {output_name: [value per taxel]}}`` (NaN sent as null).
+* ``/touchreal/decoded/<decoder>``: one message per decoding step, ``{"t_us", "taxels", "outputs"
+  (names), "values"}`` with ``values[taxel][output]`` (NaN sent as null).
+
+Every message also carries the frame's ``update`` and ``params_rev``; the shapes are those of the
+``touchreal record`` MCAP topics, so one Foxglove layout serves the live view and a recording.
 
 ``t_us`` is the wire stamp (sensor clock, integer us). A message's log time is this machine's wall
 time (ns) of that stamp by the stream's clock model (``clock`` messages plus the ``time`` offset),
@@ -32,7 +35,7 @@ import numpy as np
 from .. import protocol as P
 from ..errors import StreamClosed, StreamError
 from ..stream import AsyncStream
-from . import keep_clock_synced
+from . import FIRST_SYNC_SAMPLES, keep_clock_synced
 
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
@@ -46,13 +49,19 @@ DECODED_TOPIC = PREFIX + "/decoded/{}"
 _T_US = {"type": "integer", "minimum": 0, "description": "wire stamp: sensor clock (+ replay segment offset), us"}
 _TAXELS = {"type": "array", "items": {"type": "integer", "minimum": 0}, "description": "taxel ids, in value order"}
 _PER_TAXEL = {"type": "array", "items": {"type": ["number", "null"]}}
+_FRAME = {"update": {"type": "integer", "minimum": 0, "description": "server update counter"},
+          "params_rev": {"type": "integer", "minimum": 0, "description": "parameter revision that made it"}}
+
+
+def _object(title: str, props: dict[str, Any]) -> dict[str, Any]:
+    props = {**props, **_FRAME}
+    return {"title": title, "type": "object", "required": list(props), "properties": props}
 
 
 def spike_schema(classes: Iterable[str]) -> dict[str, Any]:
     """JSON schema of one spike message."""
-    return {"title": "touchreal.Spike", "type": "object", "required": ["t_us", "taxel", "class"],
-            "properties": {"t_us": _T_US, "taxel": {"type": "integer", "minimum": 0},
-                           "class": {"type": "string", "enum": list(classes)}}}
+    return _object("touchreal.Spike", {"t_us": _T_US, "taxel": {"type": "integer", "minimum": 0},
+                                       "class": {"type": "string", "enum": list(classes)}})
 
 
 def channels_schema() -> dict[str, Any]:
@@ -60,23 +69,23 @@ def channels_schema() -> dict[str, Any]:
     props: dict[str, Any] = {"t_us": _T_US, "taxels": _TAXELS}
     for name, unit in zip(P.CHANNELS, P.CHANNEL_UNITS):
         props[name] = {**_PER_TAXEL, "description": f"{name} [{unit}] per taxel"}
-    return {"title": "touchreal.Channels", "type": "object", "required": list(props), "properties": props}
+    return _object("touchreal.Channels", props)
 
 
 def force_schema() -> dict[str, Any]:
     """JSON schema of one force sample (the preprocessed SingleTact force of every taxel)."""
-    return {"title": "touchreal.Force", "type": "object", "required": ["t_us", "taxels", "force_N"],
-            "properties": {"t_us": _T_US, "taxels": _TAXELS,
-                           "force_N": {**_PER_TAXEL, "description": "preprocessed force [N] per taxel"}}}
+    return _object("touchreal.Force", {"t_us": _T_US, "taxels": _TAXELS,
+                                       "force_N": {**_PER_TAXEL, "description": "preprocessed force [N] per taxel"}})
 
 
 def decoded_schema(name: str, outputs: Iterable[str]) -> dict[str, Any]:
     """JSON schema of one decoding step of decoder ``name``."""
-    outs = {o: {**_PER_TAXEL, "description": f"output {o} per taxel (null: not yet defined)"} for o in outputs}
-    return {"title": f"touchreal.Decoded.{name}", "type": "object", "required": ["t_us", "taxels", "outputs"],
-            "properties": {"t_us": {**_T_US, "description": "end of the decoding window (wire clock, us)"},
-                           "taxels": _TAXELS,
-                           "outputs": {"type": "object", "required": list(outs), "properties": outs}}}
+    outs = list(outputs)
+    return _object(f"touchreal.Decoded.{name}", {
+        "t_us": {**_T_US, "description": "end of the decoding window (wire clock, us)"}, "taxels": _TAXELS,
+        "outputs": {"type": "array", "items": {"type": "string"}, "description": f"output names: {outs}"},
+        "values": {"type": "array", "items": _PER_TAXEL,
+                   "description": "values[taxel][output]; null: not yet defined (window not filled)"}})
 
 
 def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
@@ -144,6 +153,7 @@ class FoxgloveBridge:
         idle = wanted_subscription((), self.decimation)
         async with AsyncStream(self.url, idle) as stream:
             self.stream = stream
+            await stream.sync_clock(FIRST_SYNC_SAMPLES)
             self._context = foxglove.Context()
             self._advertise(stream.hello)
             server = foxglove.start_server(name=self.name, host=self.host, port=self.port,
@@ -231,25 +241,26 @@ class FoxgloveBridge:
 
     def _publish_spikes(self, f: P.SpikesFrame) -> None:
         times = self._log_times_ns(f.t_us)
+        tag = _frame_tag(f.header)
         for i, name in enumerate(P.CLASSES):
             ch = self._channels.get(SPIKES_TOPIC.format(name))
             if ch is None or not ch.has_sinks():
                 continue
             for k in np.flatnonzero(f.cls == i).tolist():
-                ch.log({"t_us": int(f.t_us[k]), "taxel": int(f.taxel[k]), "class": name}, log_time=times[k])
+                ch.log({"t_us": int(f.t_us[k]), "taxel": int(f.taxel[k]), "class": name, **tag}, log_time=times[k])
 
     def _publish_channels(self, f: P.ChannelsFrame) -> None:
         chans, force = self._channels.get(CHANNELS_TOPIC), self._channels.get(FORCE_TOPIC)
         t_us = f.t0_us + f.period_us * np.arange(f.data.shape[0], dtype=np.uint64)
         times = self._log_times_ns(t_us)
-        taxels = f.taxels.tolist()
+        taxels, tag = f.taxels.tolist(), _frame_tag(f.header)
         for k, t in enumerate(t_us.tolist()):
             if chans is not None and chans.has_sinks():
                 msg: dict[str, Any] = {"t_us": t, "taxels": taxels}
                 msg.update({n: _nulls(f.data[k, :, j]) for j, n in enumerate(P.CHANNELS)})
-                chans.log(msg, log_time=times[k])
+                chans.log({**msg, **tag}, log_time=times[k])
             if force is not None and force.has_sinks():
-                force.log({"t_us": t, "taxels": taxels, "force_N": _nulls(f.data[k, :, 0])}, log_time=times[k])
+                force.log({"t_us": t, "taxels": taxels, "force_N": _nulls(f.data[k, :, 0]), **tag}, log_time=times[k])
 
     def _publish_decoded(self, f: P.DecodedFrame) -> None:
         assert self.stream is not None
@@ -258,8 +269,12 @@ class FoxgloveBridge:
         if not ch.has_sinks():
             return
         times = self._log_times_ns(out.t_us)
-        taxels = out.taxels.tolist()
+        taxels, tag = out.taxels.tolist(), _frame_tag(f.header)
         names = out.outputs or [f"#{j}" for j in range(out.values.shape[2])]
         for s, t in enumerate(out.t_us.tolist()):
-            outputs = {n: _nulls(out.values[s, :, j]) for j, n in enumerate(names)}
-            ch.log({"t_us": t, "taxels": taxels, "outputs": outputs}, log_time=times[s])
+            values = [_nulls(out.values[s, i, :]) for i in range(len(taxels))]
+            ch.log({"t_us": t, "taxels": taxels, "outputs": names, "values": values, **tag}, log_time=times[s])
+
+
+def _frame_tag(h: P.Header) -> dict[str, int]:
+    return {"update": h.update, "params_rev": h.params_rev}

@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import protocol as P
 from ..stream import AsyncStream
-from . import keep_clock_synced
+from . import FIRST_SYNC_SAMPLES, keep_clock_synced
 
 log = logging.getLogger("touchreal_client.bridges.lsl")
 
@@ -86,7 +86,7 @@ class LslBridge:
         sub = P.Subscription(streams=["spikes", "channels"], decimation=self.decimation)
         async with AsyncStream(self.url, sub) as stream:
             self.stream = stream
-            await stream.sync_clock()
+            await stream.sync_clock(FIRST_SYNC_SAMPLES)
             spikes, channels = self._outlets(stream.hello)
             sync = asyncio.create_task(keep_clock_synced(stream))
             self.ready.set()
