@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -16,9 +19,11 @@ import jsonschema
 import numpy as np
 import pytest
 import websockets
-from server_harness import running_server
+from server_harness import free_port, running_server
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
+
+from touchreal.cli import main
 
 pytest.importorskip("foxglove", reason="foxglove-sdk is not installed (pip install -e 'clients/python[foxglove]')")
 from touchreal_client.bridges.foxglove import FoxgloveBridge  # noqa: E402
@@ -229,3 +234,30 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
     dec = [m for _, m in msgs[f"/touchreal/decoded/{name}"]]
     step = next(d["step_us"] for d in svc.hello()["streams"]["decoded"]["decoders"] if d["name"] == name)
     assert all(m["t_us"] % step == 0 for m in dec) and np.all(np.diff([m["t_us"] for m in dec]) > 0)
+
+
+def test_the_command_serves_until_sigint_and_fails_clearly_without_a_stream(server, capsys):
+    addr, _ = server
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "touchreal", "bridge", "foxglove", "--from", f"ws://{addr}/v1/stream",
+                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # printed once the server listens (or EOF if the command died)
+        assert f"ws://127.0.0.1:{port}" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
+
+        async def advertised():
+            async with foxglove_connect(port) as ws:
+                fox = FoxgloveClient(ws)
+                await fox.read_until(lambda: "/touchreal/spikes/SA1" in fox.channels, 10)
+                return fox.server_info
+
+        assert run(advertised())["name"] == "TouchReal"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+    assert main(["bridge", "foxglove", "--from", f"ws://127.0.0.1:{free_port()}/v1/stream", "--port", "0"]) == 2
+    assert "cannot open" in capsys.readouterr().err

@@ -9,6 +9,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import signal
+import sys
+
+from touchreal_client.errors import TouchRealError
 
 DEFAULT_FROM = "ws://127.0.0.1:8765/v1/stream"
 
@@ -35,18 +39,28 @@ def _check_decimation(n: int) -> None:
 
 
 def _serve(bridge, describe) -> int:
-    """Run ``bridge`` until Ctrl-C (or until its stream ends); print ``describe()`` once it is ready."""
+    """Run ``bridge`` until SIGINT/SIGTERM (or until its stream ends); print ``describe()`` once it
+    is ready. A signal cancels the bridge, which closes its server or outlets and its stream."""
 
     async def main() -> None:
         task = asyncio.create_task(bridge.run())
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, task.cancel)
         ready = asyncio.create_task(bridge.ready.wait())
         await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
         if ready.done():
             print(describe(), flush=True)
-        await task
+        else:
+            ready.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
 
-    with contextlib.suppress(KeyboardInterrupt):
+    try:
         asyncio.run(main())
+    except TouchRealError as exc:  # cannot reach the stream, or it ended for good: a clear message, no traceback
+        print(f"touchreal bridge: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -156,9 +156,12 @@ class FoxgloveBridge:
             await stream.sync_clock(FIRST_SYNC_SAMPLES)
             self._context = foxglove.Context()
             self._advertise(stream.hello)
-            server = foxglove.start_server(name=self.name, host=self.host, port=self.port,
-                                           server_listener=self._listener, context=self._context,
-                                           session_id=str(stream.hello.get("session", "")) or None)
+            try:
+                server = foxglove.start_server(name=self.name, host=self.host, port=self.port,
+                                               server_listener=self._listener, context=self._context,
+                                               session_id=str(stream.hello.get("session", "")) or None)
+            except RuntimeError as exc:  # the SDK reports bind errors as RuntimeError
+                raise OSError(f"cannot serve Foxglove on {self.host}:{self.port}: {exc}") from exc
             self.port = server.port
             helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_demand(idle))]
             self.ready.set()
