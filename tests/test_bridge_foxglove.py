@@ -261,3 +261,38 @@ def test_the_command_serves_until_sigint_and_fails_clearly_without_a_stream(serv
 
     assert main(["bridge", "foxglove", "--from", f"ws://127.0.0.1:{free_port()}/v1/stream", "--port", "0"]) == 2
     assert "cannot open" in capsys.readouterr().err
+
+
+def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path):
+    from touchreal.bridge import natsd
+    if not natsd.available():
+        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+    from test_bridge_nats import gateway, publishing
+
+    with natsd.local_nats_server() as url, publishing(tmp_path, url) as (_, svc, _pub), gateway(url) as (gw_addr, _gw):
+        async def go():
+            bridge = FoxgloveBridge(f"ws://{gw_addr}/v1/stream", port=0)
+            task = asyncio.create_task(bridge.run())
+            try:
+                await asyncio.wait_for(bridge.ready.wait(), 30)
+                await poll(lambda: bridge.stream.subscribed is not None)
+                assert not svc.hub.demand.columns  # connected through the gateway, nothing subscribed
+                async with foxglove_connect(bridge.port) as ws:
+                    fox = FoxgloveClient(ws)
+                    await fox.read_until(lambda: "/touchreal/spikes/PC" in fox.channels, 10)
+                    sub_id = await fox.subscribe("/touchreal/spikes/PC")
+                    await poll(lambda: set(svc.hub.demand.columns) == {"PC"})  # forwarded to the service over NATS
+                    await fox.read_until(lambda: len(fox.payloads(sub_id)) >= 20, 30)
+                    await fox.unsubscribe("/touchreal/spikes/PC")
+                    await poll(lambda: not svc.hub.demand.columns)
+                    mapped = [(ns / 1000.0, bridge.stream.clock.to_server_wall_us(m["t_us"])) for ns, m in fox.payloads(sub_id)]
+                    return fox.payloads(sub_id), mapped, bridge.stream.clock.offset_error_us
+            finally:
+                await _stop(task)
+
+        msgs, mapped, sync_error_us = run(go())
+    assert all(m["class"] == "PC" for _, m in msgs)
+    t = [m["t_us"] for _, m in msgs]
+    assert t == sorted(t)
+    # the clock messages pass through the gateway: log times are the stamps' acquisition wall times
+    assert max(abs(a - b) for a, b in mapped) < 2000.0 + sync_error_us
