@@ -165,8 +165,13 @@ class FoxgloveBridge:
             self.port = server.port
             helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_demand(idle))]
             self.ready.set()
+            session = stream.hello.get("session")
             try:
                 async for frame in stream.frames():
+                    if stream.hello.get("session") != session:  # reconnected to a restarted service
+                        session = stream.hello.get("session")
+                        server.clear_session(str(session))  # Foxglove clients reset what they hold
+                        self._advertise(stream.hello)
                     self._publish(frame)
             finally:
                 for t in helpers:
