@@ -296,3 +296,32 @@ def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path)
     assert t == sorted(t)
     # the clock messages pass through the gateway: log times are the stamps' acquisition wall times
     assert max(abs(a - b) for a, b in mapped) < 2000.0 + sync_error_us
+
+
+def test_after_the_service_restarts_foxglove_clients_get_the_new_session_and_data_again(tmp_path):
+    port = free_port()
+
+    async def until(fox: FoxgloveClient, done) -> None:
+        await fox.read_until(done, 60)
+
+    with running_server(tmp_path / "a", port=port) as (addr, svc):
+        loop = asyncio.new_event_loop()
+        bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
+        task = loop.create_task(bridge.run())
+        loop.run_until_complete(asyncio.wait_for(bridge.ready.wait(), 30))
+        ws = loop.run_until_complete(foxglove_connect(bridge.port).__aenter__())
+        fox = FoxgloveClient(ws)
+        loop.run_until_complete(until(fox, lambda: fox.server_info is not None and "/touchreal/spikes/SA1" in fox.channels))
+        assert fox.server_info["sessionId"] == svc.session
+        sub_id = loop.run_until_complete(fox.subscribe("/touchreal/spikes/SA1"))
+        loop.run_until_complete(until(fox, lambda: len(fox.payloads(sub_id)) >= 5))
+    try:
+        with running_server(tmp_path / "b", port=port) as (_, svc2):
+            assert svc2.session != svc.session
+            loop.run_until_complete(until(fox, lambda: fox.server_info["sessionId"] == svc2.session))
+            n = len(fox.payloads(sub_id))  # the bridge re-subscribed upstream for the Foxglove client: spikes again
+            loop.run_until_complete(until(fox, lambda: len(fox.payloads(sub_id)) >= n + 5))
+    finally:
+        loop.run_until_complete(ws.close())
+        loop.run_until_complete(_stop(task))
+        loop.close()

@@ -24,6 +24,7 @@ so ``--from`` may be a gateway.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import threading
@@ -31,6 +32,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
+import websockets
 
 from .. import protocol as P
 from ..errors import StreamClosed, StreamError
@@ -40,6 +42,7 @@ from . import FIRST_SYNC_SAMPLES, keep_clock_synced
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
 DEFAULT_PORT = 8767  #: serve uses 8765, the gateway 8766
+FOLLOW_PERIOD_S = 0.5  #: how often the upstream session and a failed subscription are looked at again (s)
 PREFIX = "/touchreal"
 SPIKES_TOPIC = PREFIX + "/spikes/{}"
 CHANNELS_TOPIC = PREFIX + "/channels"
@@ -150,8 +153,7 @@ class FoxgloveBridge:
         import foxglove
 
         self._loop = asyncio.get_running_loop()
-        idle = wanted_subscription((), self.decimation)
-        async with AsyncStream(self.url, idle) as stream:
+        async with AsyncStream(self.url, wanted_subscription((), self.decimation)) as stream:
             self.stream = stream
             await stream.sync_clock(FIRST_SYNC_SAMPLES)
             self._context = foxglove.Context()
@@ -163,15 +165,10 @@ class FoxgloveBridge:
             except RuntimeError as exc:  # the SDK reports bind errors as RuntimeError
                 raise OSError(f"cannot serve Foxglove on {self.host}:{self.port}: {exc}") from exc
             self.port = server.port
-            helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_demand(idle))]
+            helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_upstream(server))]
             self.ready.set()
-            session = stream.hello.get("session")
             try:
                 async for frame in stream.frames():
-                    if stream.hello.get("session") != session:  # reconnected to a restarted service
-                        session = stream.hello.get("session")
-                        server.clear_session(str(session))  # Foxglove clients reset what they hold
-                        self._advertise(stream.hello)
                     self._publish(frame)
             finally:
                 for t in helpers:
@@ -213,20 +210,33 @@ class FoxgloveBridge:
         if loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(self._changed.set)
 
-    async def _follow_demand(self, current: P.Subscription) -> None:
-        """Keep the upstream subscription equal to what the Foxglove clients subscribe to."""
-        assert self.stream is not None
+    async def _follow_upstream(self, server: Any) -> None:
+        """Keep the upstream subscription equal to what the Foxglove clients subscribe to (retried
+        while the stream reconnects), and give Foxglove clients a new session when the service's
+        changes (a restarted service: its sensor clock starts afresh, so they drop what they hold)."""
+        stream = self.stream
+        assert stream is not None
+        session = stream.hello.get("session")
+        refused: P.Subscription | None = None
         while True:
-            await self._changed.wait()
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), FOLLOW_PERIOD_S)
             self._changed.clear()
+            if stream.hello.get("session") != session:
+                session = stream.hello.get("session")
+                server.clear_session(str(session))
+                self._advertise(stream.hello)
             want = wanted_subscription(self._listener.topics(), self.decimation)
-            if want == current:
+            if want == stream.subscription or want == refused:
                 continue
             try:
-                await self.stream.subscribe(want)
-                current = want
-            except (StreamError, StreamClosed, asyncio.TimeoutError) as exc:
-                log.warning("upstream subscribe %s failed: %r (retried on the next change)", want.to_json(), exc)
+                await stream.subscribe(want)
+                refused = None
+            except StreamError as exc:  # the server refused it: tried again only once the demand changes
+                refused = want
+                log.warning("upstream refused subscription %s: %s", want.to_json(), exc)
+            except (StreamClosed, websockets.ConnectionClosed, asyncio.TimeoutError) as exc:
+                log.info("upstream subscribe failed (%r); retrying while the stream reconnects", exc)
 
     # -- publishing -----------------------------------------------------------------------------
     def _log_times_ns(self, t_us: np.ndarray) -> list[int | None]:
