@@ -37,7 +37,7 @@ from .demand import Demand
 
 log = logging.getLogger("touchreal.server")
 
-_SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects")  # source counters that flag a gap
+_SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects", "bad_times")  # source counters that flag a gap
 _SANITIZER_FAULTS = ("non_finite", "gaps", "bad_time", "duplicate", "out_of_range")
 
 
