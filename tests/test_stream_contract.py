@@ -113,3 +113,39 @@ def test_the_schemas_reject_what_the_protocol_does_not_allow(server):
         assert errors("spikesFrame", {**copy.deepcopy(spikes), **change}), change
     assert errors("subscribe", {"type": "subscribe", "colour": "red"})  # the server refuses unknown fields too
     assert errors("clock", {"type": "clock", "sensor_us": 1, "wall_us": 2, "rate": 0, "error_us": 0, "epoch": 0})
+
+
+def test_a_replay_to_its_end_follows_the_schemas_ended_included(tmp_path):
+    from test_server_stream import _replay_dataset
+
+    from touchreal.server.settings import RuntimeConfig
+
+    ds, _ = _replay_dataset(tmp_path)
+    with running_server(tmp_path / "state", RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc):
+        async def go() -> list[dict]:
+            got: list[dict] = []
+            async with connect(addr, max_size=None) as ws:
+                got.append(json.loads(await ws.recv()))
+                await ws.send(json.dumps({"type": "subscribe", "encoding": "json", "streams": ["spikes", "channels"]}))
+                end = time.monotonic() + 40
+                ended_at = None
+                while time.monotonic() < end and not any(m.get("type") == "ended" for m in got):
+                    if ended_at is None and svc.runtime.state == "ended":
+                        ended_at = time.monotonic()
+                    if ended_at is not None and time.monotonic() > ended_at + 3:
+                        break  # the source ended without an `ended` message
+                    try:
+                        got.append(json.loads(await asyncio.wait_for(ws.recv(), 0.5)))
+                    except asyncio.TimeoutError:
+                        pass
+            return got
+
+        got = run(go())
+    for m in got:
+        name = server_message_schema(m)
+        assert not errors(name, m), (name, errors(name, m), json.dumps(m)[:500])
+    assert {"hello", "clock", "subscribed", "spikes", "channels"} <= {m["type"] for m in got}
+    assert len({m["epoch"] for m in got if m["type"] == "clock"}) >= 2  # a clock point per replayed trial
+    if not any(m["type"] == "ended" for m in got):
+        pytest.skip("this service sends no `ended` message at the end of a replay yet (the replay-fit work); "
+                    "everything else of the replay followed the schemas")
