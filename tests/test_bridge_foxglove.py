@@ -5,6 +5,7 @@ subscribe/unsubscribe, binary message data) written here with ``websockets``."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import signal
 import struct
@@ -325,3 +326,28 @@ def test_after_the_service_restarts_foxglove_clients_get_the_new_session_and_dat
         loop.run_until_complete(ws.close())
         loop.run_until_complete(_stop(task))
         loop.close()
+
+
+def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_clients(server):
+    addr, _ = server
+
+    async def go():
+        bridge, task = await _bridge(addr)
+        try:
+            async with foxglove_connect(bridge.port) as bad:
+                for junk in ("not json", "{}", json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 99999}]}),
+                             json.dumps({"op": "subscribe", "subscriptions": "all"}), json.dumps({"op": "unsubscribe", "subscriptionIds": [42]}),
+                             b"\x02\xff\xff", json.dumps({"op": "advertise", "channels": [{"id": 1, "topic": "/x"}]})):
+                    with contextlib.suppress(websockets.ConnectionClosed):
+                        await bad.send(junk)
+                async with foxglove_connect(bridge.port) as ws:
+                    good = FoxgloveClient(ws)
+                    await good.read_until(lambda: "/touchreal/spikes/RA" in good.channels, 10)
+                    sub_id = await good.subscribe("/touchreal/spikes/RA")
+                    await good.read_until(lambda: len(good.payloads(sub_id)) >= 3, 30)
+            assert not task.done()
+            await poll_status(addr, _no_demand)  # both gone: nothing demanded
+        finally:
+            await _stop(task)
+
+    run(go())
