@@ -141,6 +141,7 @@ class FoxgloveBridge:
         self.url, self.host, self.port, self.decimation, self.name = url, host, port, decimation, name
         self.ready = asyncio.Event()  #: set once the Foxglove server listens (then :attr:`port` is bound)
         self.stream: AsyncStream | None = None
+        self._context: Any = None  #: the foxglove.Context the channels and the server share (set in run)
         self._channels: dict[str, Any] = {}
         self._changed = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -189,8 +190,7 @@ class FoxgloveBridge:
         return ch
 
     def _advertise(self, hello: dict[str, Any]) -> None:
-        """Channels for what the service offers (from its hello); new decoders in a later hello get
-        theirs when their first frame comes."""
+        """Channels for what the service offers (from a hello; those already advertised stay)."""
         classes = [c for c in hello.get("classes", P.CLASSES) if c in P.CLASSES]
         for c in classes:
             self._channel(SPIKES_TOPIC.format(c), spike_schema([c]), {"class": c, "units": "t_us: us"})
@@ -213,19 +213,22 @@ class FoxgloveBridge:
     async def _follow_upstream(self, server: Any) -> None:
         """Keep the upstream subscription equal to what the Foxglove clients subscribe to (retried
         while the stream reconnects), and give Foxglove clients a new session when the service's
-        changes (a restarted service: its sensor clock starts afresh, so they drop what they hold)."""
+        changes (a restarted service: its sensor clock starts afresh, so they drop what they hold).
+        A new hello's decoders get their channels."""
         stream = self.stream
         assert stream is not None
-        session = stream.hello.get("session")
+        hello, session = stream.hello, stream.hello.get("session")
         refused: P.Subscription | None = None
         while True:
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), FOLLOW_PERIOD_S)
             self._changed.clear()
-            if stream.hello.get("session") != session:
-                session = stream.hello.get("session")
-                server.clear_session(str(session))
-                self._advertise(stream.hello)
+            if stream.hello is not hello:
+                hello = stream.hello
+                if hello.get("session") != session:
+                    session = hello.get("session")
+                    server.clear_session(str(session))
+                self._advertise(hello)
             want = wanted_subscription(self._listener.topics(), self.decimation)
             if want == stream.subscription or want == refused:
                 continue
