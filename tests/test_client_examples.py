@@ -4,6 +4,7 @@ real service on 127.0.0.1; the recorder's output read back by touchreal's own re
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,8 @@ import pytest
 from server_harness import running_server
 from touchreal_client import protocol as P
 
-from touchreal.params import default_params
+from touchreal.cli import main
+from touchreal.params import DEFAULT_PARAMS_PATH, default_params
 from touchreal.recording import Dataset
 from touchreal.server.settings import RuntimeConfig
 from touchreal.stream import encode_trial
@@ -83,6 +85,11 @@ def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
             dist = np.min(np.abs(b[None, :] - a[:, None]), axis=1)
             assert c == "SA1" or np.median(dist) < 0.010, (c, np.median(dist))
     assert compared >= 1
+    # `touchreal evaluate` reads it: a live session has no commanded ramp, so no turning-point analysis
+    assert main(["evaluate", str(tmp_path / "ds"), "--params", str(DEFAULT_PARAMS_PATH), "--out", str(tmp_path / "rep"),
+                 "--split", "all", "--latency-trials", "1"]) == 0
+    metrics = json.loads((tmp_path / "rep" / "metrics.json").read_text())
+    assert "turning_points" not in metrics and metrics["mapping"]
 
 
 def test_grasp_example_runs_the_downloaded_force_model_like_the_service(tmp_path):

@@ -116,7 +116,8 @@ class SampleCollector:
 class SerialSource:
     """The live-source interface over a serial port: ``next_chunk()``, ``status()``, ``close()``.
 
-    ``port`` is a device path or any pyserial URL (``serial_for_url``); ``update_s`` is how long
+    ``port`` is a device path, or with ``allow_urls`` any pyserial URL (``serial_for_url``: ``spy://``,
+    ``socket://``... reach files and hosts, so they are off unless asked for); ``update_s`` is how long
     :meth:`next_chunk` blocks (s). Taxel centres are ``taxel_grid(n_taxels)`` (mm).
     """
 
@@ -130,13 +131,17 @@ class SerialSource:
         update_s: float = 0.032,
         baudrate: int = DEFAULT_BAUDRATE,
         backoff_s: tuple[float, float] = BACKOFF_S,
+        allow_urls: bool = True,
         wall_ns: Callable[[], int] = time.time_ns,
     ):
         if update_s <= 0:
             raise ValueError("update_s must be positive")
         if not 1 <= n_taxels <= MAX_TAXELS:
             raise ValueError(f"n_taxels must be in 1..{MAX_TAXELS}, got {n_taxels}")
+        if not allow_urls and "://" in port:
+            raise ValueError("serial port must be a device path (pyserial URLs are off)")
         self.port = port
+        self._open = serial.serial_for_url if allow_urls else serial.Serial
         self.n_taxels = int(n_taxels)
         self.positions_mm = taxel_grid(self.n_taxels)
         self.update_s = float(update_s)
@@ -244,9 +249,7 @@ class SerialSource:
         while not self._closed.is_set():
             self._set_state("connecting")
             try:
-                dev = serial.serial_for_url(
-                    self.port, baudrate=self.baudrate, timeout=READ_TIMEOUT_S, exclusive=True
-                )
+                dev = self._open(self.port, baudrate=self.baudrate, timeout=READ_TIMEOUT_S, exclusive=True)
             except (serial.SerialException, OSError, ValueError) as exc:
                 self._set_state("disconnected", exc)
                 self._closed.wait(delay)

@@ -18,6 +18,7 @@ from touchreal_client import protocol as P
 
 from .hub import Subscriber
 from .runtime import wall_us
+from .security import admit
 
 log = logging.getLogger("touchreal.server")
 router = APIRouter()
@@ -33,6 +34,8 @@ def _dumps(msg: dict[str, Any]) -> str:
 
 @router.websocket("/v1/stream")
 async def stream(ws: WebSocket) -> None:
+    if not await admit(ws):
+        return
     service = ws.app.state.service
     hub = service.hub
     await ws.accept()
