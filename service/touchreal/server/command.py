@@ -16,6 +16,8 @@ from .settings import ServeSettings
 def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
+from ..bridge import auth as nats_auth
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="stream spikes over WebSockets (REST config, parameter uploads)",
@@ -32,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             choices = typing.get_args(field.annotation) if typing.get_origin(field.annotation) is typing.Literal else None
             p.add_argument(flag(name), default=None, choices=choices, metavar=None if choices else name.upper(),
                            help=helptext)
+    nats_auth.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -56,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         if not settings.sensor_id:
             raise ValueError("--publish needs --sensor-id (the NATS subjects are touchreal.<ID>.*)")
         companions.append(NatsPublisher(service, settings.publish, settings.sensor_id,
-                                        publish_all=settings.publish_all, retain_s=settings.retain_s))
+                                        publish_all=settings.publish_all, retain_s=settings.retain_s,
+                                        auth=nats_auth.from_args(args)))
     app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "

@@ -17,7 +17,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
 from touchreal_client.schema import asyncapi as stream_contract
 
-from ..decoding.model import DecoderModelError, params_warning
+from ..decoding.model import DecoderModelError
 from ..params import EncoderParams, ParamsError
 from .params_store import params_sha256
 from .security import token_ok
@@ -162,9 +162,7 @@ async def rollback(body: Rollback, request: Request) -> ParamsInfo:
 def decoders(request: Request) -> list[dict[str, Any]]:
     """Installed decoder models (shipped with the package, plus the state directory's models/):
     metadata, and a warning where the active parameters differ from the ones it was trained on."""
-    svc = service_of(request)
-    params = svc.store.active
-    return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in svc.models.list()]
+    return service_of(request).decoders_view()
 
 
 @router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})

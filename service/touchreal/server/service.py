@@ -30,7 +30,7 @@ from .. import __version__
 from ..decoding.model import ModelStore, params_warning
 from ..dryrun import prove_runnable
 from ..params import EncoderParams, ParamsError
-from .hub import Hub
+from .hub import Hub, limits
 from .metrics import Metrics
 from .params_store import ParamsStore
 from .runtime import Runtime, Update, wall_us
@@ -59,6 +59,7 @@ class Service:
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
@@ -131,7 +132,7 @@ class Service:
             log.error("cannot open source %s: %s", self.config.source, exc)
             return self.source_error
         self.source_error = None
-        self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
+        self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._fall_back)
         self.clock = None
@@ -175,6 +176,7 @@ class Service:
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
+        self._follow_served_classes()  # whichever way a parameter set became active
         self._tell_clock(upd.clock)
         if self._hello_key != self._describe():
             self.announce_hello()
@@ -216,6 +218,14 @@ class Service:
     def n_taxels(self) -> int:
         return self.hub.n_taxels
 
+    def _follow_served_classes(self) -> None:
+        if self.served_classes() != self.hub.allowed_classes:
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
+
+    def served_classes(self) -> list[str]:
+        """Classes computed for subscribers: those the active parameters define and the config allows."""
+        return [c for c in P.CLASSES if c in self.store.active.classes and c in self.config.classes]
+
     def latency_us(self) -> dict[str, int]:
         """Per class of the active set: algorithmic latency of the pipeline (us)."""
         from ..stream import class_latency_s
@@ -240,7 +250,7 @@ class Service:
             "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
             "latency_us": self.latency_us(),
             "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
-            "classes": [c for c in P.CLASSES if c in params.classes and c in self.config.classes],
+            "classes": self.served_classes(),
             "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
             "streams": {
                 "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
@@ -251,13 +261,18 @@ class Service:
             "encodings": list(P.ENCODINGS),
             "default_encoding": "binary",
             "params": {"rev": info.rev, "sha256": info.sha256},
-            "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": self.settings.queue_frames,
-                       "slow_timeout_s": self.settings.slow_timeout_s},
+            "limits": limits(self.settings),
         }
 
     def decoder_classes(self) -> dict[str, list[str]]:
         """Usable installed decoders (name -> the classes they read), in the hello's order."""
         return {m["name"]: list(m["classes"]) for m in self.models.list() if "error" not in m}
+
+    def decoders_view(self) -> list[dict[str, Any]]:
+        """Installed decoder models (``GET /v1/decoders``, also through a gateway): metadata, and a
+        warning where the active parameters differ from the ones a model was trained on."""
+        params = self.store.active
+        return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in self.models.list()]
 
     def decoder_list(self) -> list[dict[str, Any]]:
         """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
@@ -358,7 +373,7 @@ class Service:
                 raise SourceOpenError(f"cannot open source: {error} (the previous source {old.source!r} runs again)")
             restarted.append("source")
         elif "classes" in changes:
-            self.hub.configure(self.n_taxels, cfg.classes, self.decoder_classes())
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
         return {"config": self.config_view(), "restarted": restarted}
 
     async def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
@@ -366,6 +381,7 @@ class Service:
         ParamsError), becomes active at the start of the next update; a failed runtime restarts."""
         await asyncio.to_thread(prove_runnable, params)
         rev = self.store.put(params, origin)
+        self._follow_served_classes()
         if self.runtime is not None and self.runtime.state == "failed":
             await self.restart_source()
         return rev

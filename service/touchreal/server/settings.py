@@ -78,6 +78,10 @@ class ServeSettings(BaseSettings):
                                    "requests get 503; keep it above max_clients")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
+    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
+                                   "client this often (s)")
+    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
+                                  "within this time is closed with 1011 (s)")
 
     @field_validator("source")
     @classmethod

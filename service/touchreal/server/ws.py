@@ -22,7 +22,6 @@ from .security import admit
 
 log = logging.getLogger("touchreal.server")
 router = APIRouter()
-MAX_ERRORS_IN_A_ROW = 10
 #: How long a close may wait for a stalled client's socket to take the close frame; afterwards the
 #: transport is closed without it (the subscriber left the hub at once either way).
 CLOSE_TIMEOUT_S = 30.0
@@ -65,7 +64,7 @@ async def stream(ws: WebSocket) -> None:
         except KeyError:  # never labelled: it dropped nothing
             pass
         if sub.kick is not None:
-            service.metrics.kicked.inc()
+            (service.metrics.flooding if sub.kick[0] == P.CLOSE_FLOODING else service.metrics.kicked).inc()
             close = sub.kick
         if close is not None:
             try:
@@ -80,7 +79,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
     while True:
         recv = asyncio.ensure_future(ws.receive())
         done, _ = await asyncio.wait({recv, sender, kicked}, return_when=asyncio.FIRST_COMPLETED)
-        if recv not in done:
+        if recv not in done or len(done) > 1:  # a kick wins over a message that arrived with it
             recv.cancel()
             return sub.kick if kicked in done else None  # the sender ended: the socket is gone
         msg = recv.result()
@@ -95,7 +94,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
             if m["type"] == "time":
                 sub.say(_dumps(P.time_reply(m, t1, wall_us())))
             else:
-                s = P.parse_subscribe(m)
+                s = service.hub.admit(m)
                 service.hub.subscribe(sub, s)
                 sub.say(_dumps({"type": "subscribed", **{k: v for k, v in s.to_json().items() if k != "type"},
                                 "latency_us": service.latency_us()}))
@@ -109,7 +108,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
                 await _drain_control(ws, sub)
                 return P.CLOSE_TOO_BIG, "message too big"
             errors += 1
-            if errors >= MAX_ERRORS_IN_A_ROW:
+            if errors >= P.MAX_ERRORS_IN_A_ROW:
                 await _drain_control(ws, sub)
                 return P.CLOSE_TOO_MANY_ERRORS, f"{errors} malformed messages in a row"
 
@@ -129,7 +128,7 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
             sub.wakeup.clear()
             while sub.control or sub.queue:
                 if sub.control:
-                    await ws.send_text(sub.control.popleft())
+                    await ws.send_text(sub.pop_control())
                     continue
                 data, _ = sub.render(sub.queue.popleft())
                 if isinstance(data, str):
