@@ -14,6 +14,7 @@ import httpx
 import jsonschema
 import pytest
 from server_harness import connect, running_server
+from touchreal_client import protocol as P
 from touchreal_client.schema import CLIENT_MESSAGES, SERVER_MESSAGES, asyncapi, message_schema, server_message_schema
 
 
@@ -53,6 +54,9 @@ def test_the_service_serves_the_asyncapi_document_and_its_schemas_are_valid(serv
         for ref in op["messages"]:
             assert ref["$ref"].removeprefix("#/channels/stream/messages/") in doc["channels"]["stream"]["messages"]
     assert set(SERVER_MESSAGES.values()) | set(CLIENT_MESSAGES.values()) <= set(schemas)
+    # the close codes listed are exactly the protocol's
+    codes = {int(c) for c in doc["channels"]["stream"]["x-close-codes"]}
+    assert codes == {v for k, v in vars(P).items() if k.startswith("CLOSE_")}
 
 
 async def _conversation(addr: str) -> tuple[list[Any], list[dict]]:
