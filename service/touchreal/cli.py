@@ -23,6 +23,8 @@ COMMAND_MODULES = (
     "touchreal.decoding.command",
     "touchreal.server.command",
     "touchreal.bridge.command",
+    "touchreal.commands.record",
+    "touchreal.commands.export",
     "touchreal.commands.bridge",
 )
 
