@@ -1,17 +1,10 @@
 """A Foxglove live view of a ``/v1/stream``: ``touchreal bridge foxglove --from URL --port 8767``.
 
 Serves the Foxglove WebSocket protocol with foxglove-sdk (extra ``foxglove``) on its own port, one
-JSON channel (JSON schema advertised) per topic:
-
-* ``/touchreal/spikes/<class>``: one message per spike, ``{"t_us", "taxel", "class"}``;
-* ``/touchreal/channels``: one message per channel sample (200 Hz at the default decimation of 25),
-  ``{"t_us", "taxels", "ST", "dST", "PVDF", "dPVDF"}`` (N, N/s, V, V/s, one value per taxel);
-* ``/touchreal/force``: the preprocessed force, ``{"t_us", "taxels", "force_N"}`` (the ST channel);
-* ``/touchreal/decoded/<decoder>``: one message per decoding step, ``{"t_us", "taxels", "outputs"
-  (names), "values"}`` with ``values[taxel][output]`` (NaN sent as null).
-
-Every message also carries the frame's ``update`` and ``params_rev``; the shapes are those of the
-``touchreal record`` MCAP topics, so one Foxglove layout serves the live view and a recording.
+JSON channel per topic of :mod:`touchreal_client.topics` (JSON Schema advertised): spikes per class,
+the channels, the force and each decoder's outputs, one message per spike, channel sample or
+decoding step, in the shapes of the ``touchreal record`` MCAP topics, so one Foxglove layout serves
+the live view and a recording.
 
 ``t_us`` is the wire stamp (sensor clock, integer us). A message's log time is this machine's wall
 time (ns) of that stamp by the stream's clock model (``clock`` messages plus the ``time`` offset),
@@ -37,74 +30,25 @@ import websockets
 from .. import protocol as P
 from ..errors import StreamClosed, StreamError
 from ..stream import AsyncStream
+from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_PREFIX, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
+                      SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic)
 from . import FIRST_SYNC_SAMPLES, keep_clock_synced
 
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
 DEFAULT_PORT = 8767  #: serve uses 8765, the gateway 8766
 FOLLOW_PERIOD_S = 0.5  #: how often the upstream session and a failed subscription are looked at again (s)
-PREFIX = "/touchreal"
-SPIKES_TOPIC = PREFIX + "/spikes/{}"
-CHANNELS_TOPIC = PREFIX + "/channels"
-FORCE_TOPIC = PREFIX + "/force"
-DECODED_TOPIC = PREFIX + "/decoded/{}"
-
-_T_US = {"type": "integer", "minimum": 0, "description": "wire stamp: sensor clock (+ replay segment offset), us"}
-_TAXELS = {"type": "array", "items": {"type": "integer", "minimum": 0}, "description": "taxel ids, in value order"}
-_PER_TAXEL = {"type": "array", "items": {"type": ["number", "null"]}}
-_FRAME = {"update": {"type": "integer", "minimum": 0, "description": "server update counter"},
-          "params_rev": {"type": "integer", "minimum": 0, "description": "parameter revision that made it"}}
-
-
-def _object(title: str, props: dict[str, Any]) -> dict[str, Any]:
-    props = {**props, **_FRAME}
-    return {"title": title, "type": "object", "required": list(props), "properties": props}
-
-
-def spike_schema(classes: Iterable[str]) -> dict[str, Any]:
-    """JSON schema of one spike message."""
-    return _object("touchreal.Spike", {"t_us": _T_US, "taxel": {"type": "integer", "minimum": 0},
-                                       "class": {"type": "string", "enum": list(classes)}})
-
-
-def channels_schema() -> dict[str, Any]:
-    """JSON schema of one channel sample (all taxels)."""
-    props: dict[str, Any] = {"t_us": _T_US, "taxels": _TAXELS}
-    for name, unit in zip(P.CHANNELS, P.CHANNEL_UNITS):
-        props[name] = {**_PER_TAXEL, "description": f"{name} [{unit}] per taxel"}
-    return _object("touchreal.Channels", props)
-
-
-def force_schema() -> dict[str, Any]:
-    """JSON schema of one force sample (the preprocessed SingleTact force of every taxel)."""
-    return _object("touchreal.Force", {"t_us": _T_US, "taxels": _TAXELS,
-                                       "force_N": {**_PER_TAXEL, "description": "preprocessed force [N] per taxel"}})
-
-
-def decoded_schema(name: str, outputs: Iterable[str]) -> dict[str, Any]:
-    """JSON schema of one decoding step of decoder ``name``."""
-    outs = list(outputs)
-    return _object(f"touchreal.Decoded.{name}", {
-        "t_us": {**_T_US, "description": "end of the decoding window (wire clock, us)"}, "taxels": _TAXELS,
-        "outputs": {"type": "array", "items": {"type": "string"}, "description": f"output names: {outs}"},
-        "values": {"type": "array", "items": _PER_TAXEL,
-                   "description": "values[taxel][output]; null: not yet defined (window not filled)"}})
 
 
 def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
     """The upstream subscription that feeds exactly ``topics`` (nothing at all for none)."""
     topics = set(topics)
-    classes = [c for c in P.CLASSES if SPIKES_TOPIC.format(c) in topics]
-    decoders = sorted(t[len(DECODED_TOPIC.format("")):] for t in topics if t.startswith(DECODED_TOPIC.format("")))
+    classes = [c for c in P.CLASSES if spikes_topic(c) in topics]
+    decoders = sorted(t[len(DECODED_PREFIX):] for t in topics if t.startswith(DECODED_PREFIX))
     streams = [s for s, on in (("spikes", bool(classes)), ("channels", bool(topics & {CHANNELS_TOPIC, FORCE_TOPIC})),
                                ("decoded", bool(decoders))) if on]
     return P.Subscription(taxels=None, classes=classes, streams=streams, decimation=decimation,
                           decoders=decoders or None)
-
-
-def _nulls(a: np.ndarray) -> list[Any]:
-    """A float array as a JSON list with NaN as null (JSON has no NaN)."""
-    return [None if v != v else v for v in a.astype(np.float64).tolist()]
 
 
 class DemandListener:
@@ -191,18 +135,16 @@ class FoxgloveBridge:
 
     def _advertise(self, hello: dict[str, Any]) -> None:
         """Channels for what the service offers (from a hello; those already advertised stay)."""
-        classes = [c for c in hello.get("classes", P.CLASSES) if c in P.CLASSES]
-        for c in classes:
-            self._channel(SPIKES_TOPIC.format(c), spike_schema([c]), {"class": c, "units": "t_us: us"})
-        self._channel(CHANNELS_TOPIC, channels_schema(),
-                      {"units": ", ".join(f"{n}: {u}" for n, u in zip(P.CHANNELS, P.CHANNEL_UNITS)),
-                       "rate_hz": str(5000 / self.decimation)})
-        self._channel(FORCE_TOPIC, force_schema(), {"units": "N", "rate_hz": str(5000 / self.decimation)})
+        rate = {"rate_hz": str(5000 / self.decimation)}
+        for c in (c for c in hello.get("classes", P.CLASSES) if c in P.CLASSES):
+            self._channel(spikes_topic(c), SPIKE_SCHEMA, {"class": c})
+        self._channel(CHANNELS_TOPIC, CHANNELS_SCHEMA, rate)
+        self._channel(FORCE_TOPIC, FORCE_SCHEMA, rate)
         for d in hello.get("streams", {}).get("decoded", {}).get("decoders", []):
             self._decoded_channel(str(d.get("name")), [str(o) for o in d.get("outputs", [])])
 
     def _decoded_channel(self, name: str, outputs: list[str]) -> Any:
-        return self._channel(DECODED_TOPIC.format(name), decoded_schema(name, outputs), {"decoder": name})
+        return self._channel(decoded_topic(name), DECODED_SCHEMA, {"decoder": name, "outputs": ", ".join(outputs)})
 
     # -- demand ---------------------------------------------------------------------------------
     def _demand_changed(self) -> None:
@@ -264,7 +206,7 @@ class FoxgloveBridge:
         times = self._log_times_ns(f.t_us)
         tag = _frame_tag(f.header)
         for i, name in enumerate(P.CLASSES):
-            ch = self._channels.get(SPIKES_TOPIC.format(name))
+            ch = self._channels.get(spikes_topic(name))
             if ch is None or not ch.has_sinks():
                 continue
             for k in np.flatnonzero(f.cls == i).tolist():
@@ -278,10 +220,10 @@ class FoxgloveBridge:
         for k, t in enumerate(t_us.tolist()):
             if chans is not None and chans.has_sinks():
                 msg: dict[str, Any] = {"t_us": t, "taxels": taxels}
-                msg.update({n: _nulls(f.data[k, :, j]) for j, n in enumerate(P.CHANNELS)})
+                msg.update({n: json_lists(f.data[k, :, j]) for j, n in enumerate(P.CHANNELS)})
                 chans.log({**msg, **tag}, log_time=times[k])
             if force is not None and force.has_sinks():
-                force.log({"t_us": t, "taxels": taxels, "force_N": _nulls(f.data[k, :, 0]), **tag}, log_time=times[k])
+                force.log({"t_us": t, "taxels": taxels, "force_N": json_lists(f.data[k, :, 0]), **tag}, log_time=times[k])
 
     def _publish_decoded(self, f: P.DecodedFrame) -> None:
         assert self.stream is not None
@@ -293,7 +235,7 @@ class FoxgloveBridge:
         taxels, tag = out.taxels.tolist(), _frame_tag(f.header)
         names = out.outputs or [f"#{j}" for j in range(out.values.shape[2])]
         for s, t in enumerate(out.t_us.tolist()):
-            values = [_nulls(out.values[s, i, :]) for i in range(len(taxels))]
+            values = json_lists(out.values[s])  # [taxel][output]
             ch.log({"t_us": t, "taxels": taxels, "outputs": names, "values": values, **tag}, log_time=times[s])
 
 
