@@ -130,7 +130,10 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
                 if sub.control:
                     await ws.send_text(sub.pop_control())
                     continue
-                data, _ = sub.render(sub.queue.popleft())
+                item = sub.next_frame()
+                if item is None:  # every queued frame was stale
+                    break
+                data, _ = sub.render(item)
                 if isinstance(data, str):
                     await ws.send_text(data)
                 else:
