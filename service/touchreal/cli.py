@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "touchreal.bridge.command",
     "touchreal.commands.record",
     "touchreal.commands.export",
+    "touchreal.commands.bridge",
 )
 
 

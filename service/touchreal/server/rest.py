@@ -15,6 +15,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, Field
+from touchreal_client.schema import asyncapi as stream_contract
 
 from ..decoding.model import DecoderModelError
 from ..params import EncoderParams, ParamsError
@@ -187,3 +188,10 @@ def decoder_onnx(name: str, request: Request) -> FileResponse:
 def metrics(request: Request) -> Response:
     """Prometheus text exposition."""
     return Response(generate_latest(service_of(request).metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+@router.get("/v1/asyncapi.json", tags=["stream"])
+def asyncapi(request: Request) -> dict[str, Any]:
+    """The AsyncAPI 3.0 document of the `/v1/stream` WebSocket, with JSON Schemas of every JSON message
+    (shipped in the client package as `touchreal_client.schema`; prose in docs/stream-protocol.md)."""
+    return stream_contract(request.url.netloc)

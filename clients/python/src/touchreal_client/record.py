@@ -41,57 +41,12 @@ from .clock import ClockMap, ClockPoint
 from .errors import RequestError, ServiceUnavailable, StreamClosed
 from .session import Coverage
 from .stream import AsyncStream, DecodedOutput, wall_us
+from .topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, CLOCK_SCHEMA, CLOCK_TOPIC, DECODED_SCHEMA, SPIKE_SCHEMA,
+                     decoded_topic, spikes_topic)
+from .topics import json_lists as _lists
 
-PREFIX = "/touchreal"
-CLOCK_TOPIC = f"{PREFIX}/clock"
-CHANNELS_TOPIC = f"{PREFIX}/channels"
 PROFILE = "touchreal"
 IDLE_POLL_S = 0.2  #: with no frame for this long, the recorder checks whether the stream has ended
-
-
-def spikes_topic(cls: str) -> str:
-    return f"{PREFIX}/spikes/{cls}"
-
-
-def decoded_topic(name: str) -> str:
-    return f"{PREFIX}/decoded/{name}"
-
-
-def _schema(title: str, description: str, props: dict[str, Any]) -> dict[str, Any]:
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title, "description": description,
-            "type": "object", "properties": props, "required": list(props)}
-
-
-_INT = {"type": "integer", "minimum": 0}
-_NUM_OR_NULL = {"type": ["number", "null"]}
-_FRAME = {"update": {**_INT, "description": "server update counter"},
-          "params_rev": {**_INT, "description": "parameter revision that made it"}}
-SPIKE_SCHEMA = _schema("touchreal.Spike", "one afferent spike", {
-    "t_us": {**_INT, "description": "stamp on the wire clock (us)"},
-    "taxel": _INT, "class": {"enum": list(P.CLASSES)}, **_FRAME})
-CHANNELS_SCHEMA = _schema("touchreal.Channels", "one 5 kHz grid sample of the preprocessed channels, per taxel", {
-    "t_us": {**_INT, "description": "sample time on the wire clock (us)"},
-    "taxels": {"type": "array", "items": _INT},
-    **{c: {"type": "array", "items": _NUM_OR_NULL, "description": f"per taxel, {u}"} for c, u in zip(P.CHANNELS, P.CHANNEL_UNITS)},
-    **_FRAME})
-DECODED_SCHEMA = _schema("touchreal.Decoded", "one decoder step", {
-    "t_us": {**_INT, "description": "end of the decoding window on the wire clock (us)"},
-    "taxels": {"type": "array", "items": _INT},
-    "outputs": {"type": "array", "items": {"type": "string"}},
-    "values": {"type": "array", "items": {"type": "array", "items": _NUM_OR_NULL},
-               "description": "values[taxel][output]; null = NaN (window not yet filled)"},
-    **_FRAME})
-CLOCK_SCHEMA = _schema("touchreal.Clock", "the stream's clock point: wall(t) = wall_us + (t - sensor_us) * rate", {
-    "type": {"const": "clock"}, "sensor_us": _INT, "wall_us": _INT, "rate": {"type": "number"},
-    "error_us": _INT, "epoch": _INT})
-
-
-def _lists(a: np.ndarray) -> list[Any]:
-    """A float array as nested lists for JSON (NaN -> None)."""
-    v = a.astype(np.float64)
-    if np.isfinite(v).all():
-        return v.tolist()
-    return np.where(np.isfinite(v), v, None).tolist()
 
 
 class McapRecorder:

@@ -145,7 +145,8 @@ def read_mcap(path: str | Path) -> Session:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    from .record import CHANNELS_TOPIC, CLOCK_TOPIC, PREFIX, PROFILE
+    from .record import PROFILE
+    from .topics import CHANNELS_TOPIC, CLOCK_TOPIC, PREFIX
 
     path = Path(path)
     spikes: list[dict[str, Any]] = []

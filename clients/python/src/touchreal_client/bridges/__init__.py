@@ -1,0 +1,36 @@
+"""Live bridges from a ``/v1/stream`` (a service or a gateway) into other tools' protocols.
+
+* :mod:`.foxglove`: a Foxglove WebSocket server (extra ``foxglove``: foxglove-sdk), demand-driven.
+* :mod:`.lsl`: Lab Streaming Layer outlets (extra ``lsl``: pylsl).
+
+Both stamp what they forward with the stream's clock model (:mod:`touchreal_client.clock`): a
+sample stamped ``t_us`` on the wire clock is placed at this machine's wall time of its acquisition,
+not at the time it arrived. They import their library only when used, so the base client stays light.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+from ..errors import TouchRealError
+from ..stream import AsyncStream
+
+log = logging.getLogger("touchreal_client.bridges")
+
+#: Exchanges of the first ``time`` sync, before a bridge forwards anything.
+FIRST_SYNC_SAMPLES = 8
+#: How often a bridge repeats the ``time`` exchange that maps the server's wall clock onto its own (s).
+CLOCK_SYNC_PERIOD_S = 10.0
+
+
+async def keep_clock_synced(stream: AsyncStream, period_s: float = CLOCK_SYNC_PERIOD_S) -> None:
+    """Repeat :meth:`AsyncStream.sync_clock` every ``period_s`` until cancelled (a failed exchange,
+    e.g. during a reconnect, is retried at the next period). The exchange with the least round trip
+    so far is the one in use, so the offset only gets better."""
+    while True:
+        await asyncio.sleep(period_s)
+        try:
+            await stream.sync_clock(5)
+        except (TouchRealError, asyncio.TimeoutError) as exc:
+            log.info("clock sync failed (%r); retrying in %.0f s", exc, period_s)
