@@ -136,7 +136,7 @@ def test_each_parameter_revision_the_frames_carry_is_attached(tmp_path):
         recorder = threading.Thread(target=lambda: done.append(main(
             ["record", f"http://{addr}", "--out", str(out), "--seconds", "3", "--streams", "spikes"])))
         recorder.start()
-        _wait_for_frames(svc, 10)
+        _wait_for_frames(svc, 200)  # about a second of 5 ms hops: spikes of revision 1
         changed = {**first["params"], "provenance": {**first["params"]["provenance"], "note": "uploaded mid-recording"}}
         put = httpx.put(f"http://{addr}/v1/params", json=changed).json()
         recorder.join(30)
@@ -187,10 +187,10 @@ def test_a_recording_continues_across_a_server_restart(tmp_path):
     sessions = []
     with running_server(tmp_path / "s1", port=port) as (addr, svc):
         recorder.start()
-        _wait_for_frames(svc, 20)
+        _wait_for_frames(svc, 200)  # about a second of 5 ms hops
         sessions.append(svc.session)
     with running_server(tmp_path / "s2", port=port) as (addr, svc):
-        _wait_for_frames(svc, 20)
+        _wait_for_frames(svc, 200)  # about a second of 5 ms hops
         sessions.append(svc.session)
         recorder.join(30)
     assert done == [0] and sessions[0] != sessions[1]
