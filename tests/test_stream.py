@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from touchreal.encoding.encoder import Encoder
+from touchreal.encoding.encoder import Encoder, SpikeEvents
 from touchreal.params import default_params
 from touchreal.preprocess.pipeline import Channels, preprocess_trial, preprocess_trial_windows
 from touchreal.sensing.raw import RawChunk
@@ -438,3 +438,27 @@ def test_fast_sources_go_out_every_hop_and_slow_ones_once_per_gate_frame():
     frames = sa1.size * HOP_S / 0.032  # the 128 ms gate's hop
     assert frames - 1 <= np.sum(np.diff(pc) > 0) <= frames + 1  # PC's moves once per gate frame
     assert pc_late and max(pc_late) <= HOP_S + 1e-9, "the trial must drive PC, within a hop of its bound"
+
+
+def test_two_phases_send_the_fast_classes_before_a_slow_frame_and_give_the_same_spikes():
+    """process_fast + process_slow (what the service emits as two updates in the hop that completes
+    PC's gate frame) returns exactly process's spikes, with no slow-source spike in the fast phase."""
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    one, two = StreamEncoder(params, update_s=0.032), StreamEncoder(params, update_s=0.032)
+    pc = CLASSES.index("PC")
+    slow_hops, together, apart = 0, [], []
+    for chunk in ReplaySource(tr).chunks(HOP_S):
+        together.append(one.process(chunk))
+        _, fast = two.process_fast(chunk)
+        assert not np.any(fast.cls == pc)
+        apart.append(fast)
+        if two.slow_due():
+            slow_hops += 1
+            _, slow = two.process_slow()
+            assert np.all(slow.cls == pc)
+            apart.append(slow)
+    together.append(one.finish())
+    apart.append(two.finish())
+    assert slow_hops >= 30  # about one PC frame per 32 ms over 1.2 s
+    _assert_trains_equal(_trains(SpikeEvents.concatenate(together)), _trains(SpikeEvents.concatenate(apart)))

@@ -61,13 +61,16 @@ class _TaxelBlock:
         self.shows = shows
         self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else []))
 
-    def encode(self, slow: frozenset[Source] = frozenset()) -> tuple[Channels | None, list[SpikeEvents]]:
+    def encode(self, slow: frozenset[Source] = frozenset(), phase: str | None = None) -> tuple[Channels | None, list[SpikeEvents]]:
         """Spikes of every active source (global taxel indices), and the channels of the channels
         source if this block shows them and it ran (else None). A ``slow`` source runs only when its
-        gate has a new frame (:meth:`Preprocessor.frame_ready`)."""
+        gate has a new frame (:meth:`Preprocessor.frame_ready`). ``phase`` "fast" runs only the other
+        sources, "slow" only the slow ones (None: both)."""
         channels = None
         parts = []
         for s in self.pre.sources:
+            if (phase == "fast" and s in slow) or (phase == "slow" and s not in slow):
+                continue
             if s in slow and not self.pre.frame_ready(s):
                 continue
             ch = self.pre.take(s)
@@ -194,6 +197,21 @@ class StreamEncoder:
         self._feed(chunk)
         return self._encode()
 
+    def process_fast(self, chunk: RawChunk) -> tuple[Channels, SpikeEvents]:
+        """The first of two phases (:meth:`process_channels` = this then :meth:`process_slow`, same
+        spikes): feed ``chunk`` and run only the sources on the hop cadence, so that a live service
+        can send the fast classes before it computes a slow source's frame."""
+        self._feed(chunk)
+        return self._encode(phase="fast")
+
+    def slow_due(self) -> bool:
+        """Whether a slow source of an active column or of the shown channels has a new frame to run."""
+        return any(s in b.pre.sources and b.pre.frame_ready(s) for b in self.blocks for s in self.slow)
+
+    def process_slow(self) -> tuple[Channels, SpikeEvents]:
+        """The second phase: the slow sources whose gate completed a frame with the chunks fed so far."""
+        return self._encode(phase="slow")
+
     def finish(self) -> SpikeEvents:
         """End of stream: flush every running branch and return the last spikes (of every source)."""
         for block in self.blocks:
@@ -205,10 +223,10 @@ class StreamEncoder:
         for block in self.blocks:
             block.pre.consume(*new)
 
-    def _encode(self, final: bool = False) -> tuple[Channels, SpikeEvents]:
+    def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
         shown, parts = [], []
         for block in self.blocks:
-            ch, evs = block.encode(frozenset() if final else self.slow)
+            ch, evs = block.encode(frozenset() if final else self.slow, None if final else phase)
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs

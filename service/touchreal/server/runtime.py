@@ -190,11 +190,9 @@ class Runtime:
                 self._emit(tail, flags, acq_us, 0.0, None)
             self.state = "idle"
             return None
+        # two phases: the hop's fast classes go out before a slow source (PC's 128 ms window) runs its frame
         t0 = time.perf_counter()
-        if demand.channel_taxels:
-            ch, ev = self.encoder.process_channels(chunk)
-        else:
-            ch, ev = None, self.encoder.process(chunk)
+        ch, ev = self.encoder.process_fast(chunk)
         compute = time.perf_counter() - t0
         flags |= self._count_sanitizer()
         self._pending_flags = 0
@@ -202,7 +200,12 @@ class Runtime:
         if tail is not None:
             self._emit(tail, flags, acq_us, 0.0, None)
             flags &= ~FLAG_RESTARTED
-        return self._emit(ev, flags, acq_us, compute, ch)
+        upd = self._emit(ev, flags, acq_us, compute, ch if demand.channel_taxels else None)
+        if self.encoder.slow_due():
+            t0 = time.perf_counter()
+            ch, ev = self.encoder.process_slow()
+            upd = self._emit(ev, 0, acq_us, time.perf_counter() - t0, ch if demand.channel_taxels else None)
+        return upd
 
     def _follow_clock(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None) -> None:
         if clock is None:  # a source without a clock model: its newest sample arrived when the chunk was read
