@@ -51,11 +51,17 @@ class Subscriber:
         self.kick: tuple[int, str] | None = None  #: (close code, reason) once it must go
         self.kicked = asyncio.Event()
         self.control: deque[str] = deque()  #: JSON replies (subscribed, time, error): never dropped
+        self.after_frames: deque[str] = deque()  #: JSON messages that follow every frame queued before them (ended)
         self.wakeup = asyncio.Event()
 
     def say(self, text: str) -> None:
         """Queue a control message; it goes out before any queued frame."""
         self.control.append(text)
+        self.wakeup.set()
+
+    def say_after_frames(self, text: str) -> None:
+        """Queue a message that goes out once the frames queued now have been sent (never dropped)."""
+        self.after_frames.append(text)
         self.wakeup.set()
 
     def offer(self, kind: int, payload: bytes | str) -> None:

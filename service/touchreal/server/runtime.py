@@ -109,15 +109,18 @@ class Runtime:
         publish: Callable[[Update], None],
         make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
         taxel_block: int | None = None,
+        on_end: Callable[[], None] | None = None,
     ):
         self.source = source
         self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
         self._demand, self._params, self._publish = demand, params, publish
         self._make_decoder = make_decoder
+        self._on_end = on_end  #: called on this thread once the source has ended and its last spikes are published
         self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
         self.encoder: StreamEncoder | None = None
         self.enc_rev = 0
         self.enc_segment = source.segment
+        self.enc_offset_us = source.offset_us  #: wire offset of the segment the encoder runs on
         self.active: dict[str, tuple[int, ...]] | None = None
         self.active_channels: tuple[int, ...] = ()
         self.update_no = 0
@@ -165,16 +168,10 @@ class Runtime:
     # -- one update -----------------------------------------------------------------------------
     def step(self, chunk: RawChunk, acq_us: int) -> Update | None:
         """Process one chunk acquired at ``acq_us`` (wall clock); returns the published update."""
+        if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
+            self._flush_segment(acq_us)
         self.chunk_log.add(chunk, acq_us)
         flags = self._pending_flags | self._source_flags()
-        tail = None
-        if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
-            tail = self._finish_encoder()
-            self.decoders = {}
-            self.enc_segment = self.source.segment
-            self.chunk_log.clear()
-            self.chunk_log.add(chunk, acq_us)
-            flags |= FLAG_RESTARTED
         demand = self._demand()
         rev, params = self._params()
         if self.encoder is not None and rev != self.enc_rev:
@@ -192,8 +189,6 @@ class Runtime:
         if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
             self.encoder.process(chunk)
             flags |= self._count_sanitizer()
-            if tail is not None:
-                self._emit(tail, flags, acq_us, 0.0, None)
             self.state = "idle"
             return None
         t0 = time.perf_counter()
@@ -205,16 +200,25 @@ class Runtime:
         flags |= self._count_sanitizer()
         self._pending_flags = 0
         self.state = "running"
-        if tail is not None:
-            self._emit(tail, flags, acq_us, 0.0, None)
-            flags &= ~FLAG_RESTARTED
         return self._emit(ev, flags, acq_us, compute, ch)
+
+    def _flush_segment(self, acq_us: int) -> None:
+        """The source began its next segment (a replayed trial): the encoder's last spikes go out
+        stamped on the segment they belong to, with the decoders that read it; the next frame, the
+        new segment's first, is flagged restarted."""
+        tail = self._finish_encoder()
+        if tail is not None:
+            self._emit(tail, 0, acq_us, 0.0, None)
+        self.decoders = {}
+        self.chunk_log.clear()
+        self.enc_segment, self.enc_offset_us = self.source.segment, self.source.offset_us
+        self._pending_flags |= FLAG_RESTARTED
 
     def _finish_encoder(self) -> tuple[SpikeEvents, int, dict[str, float], dict[str, float]] | None:
         if self.encoder is None:
             return None
         ev = self.encoder.finish()
-        out = (ev, self.source.offset_us, dict(self.encoder.final_s), self._delays())
+        out = (ev, self.enc_offset_us, dict(self.encoder.final_s), self._delays())
         self.encoder = None
         return out
 
@@ -225,6 +229,8 @@ class Runtime:
         if tail is not None:
             self._emit(tail, 0, wall_us(), 0.0, None)
         self.state = "ended"
+        if self._on_end is not None:
+            self._on_end()
 
     def _delays(self) -> dict[str, float]:
         p = self.encoder.params if self.encoder is not None else self._params()[1]

@@ -42,6 +42,8 @@ async def stream(ws: WebSocket) -> None:
     sub = hub.add()
     service.metrics.clients.inc()
     sub.say(_dumps(service.hello()))
+    if service.ended is not None:
+        sub.say(_dumps(service.ended))
     sender = asyncio.create_task(_send_loop(ws, sub))
     kicked = asyncio.create_task(sub.kicked.wait())
     close: tuple[int, str] | None = None
@@ -121,9 +123,12 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
         while True:
             await sub.wakeup.wait()
             sub.wakeup.clear()
-            while sub.control or sub.queue:
+            while sub.control or sub.queue or sub.after_frames:
                 if sub.control:
                     await ws.send_text(sub.control.popleft())
+                    continue
+                if not sub.queue:
+                    await ws.send_text(sub.after_frames.popleft())
                     continue
                 data, _ = sub.render(sub.queue.popleft())
                 if isinstance(data, str):

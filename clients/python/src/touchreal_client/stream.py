@@ -90,6 +90,7 @@ class AsyncStream:
         self.request_timeout_s = request_timeout_s
         self.hello: dict[str, Any] = {}
         self.subscribed: dict[str, Any] | None = None  #: the server's last ``subscribed`` reply
+        self.ended: dict[str, Any] | None = None  #: the server's ``ended`` message (its replay has finished)
         self.stats = StreamStats()
         self.latency = LatencyEstimator()
         self.errors: list[dict[str, Any]] = []  #: ``error`` messages that answered no request
@@ -236,6 +237,8 @@ class AsyncStream:
             await self._on_frame(P.frame_from_json(m), recv)
         elif kind == "hello":
             self.hello = m
+        elif kind == "ended":
+            self.ended = m
             self.latency.set_algorithmic(m.get("latency_us", {}))
         elif kind in ("subscribed", "time", "error"):
             if kind == "subscribed":
