@@ -49,8 +49,9 @@ async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:
             return hello, json.loads(msg)
 
 
-async def collect(ws, seconds: float, until=None) -> list:
-    """Frames (decoded) received for ``seconds`` or until ``until(frames)`` is true."""
+async def collect(ws, seconds: float, until=None, clock: list | None = None) -> list:
+    """Frames (decoded) and control messages (dicts) received for ``seconds`` or until ``until(frames)``
+    is true; ``clock`` messages go to the list ``clock`` if one is given, else are left out."""
     frames: list = []
     end = time.monotonic() + seconds
     while time.monotonic() < end and not (until and until(frames)):
@@ -62,6 +63,10 @@ async def collect(ws, seconds: float, until=None) -> list:
             frames.append(P.decode_frame(msg))
         else:
             m = json.loads(msg)
+            if m["type"] == "clock":
+                if clock is not None:
+                    clock.append(m)
+                continue
             frames.append(P.frame_from_json(m) if m["type"] in ("spikes", "channels", "decoded") else m)
     return frames
 

@@ -160,3 +160,33 @@ def test_decoded_outputs_come_named_from_the_hello(tmp_path):
     assert steps.size and np.all(steps % 32_000 == 0) and np.isfinite(np.concatenate([o.values.ravel() for o in force])).all()
     texture = [o for o in outs if o.name == "texture"]
     assert all(len(o.outputs) == o.values.shape[2] >= 2 for o in texture)  # one probability per label
+
+
+def test_the_client_places_spikes_on_its_own_clock(tmp_path):
+    """to_local / spike_latency_us / summary().spike_us against a real server, as a robot would use them:
+    each spike's cause lands before its receipt and within the class's stated latency + an update + slack."""
+    from server_harness import running_server
+    from touchreal_client import Client
+
+    with running_server(tmp_path) as (addr, svc), Client(f"http://{addr}") as tr, tr.stream() as s:
+        s.sync_clock()
+        lat, frames = [], 0
+        for f in s.spikes():
+            if f.t_us.size:
+                v = s.spike_latency_us(f)
+                if v.size:
+                    lat.append((f, v))
+                    frames += 1
+            if frames >= 40:
+                break
+        summary = s.latency.summary()
+        hello = s.hello
+    stated = hello["latency_us"]
+    for f, v in lat:
+        for k, c in enumerate(("SA1", "RA", "PC")):
+            sel = f.cls == k
+            if sel.any():
+                local = s.to_local(f.t_us[sel].astype(float) - hello["delay_us"][c])
+                assert np.allclose(f.header.recv_us - local, v[sel])
+                assert v[sel].min() >= -2000 and v[sel].max() <= stated[c] + hello["update_us"] + 60_000
+    assert set(summary.spike_us) and all(p50 <= p95 <= mx for p50, p95, mx in summary.spike_us.values())

@@ -87,6 +87,13 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         stats = browser.execute_script("const s = window.touchreal; return [s.events, s.gaps, s.hello.session, "
                                        "document.getElementById('delivery').textContent]")
         assert stats[0] > 20 and stats[1] == 0 and stats[2] == svc.session and stats[3].endswith("ms")
+        # latency per class from the clock model: the page maps with the service's own line
+        wait_for(browser, "return window.touchreal.spikeLatency.SA1.length > 10")
+        line, lat_sa1, shown = browser.execute_script(
+            "const s = window.touchreal, c = s.clocks[s.clocks.length - 1], a = [...s.spikeLatency.SA1].sort((x, y) => x - y);"
+            "return [c.wall_us - c.sensor_us, a[a.length >> 1], document.getElementById('latency').textContent]")
+        assert line == svc.clock.wall_us - svc.clock.sensor_us
+        assert 0 < lat_sa1 < 150_000 and shown.endswith("ms") and shown.split(" / ")[0].isdigit(), (lat_sa1, shown)
 
         # subscription control: PC spikes of taxels 1 and 2, no decoders -> exactly that is computed
         browser.find_element(By.ID, "taxels").clear()

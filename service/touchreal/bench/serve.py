@@ -1,11 +1,14 @@
 """Service benchmark: latency and fan-out of the running server (the paper's Table 4), and the saving
 from computing only what subscribers need.
 
-Part 1 starts the service on the simulated e-skin (uvicorn on 127.0.0.1, this process) and one
-WebSocket client in another process. Per class it reports the end-to-end latency of every spike
-from the acquisition of the sample that caused it (stamp minus the class delay, mapped to the wall
-time its chunk was read) to its frame leaving the server (``sent_us``) and to the client's receipt,
-plus the update interval, windows and mean compute overhead per update.
+Part 1 starts the service on the simulated e-skin (uvicorn on 127.0.0.1, this process) for each of
+``--latency-taxels`` and one WebSocket client in another process, written as a user would from
+docs/stream-protocol.md: it syncs its clock with ``time`` exchanges, maps stamps with the ``clock``
+messages, and reports per class the latency of every spike as it holds it: its receipt minus the
+acquisition of the sample that caused it (stamp minus the class delay), p50/p95/max. Beside it: the
+same from the server's side (to the frame leaving the encoder, ``touchreal_latency_seconds``), the
+compute per update, and the clock model's check on the sim (each chunk in hand after its stated
+acquisition: the skin simulation's compute plus the thread's wake-up; the time-sync offset).
 
 Part 2 connects 1, 10 and 100 subscribers (client processes) and reports events/s received, the
 fan-out latency (receipt minus ``emit_us``) p50/p99 and frames dropped. ``--soak-seconds`` runs the
@@ -47,7 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subscribers", default=None, help="subscriber counts for the fan-out part (default 1,10,100; "
                    "with --nats the --nats-subscribers counts, so both paths are measured side by side)")
     p.add_argument("--soak-seconds", type=float, default=60.0, help="length of the largest fan-out run (s)")
-    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin")
+    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin (parts 2 and 3)")
+    p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
     p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
@@ -55,14 +59,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # -- client side (runs in child processes) -------------------------------------------------------------
-async def _one_client(addr: str, seconds: float, sub: dict) -> np.ndarray:
-    """Rows (update, emit_us, sent_us, recv_us, n_events, seq, dropped) per spikes frame."""
-    import websockets
+async def _sync_clock(ws, clock, exchanges: int = 5) -> None:
+    """NTP-style ``time`` exchanges before subscribing; the one with the least round trip sets the offset."""
     from touchreal_client import protocol as P
 
-    rows = []
+    best = None
+    for i in range(exchanges):
+        t0 = time.time_ns() // 1000
+        await ws.send(json.dumps({"type": "time", "id": i, "t0_us": t0}))
+        while True:
+            m = json.loads(await ws.recv())
+            if m["type"] == "time":
+                break
+            if m["type"] == "clock":
+                clock.update(m)
+        offset, delay = P.clock_offset(t0, m["t1_us"], m["t2_us"], time.time_ns() // 1000)
+        if best is None or delay < best[1]:
+            best = (offset, delay)
+    clock.set_offset(best[0], best[1] / 2)
+
+
+async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False):
+    """Rows (update, emit_us, sent_us, recv_us, n_events, seq, dropped) per spikes frame; with ``spikes``
+    also per class the latency of every spike as received (us, clock model) and the clock offset used."""
+    import websockets
+    from touchreal_client import protocol as P
+    from touchreal_client.clock import ClockMap
+    from touchreal_client.stats import spike_latency_us
+
+    rows, lat = [], {c: [] for c in CLASSES}
+    clock = ClockMap()
     async with websockets.connect(f"ws://{addr}/v1/stream", compression=None, max_size=None) as ws:
-        await ws.recv()  # hello
+        hello = json.loads(await ws.recv())
+        clock.update(hello["clock"])
+        if spikes:
+            await _sync_clock(ws, clock)
         await ws.send(json.dumps({"type": "subscribe", **sub}))
         end = time.monotonic() + seconds
         while time.monotonic() < end:
@@ -75,23 +106,38 @@ async def _one_client(addr: str, seconds: float, sub: dict) -> np.ndarray:
                 h = P.decode_header(msg)
                 n = P.SPIKES_HEAD.unpack_from(msg, P.HEADER_LEN)[0] if h.kind == P.KIND_SPIKES else 0
                 rows.append((h.update, h.emit_us, h.sent_us, recv, n, h.seq, h.dropped))
-    return np.array(rows, dtype=np.int64).reshape(-1, 7)
+                if spikes and n:
+                    f = P.decode_frame(msg)
+                    v = spike_latency_us(f, recv, clock, hello["delay_us"])
+                    for i, c in enumerate(CLASSES):
+                        lat[c].append(v[f.cls == i])
+            elif spikes:
+                m = json.loads(msg)
+                if m["type"] == "clock":
+                    clock.update(m)
+                elif m["type"] == "hello":
+                    hello = m
+    rows = np.array(rows, dtype=np.int64).reshape(-1, 7)
+    if not spikes:
+        return rows
+    return rows, {c: np.concatenate(v) if v else np.zeros(0) for c, v in lat.items()}, clock.offset_us
 
 
-def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue) -> None:
+def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False) -> None:
     async def main():
-        return await asyncio.gather(*(_one_client(addr, seconds, sub) for _ in range(n)))
+        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes) for _ in range(n)))
 
     out.put(asyncio.run(main()))
 
 
-def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None) -> list[np.ndarray]:
+def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None,
+                 spikes: bool = False) -> list:
     """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``."""
     addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     counts = [len(part) for part in np.array_split(np.arange(n), max(min(processes, n), min(len(addrs), n)))]
-    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q))
+    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q, spikes))
              for i, k in enumerate(counts)]
     for p in procs:
         p.start()
@@ -103,73 +149,88 @@ def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int,
 
 # -- server side ---------------------------------------------------------------------------------------
 def _stats_ms(x: np.ndarray) -> str:
+    """p50 / p95 / max."""
     if x.size == 0:
         return "n/a"
-    return f"{np.mean(x):7.2f} {np.percentile(x, 95):7.2f} {np.max(x):7.2f}"
+    return f"{np.median(x):7.2f} {np.percentile(x, 95):7.2f} {np.max(x):7.2f}"
 
 
 def run(args: argparse.Namespace) -> int:
     from ..server.app import serving
-    from ..server.service import Service
-    from ..server.settings import RuntimeConfig, ServeSettings
 
     params = EncoderParams.load(args.params) if args.params else default_params()
-    with tempfile.TemporaryDirectory() as state:
-        settings = ServeSettings(state_dir=Path(state), params=args.params, queue_frames=256)
-        svc = Service(settings, RuntimeConfig(taxels=args.taxels))
-        log: dict[int, dict[str, np.ndarray]] = {}
-        compute: list[float] = []
-        deliver = svc._deliver
-
-        def recording_deliver(upd):
-            log[upd.update] = upd.latency_us
-            compute.append(upd.compute_s)
-            deliver(upd)
-
-        svc._deliver = recording_deliver
-        with contextlib.ExitStack() as stack:
-            companions, nats_url = [], None
-            if args.nats:
-                from ..bridge.natsd import local_nats_server
-                from ..bridge.publisher import NatsPublisher
-
-                nats_url = stack.enter_context(local_nats_server())
-                companions.append(NatsPublisher(svc, nats_url, BENCH_SENSOR))
-            addr = stack.enter_context(serving(svc, companions=companions))
-            time.sleep(1.0)
-            print(f"TouchReal service benchmark: simulated e-skin, {args.taxels} taxel(s), update "
-                  f"{params.preprocess.update_ms:g} ms ({1000 / params.preprocess.update_ms:.2f} Hz), windows "
-                  + ", ".join(f"{c} {params.window_ms(c):g} ms" for c in params.classes)
-                  + "; algorithmic latency " + ", ".join(f"{c} {v / 1000:.1f} ms" for c, v in svc.latency_us().items()))
-            _part1(addr, args, log, compute)
-            direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
-            _part2([addr], args, direct_counts, "2. Fan-out, direct (receipt minus emission), all classes and taxels")
-            if nats_url:
-                gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
-                _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
-                       "the publisher's emission), all classes and taxels")
-                _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
+    print(f"TouchReal service benchmark: simulated e-skin, update {params.preprocess.update_ms:g} ms "
+          f"({1000 / params.preprocess.update_ms:.2f} Hz), windows "
+          + ", ".join(f"{c} {params.window_ms(c):g} ms" for c in params.classes))
+    print(f"\n1. Latency of each spike as a client holds it: receipt minus the acquisition of its causing sample "
+          f"(clock model), 1 subscriber, {args.seconds:g} s; ms p50 / p95 / max")
+    for n in [int(x) for x in args.latency_taxels.split(",") if x]:
+        with _service(args, n) as (svc, log):
+            addr = log["addr"]
+            _part1(addr, args, svc, log, n)
+    with _service(args, args.taxels) as (svc, log), contextlib.ExitStack() as stack:
+        addr, nats_url = log["addr"], log.get("nats")
+        direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
+        _part2([addr], args, direct_counts, f"2. Fan-out, direct (receipt minus emission), all classes and "
+               f"{args.taxels} taxel(s)")
+        if nats_url:
+            gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
+            _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
+                   "the publisher's emission), all classes and taxels")
+            _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
     _part3(params, args.taxels)
     return 0
 
 
-def _part1(addr: str, args, log: dict, compute: list) -> None:
-    compute.clear()
-    (rows,) = _run_clients(addr, 1, args.seconds, 1)
-    ms = np.array(compute[3:]) * 1000
-    print(f"\n1. End-to-end latency, 1 subscriber, {args.seconds:g} s (ms; mean p95 max)")
-    print(f"   compute per update: mean {ms.mean():.3f}, p95 {np.percentile(ms, 95):.3f}, max {ms.max():.3f} ms")
-    print("   class   acquisition -> frame sent      acquisition -> received    spikes")
+@contextlib.contextmanager
+def _service(args, n_taxels: int):
+    """The service on the sim with ``n_taxels`` (and its NATS publisher with ``--nats``), ready; yields
+    (service, log) where log holds its address and, per update, the server-side figures."""
+    from ..server.app import serving
+    from ..server.service import Service
+    from ..server.settings import RuntimeConfig, ServeSettings
+
+    with tempfile.TemporaryDirectory() as state, contextlib.ExitStack() as stack:
+        settings = ServeSettings(state_dir=Path(state), params=args.params, queue_frames=256)
+        svc = Service(settings, RuntimeConfig(taxels=n_taxels))
+        log: dict = {"updates": []}
+        deliver = svc._deliver
+
+        def recording_deliver(upd):  # server-side figures of each update: latency to emission, compute, clock
+            log["updates"].append((upd.latency_us, upd.compute_s, upd.acq_us, upd.clock))
+            deliver(upd)
+
+        svc._deliver = recording_deliver
+        companions = []
+        if args.nats:
+            from ..bridge.natsd import local_nats_server
+            from ..bridge.publisher import NatsPublisher
+
+            log["nats"] = stack.enter_context(local_nats_server())
+            companions.append(NatsPublisher(svc, log["nats"], BENCH_SENSOR))
+        log["addr"] = stack.enter_context(serving(svc, companions=companions))
+        deadline = time.monotonic() + 120
+        while not svc.ready()[0] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        yield svc, log
+
+
+def _part1(addr: str, args, svc, log: dict, n_taxels: int) -> None:
+    log["updates"].clear()
+    ((rows, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
+    ups = log["updates"][3:]
+    ms = np.array([u[1] for u in ups]) * 1000
+    in_hand = np.array([(acq - clock.wall_us) / 1000 for _, _, acq, clock in ups if clock is not None])
+    stated = svc.latency_us()
+    print(f"\n   {n_taxels} taxel(s): compute per update mean {ms.mean():.2f}, p95 {np.percentile(ms, 95):.2f} ms; "
+          f"client clock offset {offset:+.0f} us; chunk in hand after its stated acquisition: min "
+          f"{in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")
+    print("   class  look-ahead   -> leaves the encoder (server)    -> held by the client           spikes")
     for c in CLASSES:
-        sent, recv = [], []
-        for update, emit, s, r, *_ in rows:
-            lat = log.get(int(update), {}).get(c)
-            if lat is not None and lat.size:
-                sent.append(lat * 1000 + (s - emit) / 1000)
-                recv.append(lat * 1000 + (r - emit) / 1000)
-        sent_a = np.concatenate(sent) if sent else np.zeros(0)
-        recv_a = np.concatenate(recv) if recv else np.zeros(0)
-        print(f"   {c:>4}   {_stats_ms(sent_a):>26}   {_stats_ms(recv_a):>26}   {sent_a.size:6d}")
+        server = [u[0][c] * 1000 for u in ups if c in u[0]]
+        srv = np.concatenate(server) if server else np.zeros(0)
+        got = lat[c] / 1000
+        print(f"   {c:>4}   {stated.get(c, 0) / 1000:7.1f}   {_stats_ms(srv):>28}   {_stats_ms(got):>28}   {got.size:6d}")
 
 
 @contextlib.contextmanager

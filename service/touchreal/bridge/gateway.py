@@ -32,6 +32,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_late
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from touchreal_client import protocol as P
+from touchreal_client.clock import ClockPoint
 
 from .. import __version__
 from ..server import ws
@@ -103,7 +104,7 @@ class Gateway:
         self.upstream_channels = UpstreamTracker()
         self.upstream_decoded: dict[str, UpstreamTracker] = {}  #: per decoder subject
         self.upstream_hello: dict[str, Any] | None = None
-        self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest frame
+        self.clock: ClockPoint | None = None  #: the publisher's clock model, as last told
         self.last_frame_mono: float | None = None
         self.bad_frames = 0
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -133,6 +134,7 @@ class Gateway:
             reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
+        await self.nc.subscribe(subjects.clock(self.sensor_id), cb=self._on_clock)
         for subject in (subjects.frames(self.sensor_id), subjects.channels(self.sensor_id),
                         subjects.decoded_any(self.sensor_id)):
             await self.nc.subscribe(subject, cb=self._on_frame, pending_msgs_limit=s.pending_frames,
@@ -151,7 +153,11 @@ class Gateway:
                 await asyncio.sleep(HELLO_RETRY_S)
 
     def _set_hello(self, hello: dict[str, Any]) -> None:
+        if (self.upstream_hello or {}).get("session") != hello.get("session"):
+            self.clock = None  # a new publisher session: its clock model starts afresh
         self.upstream_hello = hello
+        if hello.get("clock") is not None:
+            self._take_clock(hello["clock"])
         self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)),
                            {d["name"]: d["classes"] for d in self._decoders()})
 
@@ -159,6 +165,26 @@ class Gateway:
         """The publisher's decoders this gateway offers: those that have a subject (token names)."""
         decs = (self.upstream_hello or {}).get("streams", {}).get("decoded", {}).get("decoders", [])
         return [d for d in decs if subjects.token_ok(d.get("name", ""))]
+
+    def _take_clock(self, msg: dict[str, Any]) -> bool:
+        """Keep a clock point of the publisher (ValueError if malformed); True if it is news."""
+        point = ClockPoint.from_json(msg)
+        old = self.clock
+        if old is not None and (point.epoch, point.sensor_us) <= (old.epoch, old.sensor_us):
+            return False
+        self.clock = point
+        return True
+
+    async def _on_clock(self, msg) -> None:
+        try:
+            if self._take_clock(json.loads(msg.data)):
+                self.hub.broadcast(self.clock_message())
+        except ValueError as exc:
+            log.warning("bad clock on %s: %s", msg.subject, exc)
+
+    def clock_message(self) -> str | None:
+        """The publisher's current ``clock`` message (None before it told one)."""
+        return None if self.clock is None else json.dumps(self.clock.to_json(), separators=(",", ":"))
 
     async def _on_hello(self, msg) -> None:
         if msg.reply or not msg.data:  # a gateway's request, not an announcement
@@ -197,8 +223,6 @@ class Gateway:
             self.m_lost.inc(seen.lost)
             self.hub.skip(seen.lost, stream, decoder)
         upd = update_from_frame(frame, self.hub.n_taxels, decoder)
-        if upd.final_us:
-            self.anchor = (max(upd.final_us.values()), upd.emit_us)
         self.last_frame_mono = time.monotonic()
         self.metrics.updates.inc()
         self.hub.publish(upd)
@@ -229,14 +253,14 @@ class Gateway:
     # -- what ws.py and the routes read -----------------------------------------------------------
     def hello(self) -> dict[str, Any]:
         """The publisher's hello, as this gateway serves it: the decoders it offers (:meth:`_decoders`),
-        its own queue limits, a fresh clock anchor. Before the publisher answered: no taxels,
+        its own queue limits, the publisher's latest clock model. Before the publisher answered: no taxels,
         ``session`` null."""
         up = self.upstream_hello or {"session": None, "taxels": [], "classes": [], "latency_us": {}, "window_us": {},
                                      "update_us": 0, "params": None, "units": {}}
         s = self.settings
         return {**up, "type": "hello", "protocol": P.PROTOCOL, "version": P.VERSION,
                 "versions": list(P.SUPPORTED_VERSIONS), "server": f"touchreal-gateway {__version__} (NATS {self.sensor_id})",
-                "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
+                "clock": None if self.clock is None else {k: v for k, v in self.clock.to_json().items() if k != "type"},
                 "streams": {**up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}),
                             "decoded": {"decoders": self._decoders()}},
                 "encodings": list(P.ENCODINGS), "default_encoding": "binary",

@@ -10,7 +10,8 @@ counted and dropped, the next frame's ``seq`` jump shows the loss downstream). I
 the queue overflow, the hub drops frames for the publisher alone, again visible as a ``seq`` jump.
 
 It also answers ``hello`` requests with the service's current hello and announces a new one when
-the parameter revision, taxels, classes or decoders change.
+the parameter revision, taxels, classes or decoders change, and publishes the service's ``clock``
+messages (its clock model) as the service tells them to its own clients.
 
 With ``retain_s`` it keeps the last seconds of everything it publishes in a small in-memory
 JetStream stream (:func:`.subjects.stream_name`), so a late joiner reading NATS can catch up; the
@@ -112,6 +113,7 @@ class NatsPublisher:
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        self.service.clock_listeners.append(self._on_clock)
         if self.retain_s:
             await self._retain()
         log.info("publishing %s to %s", subjects.frames(self.sensor_id), self.url)
@@ -178,6 +180,7 @@ class NatsPublisher:
         if sub is None:
             sub = self.lanes[subject] = self.service.hub.add()
             sub.wakeup = self._wakeup  # one drain task serves every lane
+            sub.takes_control = False  # hello and clock cross the broker on subjects of their own
         return sub
 
     def _apply_demand(self) -> None:
@@ -195,6 +198,17 @@ class NatsPublisher:
             sub = self._lane(subject) if want is not None else self.lanes[subject]
             if (sub.subscription and sub.subscription.to_json()) != (want and want.to_json()):
                 self.service.hub.subscribe(sub, want)
+
+    def _on_clock(self, text: str) -> None:
+        """Called on the event loop with each clock message the service tells its clients."""
+        if self.nc is not None and self.nc.is_connected:
+            asyncio.ensure_future(self._publish_clock(text.encode()))
+
+    async def _publish_clock(self, data: bytes) -> None:
+        try:
+            await self.nc.publish(subjects.clock(self.sensor_id), data)
+        except (NatsError, OSError) as exc:  # the next one (within a second) restates it
+            log.debug("clock publish failed: %r", exc)
 
     async def _on_hello_request(self, msg) -> None:
         if msg.reply:  # our own announcements arrive here too: they have no reply subject

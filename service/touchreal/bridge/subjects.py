@@ -12,6 +12,7 @@
 * ``hello``: the service's ``hello`` JSON; a request (any payload, with a reply subject) is answered
   with the current one, and the publisher announces a new one here when it changes.
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+* ``clock``: the service's ``clock`` messages (its clock model), as it tells its own clients.
 
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
 JetStream stream :func:`stream_name`.
@@ -47,6 +48,10 @@ def channels(sensor_id: str) -> str:
 
 def hello(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.hello"
+
+
+def clock(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.clock"
 
 
 def demand(sensor_id: str) -> str:

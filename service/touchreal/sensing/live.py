@@ -21,6 +21,8 @@ from typing import Protocol
 
 import numpy as np
 
+from touchreal_client.clock import ClockPoint
+
 from ..recording import Dataset, Trial
 from .raw import RawChunk
 from .replay import ReplaySource
@@ -44,6 +46,12 @@ class LiveSource(Protocol):
 
     def next_chunk(self) -> RawChunk | None: ...
 
+    def clock(self) -> ClockPoint | None:
+        """The clock model after the latest chunk: the wire-clock stamp of its end and the server
+        wall time (us) at which that instant was acquired, the rate (wall us per sensor us) and the
+        epoch (incremented whenever the mapping jumps); None before the first chunk."""
+        ...
+
     def status(self) -> dict[str, int | float | str]: ...
 
     def close(self) -> None: ...
@@ -58,12 +66,16 @@ class _Paced:
         self.clock = clock
         self._closed = threading.Event()
         self._start: float | None = None
+        self._start_wall_us = 0
         self._k = 0
+        self.epoch = -1  #: increments at every (re)start of the schedule
 
     def wait_next(self) -> bool:
         """Sleep until the next release; False once closed."""
         if self._start is None:
             self._start = self.clock()
+            self._start_wall_us = time.time_ns() // 1000
+            self.epoch += 1
         self._k += 1
         wait = self._start + self._k * self.period_s - self.clock()
         if wait > 0:
@@ -76,6 +88,10 @@ class _Paced:
     def restart(self) -> None:
         """Start a new schedule at the next call (after a pause: no catching up)."""
         self._start, self._k = None, 0
+
+    def release_wall_us(self) -> int:
+        """Scheduled wall time (us) of the latest release: when its chunk's last instant was acquired."""
+        return self._start_wall_us + int(round(self._k * self.period_s * 1e6))
 
 
 class SimLiveSource:
@@ -95,12 +111,19 @@ class SimLiveSource:
         self.offset_us = 0
         self._pace = _Paced(update_s)
         self._chunks = 0
+        self._clock: ClockPoint | None = None
 
     def next_chunk(self) -> RawChunk | None:
         if not self._pace.wait_next():
             return None
         self._chunks += 1
-        return self.scene.read(self.update_s)
+        chunk = self.scene.read(self.update_s)
+        # the skin is sampled in real time: the chunk's end instant is "now" on the pace's schedule
+        self._clock = ClockPoint(int(round(self.scene.requested_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
+        return chunk
+
+    def clock(self) -> ClockPoint | None:
+        return self._clock
 
     def status(self) -> dict[str, int | float | str]:
         return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks}
@@ -146,8 +169,12 @@ class ReplayLiveSource:
         self.trial_id = ""
         self._next_offset_us = 0
         self._player: ReplaySource | None = None
+        self.speed = speed
         self._pace = _Paced(update_s / speed)
         self._ended = False
+        self._clock: ClockPoint | None = None
+        self._epoch = -1
+        self._pace_epoch = -1
 
     def _open_next(self) -> bool:
         i = self.segment + 1
@@ -169,7 +196,17 @@ class ReplayLiveSource:
             if not self._open_next():
                 self._ended = True
                 return None
-        return self._player.read(self.update_s)
+            self._epoch += 1  # a new trial: the wire clock jumps to its offset
+        elif self._pace.epoch != self._pace_epoch:
+            self._epoch += 1  # resumed after a pause for demand
+        self._pace_epoch = self._pace.epoch
+        chunk = self._player.read(self.update_s)
+        self._clock = ClockPoint(self.offset_us + int(round(self._player.now_s * 1e6)), self._pace.release_wall_us(),
+                                 1.0 / self.speed, 0, self._epoch)
+        return chunk
+
+    def clock(self) -> ClockPoint | None:
+        return self._clock
 
     def resume(self) -> None:
         """Continue after a pause for demand, in real time from now."""

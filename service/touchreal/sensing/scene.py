@@ -183,6 +183,12 @@ class SceneSource:
         """Recording time (s) up to which samples have been produced (time of the next tick)."""
         return self.eskin.time_s
 
+    @property
+    def requested_s(self) -> float:
+        """Recording time (s) up to which samples were asked for (:meth:`read`): every sample before
+        it has been delivered, none after it."""
+        return self._requested_s
+
     def advance(self, n_ticks: int) -> RawChunk:
         """The next ``n_ticks`` PVDF ticks (2 kHz) and the SingleTact samples among them.
 

@@ -52,6 +52,8 @@ class Subscriber:
         self.kicked = asyncio.Event()
         self.control: deque[str] = deque()  #: JSON replies (subscribed, time, error): never dropped
         self.after_frames: deque[str] = deque()  #: JSON messages that follow every frame queued before them (ended)
+        #: False for a subscriber no client reads control messages from (a NATS publisher's lane)
+        self.takes_control = True
         self.wakeup = asyncio.Event()
 
     def say(self, text: str) -> None:
@@ -119,6 +121,12 @@ class Hub:
     def remove(self, sub: Subscriber) -> None:
         if self.subscribers.pop(sub.id, None) is not None and sub.subscription is not None:
             self.refresh_demand()
+
+    def broadcast(self, text: str) -> None:
+        """A control message (``hello``, ``clock``) for every client."""
+        for sub in self.subscribers.values():
+            if sub.takes_control:
+                sub.say(text)
 
     def subscribe(self, sub: Subscriber, subscription: P.Subscription | None) -> None:
         sub.subscription = subscription

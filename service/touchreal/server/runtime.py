@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from touchreal_client.clock import ClockMap, ClockPoint
 from touchreal_client.protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_SOURCE_GAP
 
 from ..encoding.encoder import SpikeEvents
@@ -61,40 +62,10 @@ class Update:
     offset_us: int = 0
     decoded: list[tuple[str, tuple[int, ...], np.ndarray, np.ndarray]] = field(default_factory=list)
     compute_s: float = 0.0
-    latency_us: dict[str, np.ndarray] = field(default_factory=dict)  #: per class: emit - acquisition of the cause
+    #: per class, per spike: emit minus the acquisition of its causing sample (s, clock model)
+    latency_us: dict[str, np.ndarray] = field(default_factory=dict)
     spikes: bool = True  #: False for an update that carries only channels (a gateway's channels frame)
-
-
-class ChunkLog:
-    """Recent (last sensor time of a chunk, wall time it was read): maps a spike's cause to the
-    moment its sample was acquired."""
-
-    def __init__(self, size: int = 512):
-        self.end_s = np.full(size, np.inf)
-        self.acq_us = np.zeros(size, np.int64)
-        self.i = 0
-
-    def add(self, chunk: RawChunk, acq_us: int) -> None:
-        ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
-        if not ends:
-            return
-        j = self.i % self.end_s.size
-        self.end_s[j], self.acq_us[j] = max(ends), acq_us
-        self.i += 1
-
-    def acquired_us(self, t_s: np.ndarray) -> np.ndarray:
-        """Wall time (us) at which the sample at sensor time ``t_s`` had arrived (-1 if unknown)."""
-        order = np.argsort(self.end_s)
-        ends = self.end_s[order]
-        k = np.searchsorted(ends, t_s, side="left")
-        ok = k < np.isfinite(ends).sum()
-        out = np.full(t_s.shape, -1, np.int64)
-        out[ok] = self.acq_us[order][k[ok]]
-        return out
-
-    def clear(self) -> None:
-        self.end_s[:] = np.inf
-        self.i = 0
+    clock: ClockPoint | None = None  #: the source's clock model after this update's chunk
 
 
 class Runtime:
@@ -126,7 +97,9 @@ class Runtime:
         self.update_no = 0
         self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
         self.error: str | None = None
-        self.chunk_log = ChunkLog()
+        #: the source's clock model (maps a spike's cause to the moment its sample was acquired)
+        self.clocks = ClockMap()
+        self.clock: ClockPoint | None = None
         self.counters: dict[str, int] = {}  #: cumulative sanitizer + source fault counters
         self._enc_stats: dict[str, int] = {}
         self._src_faults = self._source_faults()
@@ -160,17 +133,19 @@ class Runtime:
                 if chunk is None:
                     self._end_of_stream()
                     break
-                self.step(chunk, wall_us())
+                clock = getattr(self.source, "clock", None)  # a source without a clock model: see step()
+                self.step(chunk, wall_us(), clock() if clock is not None else None)
         except Exception as exc:  # the service reports it (ready goes false); clients stay connected
             log.exception("acquisition thread failed")
             self.state, self.error = "failed", f"{type(exc).__name__}: {exc}"
 
     # -- one update -----------------------------------------------------------------------------
-    def step(self, chunk: RawChunk, acq_us: int) -> Update | None:
-        """Process one chunk acquired at ``acq_us`` (wall clock); returns the published update."""
+    def step(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None = None) -> Update | None:
+        """Process one chunk read at ``acq_us`` (wall clock, us); ``clock``: the source's clock model
+        after it (default: the chunk's newest sample acquired at ``acq_us``). Returns the published update."""
         if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
             self._flush_segment(acq_us)
-        self.chunk_log.add(chunk, acq_us)
+        self._follow_clock(chunk, acq_us, clock)
         flags = self._pending_flags | self._source_flags()
         demand = self._demand()
         rev, params = self._params()
@@ -210,9 +185,19 @@ class Runtime:
         if tail is not None:
             self._emit(tail, 0, acq_us, 0.0, None)
         self.decoders = {}
-        self.chunk_log.clear()
         self.enc_segment, self.enc_offset_us = self.source.segment, self.source.offset_us
         self._pending_flags |= FLAG_RESTARTED
+
+    def _follow_clock(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None) -> None:
+        if clock is None:  # a source without a clock model: its newest sample arrived when the chunk was read
+            ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
+            if not ends:
+                return
+            last = self.clocks.last
+            clock = ClockPoint(int(round(max(ends) * 1e6)) + self.source.offset_us, acq_us, 1.0, 0,
+                               last.epoch if last is not None else 0)
+        if self.clocks.update(clock) is not None:
+            self.clock = clock
 
     def _finish_encoder(self) -> tuple[SpikeEvents, int, dict[str, float], dict[str, float]] | None:
         if self.encoder is None:
@@ -248,14 +233,14 @@ class Runtime:
         self.update_no += 1
         emit = wall_us()
         latency = {}
-        for i, c in enumerate(CLASSES):
-            sel = cls == i
-            if sel.any():
-                cause_s = ev.t_s[sel] - delays.get(c, 0.0)
-                acq = self.chunk_log.acquired_us(cause_s)
-                latency[c] = (emit - acq[acq >= 0]) / 1e6
+        if self.clocks.last is not None:
+            for i, c in enumerate(CLASSES):
+                sel = cls == i
+                if sel.any():
+                    cause_us = (ev.t_s[sel] - delays.get(c, 0.0)) * 1e6 + offset_us
+                    latency[c] = (emit - self.clocks.to_server_wall_us(cause_us)) / 1e6
         upd = Update(self.update_no, self.enc_rev, flags, acq_us, emit, t_us, taxel, cls, final_us, channels, offset_us,
-                     [], compute_s, latency)
+                     [], compute_s, latency, clock=self.clock)
         upd.decoded = self._decode(upd)
         self._publish(upd)
         return upd

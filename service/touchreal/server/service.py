@@ -1,5 +1,10 @@
 """The one service object the routers call: source + runtime, hub, parameter store, metrics.
 
+Clients are told what they need to trust a spike in time: the source's clock model as a ``clock``
+message (after every ``hello``, at least every :data:`CLOCK_EVERY_US`, and at once when the mapping
+jumps), and a new ``hello`` whenever what it describes changes (parameter revision, windows,
+classes, decoders, the address map).
+
 Threading: the acquisition :class:`~.runtime.Runtime` runs on its own thread and posts each update
 to the event loop (``call_soon_threadsafe``); everything else here runs on the event loop. If the
 loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dropped and counted
@@ -19,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from touchreal_client import protocol as P
+from touchreal_client.clock import ClockPoint
 
 from .. import __version__
 from ..decoding.model import ModelStore, params_warning
@@ -32,6 +38,7 @@ from .sources import open_source, parse_source
 
 log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
+CLOCK_EVERY_US = 1_000_000  #: the clock model is restated at least this often (us)
 
 
 def warm_up(params: EncoderParams) -> None:
@@ -60,7 +67,11 @@ class Service:
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.anchor = (0, 0)  #: (sensor_us, wall_us) of the latest update
+        self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
+        self._clock_told_us = 0
+        #: called with each ``clock`` message text as it goes to the clients (e.g. the NATS publisher)
+        self.clock_listeners: list[Callable[[str], None]] = []
+        self._hello_key: tuple | None = None
         self.opened = threading.Event()  #: set once the warm-up and the first source open are done
         #: more sections of ``/v1/status`` (name -> callable), e.g. the NATS publisher's ``nats``
         self.status_sections: dict[str, Callable[[], dict[str, Any]]] = {}
@@ -105,10 +116,9 @@ class Service:
         self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._post_end)
+        self.clock = None
         self.runtime.start()
-        hello = json.dumps(self.hello(), separators=(",", ":"))
-        for sub in self.hub.subscribers.values():  # the address map may have changed: say it again
-            sub.say(hello)
+        self.announce_hello()  # the address map may have changed: say it again
 
     async def restart_source(self) -> None:
         await self.stop()
@@ -139,7 +149,8 @@ class Service:
             self.ended = {"type": "ended", "reason": "source_ended"}
         text = json.dumps(self.ended, separators=(",", ":"))
         for sub in self.hub.subscribers.values():
-            sub.say_after_frames(text)
+            if sub.takes_control:
+                sub.say_after_frames(text)
 
     def _deliver(self, upd: Update) -> None:
         self._delivered += 1
@@ -163,9 +174,41 @@ class Service:
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
-        if upd.final_us:
-            self.anchor = (max(upd.final_us.values()), upd.emit_us)
+        self._tell_clock(upd.clock)
+        if self._hello_key != self._describe():
+            self.announce_hello()
         self.hub.publish(upd)
+
+    # -- what clients are told besides frames ------------------------------------------------------
+    def _tell_clock(self, point: ClockPoint | None) -> None:
+        """Restate the clock model when its epoch changes or CLOCK_EVERY_US has passed."""
+        if point is None:
+            return
+        now = wall_us()
+        if self.clock is None or point.epoch != self.clock.epoch or now - self._clock_told_us >= CLOCK_EVERY_US:
+            self.clock, self._clock_told_us = point, now
+            text = json.dumps(point.to_json(), separators=(",", ":"))
+            self.hub.broadcast(text)
+            for listener in self.clock_listeners:
+                listener(text)
+
+    def clock_message(self) -> str | None:
+        """The current ``clock`` message (None before the first sample)."""
+        return None if self.clock is None else json.dumps(self.clock.to_json(), separators=(",", ":"))
+
+    def _describe(self) -> tuple:
+        """What the hello describes, for change detection."""
+        p = self.store.active
+        return (self.store.active_rev, p.preprocess.update_ms, tuple(sorted(self.latency_us().items())),
+                tuple(self.config.classes), self.n_taxels, tuple(self.hub.decoder_names))
+
+    def announce_hello(self) -> None:
+        """Send the current hello (then the clock) to every client."""
+        self._hello_key = self._describe()
+        self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
+        clock = self.clock_message()
+        if clock is not None:
+            self.hub.broadcast(clock)
 
     # -- views ----------------------------------------------------------------------------------
     @property
@@ -173,13 +216,15 @@ class Service:
         return self.hub.n_taxels
 
     def latency_us(self) -> dict[str, int]:
-        """Per class: algorithmic latency of the pipeline (us), as the encoder states it."""
-        enc = self.runtime.encoder if self.runtime is not None else None
-        if enc is None:
-            from ..stream import StreamEncoder
+        """Per class: algorithmic latency (us) of the pipeline with the active parameters (the look-ahead
+        of the branches its source reads, less the grid sample a stamp is ahead of its sample)."""
+        from ..preprocess.pipeline import Preprocessor
+        from ..settings import OUT_FS_HZ
+        from ..stream import class_source
 
-            enc = StreamEncoder(self.store.active, 1)
-        return {c: int(round(v * 1e6)) for c, v in enc.latency_s.items()}
+        params = self.store.active
+        return {c: int(round((Preprocessor.latency_s(class_source(params, c)) - 1.0 / OUT_FS_HZ) * 1e6))
+                for c in params.classes}
 
     def hello(self) -> dict[str, Any]:
         params = self.store.active
@@ -193,10 +238,11 @@ class Service:
             "session": self.session,
             "server": f"touchreal {__version__}",
             "units": {"time": "us", "force": "N", "pvdf": "V", "channels": dict(zip(P.CHANNELS, P.CHANNEL_UNITS))},
-            "clock": {"sensor_us": self.anchor[0], "wall_us": self.anchor[1] or wall_us()},
+            "clock": None if self.clock is None else {k: v for k, v in self.clock.to_json().items() if k != "type"},
             "update_us": int(round(params.preprocess.update_ms * 1000)),
             "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
             "latency_us": self.latency_us(),
+            "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
             "classes": [c for c in P.CLASSES if c in params.classes and c in self.config.classes],
             "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
             "streams": {

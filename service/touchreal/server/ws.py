@@ -42,6 +42,9 @@ async def stream(ws: WebSocket) -> None:
     sub = hub.add()
     service.metrics.clients.inc()
     sub.say(_dumps(service.hello()))
+    clock = service.clock_message()
+    if clock is not None:
+        sub.say(clock)
     if service.ended is not None:
         sub.say(_dumps(service.ended))
     sender = asyncio.create_task(_send_loop(ws, sub))

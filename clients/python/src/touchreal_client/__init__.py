@@ -10,6 +10,7 @@ robot computer needs nothing else (onnxruntime, extra ``onnx``, to run decoders 
 
 from .backoff import Backoff
 from .client import AsyncClient, Client, Stream
+from .clock import ClockMap, ClockPoint
 from .errors import (AuthError, NotFound, ParamsRejected, RequestError, ServiceUnavailable, StreamClosed, StreamError,
                      TouchRealError)
 from .protocol import CLASSES, ChannelsFrame, DecodedFrame, Header, SpikesFrame, Subscription
@@ -20,7 +21,7 @@ from .stream import AsyncStream, DecodedOutput
 __version__ = "0.1.0"
 __all__ = [
     "AsyncClient", "AsyncRest", "AsyncStream", "AuthError", "Backoff", "CLASSES", "ChannelsFrame", "Client",
-    "DecodedFrame", "DecodedOutput", "Header", "Latency", "LatencyEstimator", "LatencySummary", "NotFound",
+    "ClockMap", "ClockPoint", "DecodedFrame", "DecodedOutput", "Header", "Latency", "LatencyEstimator", "LatencySummary", "NotFound",
     "ParamsRejected", "RequestError", "ServiceUnavailable", "SpikesFrame", "Stream", "StreamClosed", "StreamError",
     "StreamStats", "Subscription", "TouchRealError",
 ]

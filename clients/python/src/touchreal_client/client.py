@@ -14,8 +14,11 @@ import threading
 from collections.abc import AsyncIterator, Awaitable, Iterator
 from typing import Any, TypeVar
 
+import numpy as np
+
 from . import protocol as P
 from .backoff import Backoff
+from .clock import ClockMap
 from .rest import JSON, AsyncRest
 from .stats import LatencyEstimator, StreamStats
 from .stream import AsyncStream, DecodedOutput
@@ -122,6 +125,18 @@ class Stream:
 
     def sync_clock(self, samples: int = 5) -> float:
         return self._run.call(self._s.sync_clock(samples))
+
+    @property
+    def clock(self) -> ClockMap:
+        return self._s.clock
+
+    def to_local(self, t_us: Any) -> Any:
+        """See :meth:`AsyncStream.to_local`."""
+        return self._s.to_local(t_us)
+
+    def spike_latency_us(self, frame: P.SpikesFrame) -> np.ndarray:
+        """See :meth:`AsyncStream.spike_latency_us`."""
+        return self._s.spike_latency_us(frame)
 
     def frames(self) -> Iterator[P.Frame]:
         return self._run.iterate(self._s.frames())

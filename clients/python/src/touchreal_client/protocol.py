@@ -95,6 +95,7 @@ class Header:
     dropped: int = 0
     sent_us: int = 0
     version: int = VERSION
+    recv_us: int | None = None  #: client side only (not on the wire): this client's wall clock when it received the frame
 
     def flag_names(self) -> list[str]:
         return [name for bit, name in FLAG_NAMES.items() if self.flags & bit]

@@ -16,6 +16,10 @@ synchronised, e.g. on one machine) they give
 * per class ``total_us[c] = latency_us[c] + delivery_us``: the algorithmic latency the server
   states in ``hello`` / ``subscribed`` (stamp to emission, an upper bound) plus the measured delivery.
 
+Per spike, with the stream's clock model (:class:`~.clock.ClockMap`), the latency a robot
+experiences: receipt minus the moment the spike's causing sample was acquired, both on this
+client's clock (:meth:`LatencyEstimator.on_spikes`).
+
 All times are integer microseconds; receive times are the client's wall clock (Unix epoch).
 """
 
@@ -26,7 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_SOURCE_GAP, Header, clock_offset
+from .clock import ClockMap
+from .protocol import CLASSES, FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_SOURCE_GAP, Header, SpikesFrame, clock_offset
 
 
 @dataclass
@@ -75,6 +80,15 @@ class StreamStats:
         return max(self.connections - 1, 0)
 
 
+def spike_latency_us(frame: SpikesFrame, recv_us: int, clock: ClockMap, delay_us: dict[str, int]) -> np.ndarray:
+    """Per spike: ``recv_us`` (client wall clock) minus the acquisition of its causing sample (its stamp
+    minus its class's delay, mapped by ``clock``), us. Empty without spikes or before the first clock point."""
+    if not frame.t_us.size or clock.last is None:
+        return np.zeros(0)
+    delays = np.array([delay_us.get(c, 0) for c in CLASSES], np.float64)[frame.cls]
+    return recv_us - clock.to_local_us(frame.t_us.astype(np.float64) - delays)
+
+
 @dataclass(frozen=True)
 class Latency:
     """One frame's delivery figures (us); ``total_us[c]`` adds the server's algorithmic latency."""
@@ -95,6 +109,8 @@ class LatencySummary:
     total_median_us: dict[str, float]
     offset_us: float
     offset_uncertainty_us: float | None  #: half the best round trip; None = no time exchange yet
+    #: per class, over the recent spikes: (median, p95, max) of receipt minus acquisition of the causing sample (us)
+    spike_us: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
 
 class LatencyEstimator:
@@ -106,6 +122,7 @@ class LatencyEstimator:
         self.algorithmic_us: dict[str, int] = {}
         self.last: Latency | None = None
         self._recent: deque[Latency] = deque(maxlen=window)
+        self._spikes: dict[str, deque[np.ndarray]] = {c: deque(maxlen=window) for c in CLASSES}
 
     def set_algorithmic(self, latency_us: dict[str, int]) -> None:
         """The per-class latency the server states (``hello`` / ``subscribed``: ``latency_us``)."""
@@ -132,10 +149,26 @@ class LatencyEstimator:
         self._recent.append(lat)
         return lat
 
+    def on_spikes(self, frame: SpikesFrame, recv_us: int, clock: ClockMap, delay_us: dict[str, int]) -> np.ndarray:
+        """Per spike of ``frame`` (received at ``recv_us``, client wall clock): receipt minus the
+        acquisition of its causing sample (stamp minus its class's delay, mapped by ``clock``), us.
+        Empty when the frame has no spikes or no clock point has arrived yet."""
+        lat = spike_latency_us(frame, recv_us, clock, delay_us)
+        for i, c in enumerate(CLASSES):
+            sel = frame.cls == i
+            if sel.any():
+                self._spikes[c].append(lat[sel])
+        return lat
+
     def summary(self) -> LatencySummary | None:
         if not self._recent:
             return None
         d = np.array([x.delivery_us for x in self._recent], float)
         total = {c: float(np.median(d) + a) for c, a in self.algorithmic_us.items()}
+        spikes = {}
+        for c, parts in self._spikes.items():
+            if parts:
+                v = np.concatenate(list(parts))
+                spikes[c] = (float(np.median(v)), float(np.percentile(v, 95)), float(v.max()))
         return LatencySummary(len(d), float(np.median(d)), float(np.percentile(d, 99)), total,
-                              self.offset_us, self.uncertainty_us)
+                              self.offset_us, self.uncertainty_us, spikes)

@@ -33,8 +33,9 @@ from websockets.asyncio.client import ClientConnection, connect
 
 from . import protocol as P
 from .backoff import Backoff
+from .clock import ClockMap
 from .errors import ServiceUnavailable, StreamClosed, StreamError
-from .stats import LatencyEstimator, StreamStats
+from .stats import LatencyEstimator, StreamStats, spike_latency_us
 
 #: Close codes after which reconnecting would only repeat the failure.
 FATAL_CLOSE_CODES = frozenset({P.CLOSE_UNSUPPORTED_VERSION, P.CLOSE_TOO_BIG, P.CLOSE_TOO_MANY_ERRORS})
@@ -93,6 +94,7 @@ class AsyncStream:
         self.ended: dict[str, Any] | None = None  #: the server's ``ended`` message (its replay has finished)
         self.stats = StreamStats()
         self.latency = LatencyEstimator()
+        self.clock = ClockMap()  #: the server's clock model (``clock`` messages) plus the ``time`` offset
         self.errors: list[dict[str, Any]] = []  #: ``error`` messages that answered no request
         self._queue: asyncio.Queue[Any] = asyncio.Queue(queue_frames)
         self._pending: deque[tuple[str, asyncio.Future[dict[str, Any]]]] = deque()
@@ -144,7 +146,7 @@ class AsyncStream:
         new_session = hello.get("session") != self.hello.get("session")
         self._ws, self.hello = ws, hello
         self.stats.on_connect(new_session)
-        self.latency.set_algorithmic(hello.get("latency_us", {}))
+        self._on_hello(hello)
         self.backoff.reset()
         self._pending.append(("subscribe", asyncio.get_running_loop().create_future()))
         await ws.send(json.dumps(self.subscription.to_json()))
@@ -166,7 +168,38 @@ class AsyncStream:
             t0 = wall_us()
             reply = await self._request("time", {"type": "time", "id": next(self._ids), "t0_us": t0})
             self.latency.add_time_sample(t0, reply["t1_us"], reply["t2_us"], reply["_t3_us"])
+        self.clock.set_offset(self.latency.offset_us, self.latency.uncertainty_us)
         return self.latency.offset_us
+
+    # -- time -----------------------------------------------------------------------------------
+    def to_local(self, t_us: Any) -> Any:
+        """This client's wall time (us, float; scalar or array) at which the sample stamped ``t_us``
+        (wire clock) was acquired, by the server's clock model and the ``time`` offset
+        (:meth:`sync_clock`; 0 until then). For a spike, subtract its class's ``delay_us`` from the
+        stamp first to place its causing sample; the stamp itself places the spike. LookupError
+        before the first clock point."""
+        return self.clock.to_local_us(t_us)
+
+    def spike_latency_us(self, frame: P.SpikesFrame) -> np.ndarray:
+        """Per spike of a received frame: its receipt minus the acquisition of its causing sample,
+        on this client's clock (us). Empty before the first clock point."""
+        if frame.header.recv_us is None:
+            raise ValueError("the frame carries no receive time (it was not received by this stream)")
+        return spike_latency_us(frame, frame.header.recv_us, self.clock, self.delay_us)
+
+    @property
+    def delay_us(self) -> dict[str, int]:
+        """Per class: the delay (us) its stamps carry past their causing sample (``hello.delay_us``)."""
+        return {str(c): int(v) for c, v in self.hello.get("delay_us", {}).items()}
+
+    def _on_hello(self, hello: dict[str, Any]) -> None:
+        self.latency.set_algorithmic(hello.get("latency_us", {}))
+        if hello.get("session") != getattr(self, "_clock_session", None):
+            self.clock = ClockMap()  # a new server session: its sensor clock starts afresh
+            self.clock.set_offset(self.latency.offset_us, self.latency.uncertainty_us)
+            self._clock_session = hello.get("session")
+        if hello.get("clock") is not None:
+            self.clock.update(hello["clock"])
 
     async def _request(self, kind: str, message: dict[str, Any]) -> dict[str, Any]:
         if self._ws is None or self._closing:
@@ -237,9 +270,11 @@ class AsyncStream:
             await self._on_frame(P.frame_from_json(m), recv)
         elif kind == "hello":
             self.hello = m
+            self._on_hello(m)
+        elif kind == "clock":
+            self.clock.update(m)
         elif kind == "ended":
             self.ended = m
-            self.latency.set_algorithmic(m.get("latency_us", {}))
         elif kind in ("subscribed", "time", "error"):
             if kind == "subscribed":
                 self.subscribed = m
@@ -263,10 +298,13 @@ class AsyncStream:
             fut.set_result(m)
 
     async def _on_frame(self, frame: P.Frame, recv_us: int) -> None:
+        frame.header.recv_us = recv_us
         n_ev = frame.t_us.size if isinstance(frame, P.SpikesFrame) else 0
         n_steps = frame.t_us.size if isinstance(frame, P.DecodedFrame) else 0
         self.stats.on_frame(frame.header, n_ev, n_steps)
         self.latency.on_frame(frame.header, recv_us)
+        if isinstance(frame, P.SpikesFrame):
+            self.latency.on_spikes(frame, recv_us, self.clock, self.delay_us)
         await self._queue.put(frame)
 
     # -- iteration ------------------------------------------------------------------------------

@@ -17,6 +17,8 @@
     texture: null, decodedNames: [],
     frames: 0, events: 0, drawnSpikes: 0, nextSeq: null, gaps: 0, missed: 0, serverDropped: 0, sourceGaps: 0,
     offsetUs: 0, bestRtt: Infinity, delivery: [], rate: { t: performance.now(), frames: 0, events: 0 },
+    clocks: [],            // the server's clock model: recent {sensor_us, wall_us, rate, epoch} points
+    spikeLatency: { SA1: [], RA: [], PC: [] },  // receipt minus acquisition of the causing sample (us)
   };
   window.touchreal = state;  // for the browser test and the console
 
@@ -72,7 +74,8 @@
       state.decodedNames = (m.streams.decoded && m.streams.decoded.decoders) || [];
       $("conn").textContent = `${m.server} · ${m.taxels.length} taxel(s) · session ${m.session.slice(0, 8)}`;
       $("conn").className = "pill on";
-      if (fresh) { state.spikes = []; state.force.clear(); state.decodedForce.clear(); state.finalUs = 0; }
+      if (fresh) { state.spikes = []; state.force.clear(); state.decodedForce.clear(); state.finalUs = 0; state.clocks = []; }
+      if (m.clock) onClock(m.clock);
       sendSubscription();
       syncClock();
     } else if (m.type === "subscribed") {
@@ -81,9 +84,27 @@
     } else if (m.type === "time") {
       const t3 = nowUs(), rtt = (t3 - m.t0_us) - (m.t2_us - m.t1_us);
       if (rtt <= state.bestRtt) { state.bestRtt = rtt; state.offsetUs = ((m.t1_us - m.t0_us) + (m.t2_us - t3)) / 2; }
+    } else if (m.type === "clock") {
+      onClock(m);
     } else if (m.type === "error") {
       log(`server: ${m.code}: ${m.message}`, true);
     }
+  }
+
+  // the clock model (docs/stream-protocol.md, "clock"): keep the points of the last few epochs
+  function onClock(c) {
+    const last = state.clocks[state.clocks.length - 1];
+    if (last && (c.epoch < last.epoch || (c.epoch === last.epoch && c.sensor_us < last.sensor_us))) return;
+    if (last && c.sensor_us < last.sensor_us) state.clocks = [];
+    state.clocks.push({ sensor_us: c.sensor_us, wall_us: c.wall_us, rate: c.rate, epoch: c.epoch });
+    if (state.clocks.length > 16) state.clocks.shift();
+  }
+
+  // local wall time (us) at which the sample stamped t (wire clock) was acquired; NaN before any point
+  function toLocal(t) {
+    let p = null;
+    for (const q of state.clocks) if (q.sensor_us <= t || p === null) p = q;
+    return p === null ? NaN : p.wall_us + (t - p.sensor_us) * p.rate - state.offsetUs;
   }
 
   function syncClock() {
@@ -107,7 +128,12 @@
   }
 
   function onSpikes(f) {
-    for (let i = 0; i < f.t_us.length; i++) state.spikes.push({ t: f.t_us[i], taxel: f.taxel[i], cls: f.cls[i] });
+    const recv = nowUs(), delays = (state.hello && state.hello.delay_us) || {};
+    for (let i = 0; i < f.t_us.length; i++) {
+      state.spikes.push({ t: f.t_us[i], taxel: f.taxel[i], cls: f.cls[i] });
+      const c = CLASSES[f.cls[i]], lat = recv - toLocal(f.t_us[i] - (delays[c] || 0));
+      if (Number.isFinite(lat)) { state.spikeLatency[c].push(lat); if (state.spikeLatency[c].length > 500) state.spikeLatency[c].shift(); }
+    }
     state.events += f.t_us.length; state.rate.events += f.t_us.length;
     for (const c of CLASSES) if (f.final_us[c] !== null) state.finalUs = Math.max(state.finalUs, f.final_us[c]);
     const keep = state.finalUs - SPAN_US;
@@ -216,9 +242,12 @@
     const d = median(state.delivery);
     if (Number.isFinite(d)) {
       $("delivery").textContent = `${(d / 1000).toFixed(1)} ms`;
-      const alg = (state.subscribed || state.hello || {}).latency_us || {};
-      $("latency").textContent = CLASSES.map((c) => (c in alg ? `${((alg[c] + d) / 1000).toFixed(0)}` : "–")).join(" / ") + " ms";
     }
+    // per class: median of receipt minus the acquisition of each spike's causing sample
+    $("latency").textContent = CLASSES.map((c) => {
+      const m = median(state.spikeLatency[c]);
+      return Number.isFinite(m) ? (m / 1000).toFixed(0) : "–";
+    }).join(" / ") + " ms";
     $("drops").textContent = `${state.missed} (${state.gaps}) / ${state.serverDropped}`;
     $("srcgaps").textContent = state.sourceGaps;
   }
