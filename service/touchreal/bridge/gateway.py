@@ -85,7 +85,7 @@ class AnnouncingHub(Hub):
 
 class Gateway:
     """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
-    ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
+    ``ended``, ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
 
     def __init__(self, settings: GatewaySettings):
         self.settings = settings
@@ -105,6 +105,7 @@ class Gateway:
         self.upstream_decoded: dict[str, UpstreamTracker] = {}  #: per decoder subject
         self.upstream_hello: dict[str, Any] | None = None
         self.clock: ClockPoint | None = None  #: the publisher's clock model, as last told
+        self.ended: dict[str, Any] | None = None  #: what ws.py says after hello once a stream has ended (not relayed yet)
         self.last_frame_mono: float | None = None
         self.bad_frames = 0
         self.loop: asyncio.AbstractEventLoop | None = None
