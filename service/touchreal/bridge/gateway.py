@@ -161,6 +161,8 @@ class Gateway:
             self._take_clock(hello["clock"])
         self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)),
                            {d["name"]: d["classes"] for d in self._decoders()})
+        # clients connected before (to the placeholder, or to the previous session) learn the new one
+        self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
 
     def _decoders(self) -> list[dict[str, Any]]:
         """The publisher's decoders this gateway offers: those that have a subject (token names)."""
