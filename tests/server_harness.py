@@ -71,6 +71,11 @@ async def collect(ws, seconds: float, until=None, clock: list | None = None) -> 
     return frames
 
 
+def n_spikes(frames: list) -> int:
+    """How many of ``collect``'s items are spikes frames (it also returns JSON messages such as ``clock``)."""
+    return sum(isinstance(f, P.SpikesFrame) for f in frames)
+
+
 async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[list, object, bool]:
     """Two clients subscribe to a heavy stream (5 kHz channels); one never reads (4 KiB receive buffer).
 
@@ -93,3 +98,21 @@ async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[lis
                 await asyncio.wait_for(stalled.recv(), 10)
         except websockets.ConnectionClosed as closed:
             return frames, closed.rcvd, gone
+
+
+async def until(predicate, seconds: float, what: str) -> None:
+    """Poll ``predicate()`` every 20 ms until it is true; fail naming ``what`` after ``seconds``."""
+    end = time.monotonic() + seconds
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"not within {seconds} s: {what}")
+        await asyncio.sleep(0.02)
+
+
+def wait_until(predicate, seconds: float, what: str) -> None:
+    """:func:`until` for synchronous code."""
+    end = time.monotonic() + seconds
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"not within {seconds} s: {what}")
+        time.sleep(0.02)

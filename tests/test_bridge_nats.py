@@ -16,11 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from server_harness import collect, connect, hello_and_subscribe, stall_one_of_two
+from server_harness import collect, connect, hello_and_subscribe, stall_one_of_two, until, wait_until
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 
 from touchreal.bridge import natsd, subjects
+from touchreal.bridge.auth import NatsAuth
 from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
 from touchreal.bridge.publisher import NatsPublisher
 from touchreal.params import default_params
@@ -60,9 +61,9 @@ def publishing(state_dir: Path, url: str, config: RuntimeConfig | None = None, p
 
 
 @contextmanager
-def gateway(url: str, port: int = 0, **settings) -> Iterator[tuple[str, Gateway]]:
+def gateway(url: str, port: int = 0, auth: NatsAuth | None = None, **settings) -> Iterator[tuple[str, Gateway]]:
     """A gateway on 127.0.0.1 that has the publisher's hello; yields (addr, gateway)."""
-    gw = Gateway(GatewaySettings(nats=url, sensor_id=SENSOR, host="127.0.0.1", port=port, **settings))
+    gw = Gateway(GatewaySettings(nats=url, sensor_id=SENSOR, host="127.0.0.1", port=port, **settings), auth)
     with serving_app(create_gateway_app(gw), port=port) as addr:
         deadline = time.monotonic() + 10
         while not gw.ready()[0]:
@@ -93,11 +94,11 @@ def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp
                 h1, _ = await hello_and_subscribe(w1, taxels=[0, 2], classes=["SA1", "PC"])
                 h2, _ = await hello_and_subscribe(w2, streams=["spikes", "channels"])  # everything
                 await hello_and_subscribe(direct, streams=["spikes", "channels"])
-                await asyncio.sleep(0.3)
+                await until(lambda: len(pub.demand.gateways) == 2, 10, "both gateways' demand reached the publisher")
                 demand = dict(svc.hub.demand.columns)
                 f1, f2, fd = await asyncio.gather(collect(w1, 3.0), collect(w2, 3.0), collect(direct, 3.0))
-            await asyncio.sleep(1.0)  # the gateways withdraw their demand as soon as their clients leave: the
-            # publisher no longer subscribes (after == [None, None])
+            # the gateways withdraw their demand as soon as their clients leave: the publisher no longer subscribes
+            await until(lambda: not pub.demand.gateways, 10, "the gateways withdrew their demand")
             return h1, h2, demand, f1, f2, fd, [s.subscription for s in pub.lanes.values()]
 
         h1, h2, demand, f1, f2, fd, after = run(go())
@@ -182,6 +183,7 @@ def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_u
 
         before, after = run(go())
         lost, slow = gw.upstream.lost, gw.m_slow._value.get()
+        counted = gw.metrics.drops.labels("upstream_loss")._value.get()  # touchreal_dropped_frames_total
     frames = before + after
     seqs = np.array([f.header.seq for f in frames])
     updates = np.array([f.header.update for f in frames])
@@ -190,6 +192,7 @@ def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_u
     assert np.array_equal(np.diff(seqs), np.diff(updates))
     jumps = int(np.sum(np.diff(seqs) - 1))
     assert 0 < jumps == frames[-1].header.dropped - frames[0].header.dropped <= lost
+    assert jumps <= counted <= lost
 
 
 def _decoded(frames):
@@ -203,12 +206,16 @@ def test_decoded_outputs_cross_nats_on_demand_and_equal_the_service_direct(tmp_p
             async with connect(ga) as via, connect(addr) as direct:
                 hv, _ = await hello_and_subscribe(via, taxels=[0, 2], streams=["decoded"], decoders=["force"])
                 hd, _ = await hello_and_subscribe(direct, taxels=[0, 2], streams=["decoded"], decoders=["force"])
-                await asyncio.sleep(0.5)
+                subject = f"touchreal.{SENSOR}.decoded.force"
+                await until(lambda: subject in pub.lanes and pub.lanes[subject].subscription is not None
+                            and sorted(svc.runtime.decoders) == ["force"], 10, "the decoder's lane is subscribed")
                 lanes = {k: v.subscription for k, v in pub.lanes.items()}
                 demand, running = dict(svc.hub.demand.decoders), sorted(svc.runtime.decoders)
                 fv, fd = await asyncio.gather(collect(via, 3.0), collect(direct, 3.0))
                 announced = gw.status()["demand"]
-            await asyncio.sleep(1.0)  # both clients gone: the lane idles and the decoder stops
+            # both clients gone: the lane idles and the decoder stops
+            await until(lambda: pub.lanes[subject].subscription is None and not svc.runtime.decoders, 10,
+                        "the lane idles and the decoder stops")
             return hv, hd, lanes, demand, running, fv, fd, announced, pub.lanes, sorted(svc.runtime.decoders)
 
         hv, hd, lanes, demand, running, fv, fd, announced, after, running_after = run(go())
@@ -272,7 +279,7 @@ def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path
                 await hello_and_subscribe(steady)
                 collecting = asyncio.create_task(collect(steady, 6.0))
                 h1, f1 = await first_life()  # the gateway goes away with its client...
-                await asyncio.sleep(0.5)
+                await until(lambda: len(pub.demand.gateways) == 1, 10, "the publisher saw it go")
                 with gateway(nats_url, port=port) as (ga, _g1):  # ...and comes back on the same address
                     async with connect(ga) as ws:
                         h2, _ = await hello_and_subscribe(ws)
@@ -295,7 +302,7 @@ def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored
 
     gw = Gateway(GatewaySettings(nats=nats_url, sensor_id="nobody", host="127.0.0.1", port=0))
     with serving_app(create_gateway_app(gw)) as ga:
-        time.sleep(0.3)
+        wait_until(lambda: gw.nc is not None and gw.nc.is_connected, 10, "the gateway connected to NATS")
         r = httpx.get(f"http://{ga}/v1/ready")
     assert r.status_code == 503 and "no hello" in r.json()["reason"]
 
@@ -308,14 +315,13 @@ def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored
             await nc.publish(f"touchreal.{SENSOR}.demand", json.dumps(
                 {"gateway": "rec", "ttl_ms": 1000, "columns": {"RA": [0]}}).encode())
             await nc.flush()
-            await asyncio.sleep(0.3)
-            live = dict(svc.hub.demand.columns)
-            await asyncio.sleep(1.2)  # its ttl runs out
+            await until(lambda: svc.hub.demand.columns == {"RA": (0,)}, 10, "the valid announcement counts")
+            await until(lambda: not svc.hub.demand.columns, 10, "its ttl ran out")
             await nc.close()
-            return live, dict(svc.hub.demand.columns)
+            return pub.status()["demand_rejected"]
 
-        live, expired = run(go())
-    assert live == {"RA": (0,)} and expired == {}
+        rejected = run(go())
+    assert rejected["malformed"] == 3
 
 
 def test_a_late_joiner_catches_up_on_the_retained_seconds(tmp_path, nats_js_url):
@@ -327,12 +333,14 @@ def test_a_late_joiner_catches_up_on_the_retained_seconds(tmp_path, nats_js_url)
     subject = f"touchreal.{SENSOR}.frames"
     with publishing(tmp_path, nats_js_url, RuntimeConfig(taxels=2),
                     publisher={"publish_all": True, "retain_s": 2.0}) as (addr, svc, pub):
-        time.sleep(5.0)  # longer than the retention: the oldest frames have expired
 
         async def go():
             nc = await nats.connect(nats_js_url)
             js = nc.jetstream()
-            info = await js.stream_info(f"touchreal_{SENSOR}")
+            end = time.monotonic() + 30
+            while (info := await js.stream_info(f"touchreal_{SENSOR}")).state.first_seq <= 1:  # wait for expiry:
+                assert time.monotonic() < end, info  # the service has published longer than the retention
+                await asyncio.sleep(0.1)
             live: list[bytes] = []
 
             async def on_live(msg):

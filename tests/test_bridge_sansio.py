@@ -101,3 +101,28 @@ def test_hub_skip_advances_seq_and_dropped_per_stream_and_decoder():
     hub.skip(4, "decoded", "texture")
     hub.skip(1, "decoded", "force")
     assert [(s.seq, s.dropped) for s in (both, spikes, none, force, every)] == [(5, 5), (3, 3), (0, 0), (1, 1), (8, 8)]
+
+
+def test_announcements_are_bounded_and_the_gateway_count_is_capped():
+    from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES, Rejected
+
+    def reason(data: bytes, n_taxels: int = 4) -> str:
+        with pytest.raises(Rejected) as exc:
+            parse_announcement(data, n_taxels)
+        return exc.value.reason
+
+    assert reason(b" " * (MAX_ANNOUNCEMENT_BYTES + 1)) == "oversized"
+    assert reason(announcement("g", Announced({"SA1": [4]}))) == "out_of_range"
+    assert reason(announcement("g", Announced({}, [0], {"force": [9]}))) == "out_of_range"
+    assert reason(announcement("g", Announced({"SA1": [0]}), ttl_s=61.0)) == "malformed"
+    assert reason(announcement("a.b", Announced({"SA1": [0]}))) == "malformed"
+    assert reason(b"[" * 5000 + b"]" * 5000) == "malformed"
+    fd = ForwardedDemand(max_gateways=2)
+    fd.announce("a", Announced({"SA1": [0]}), 1.0, now=0.0)
+    fd.announce("b", Announced({"RA": [1]}), 5.0, now=0.0)
+    with pytest.raises(Rejected) as exc:
+        fd.announce("c", Announced({"PC": [2]}), 5.0, now=0.5)
+    assert exc.value.reason == "too_many_gateways" and fd.gateways == ["a", "b"]
+    fd.announce("a", Announced({"SA1": [3]}), 1.0, now=0.5)  # a live gateway may always renew
+    fd.announce("c", Announced({"PC": [2]}), 5.0, now=2.0)  # a's announcement expired: room for c
+    assert fd.gateways == ["b", "c"]

@@ -95,7 +95,7 @@ def test_dockerfile_is_multi_stage_non_root_with_healthcheck_volumes_and_a_valid
     entry, cmd = exec_form("ENTRYPOINT"), exec_form("CMD")
     assert entry == ["touchreal", "serve"]
     args = serve_parser().parse_args(entry[1:] + cmd)
-    assert args.source == "sim" and args.func is command.run
+    assert command.settings_from(args).source == "sim" and args.func is command.run
     for w, rest in steps:  # everything COPYed from the context exists and is let through .dockerignore
         if w == "COPY" and "--from" not in rest:
             for src in shlex.split(rest)[:-1]:
@@ -134,17 +134,14 @@ def test_compose_and_kubernetes_manifests_reference_the_real_ports_paths_setting
     assert service["spec"]["ports"][0]["targetPort"] == cport["name"]
     assert service["spec"]["selector"] == dep["spec"]["selector"]["matchLabels"] == dep["spec"]["template"]["metadata"]["labels"]
     assert pod["securityContext"]["runAsNonRoot"] is True
-    # args: $(VAR) references resolve from the ConfigMap and the result is a valid `touchreal serve`
-    resolved = []
-    for a in c["args"]:
-        for k, v in cm.items():
-            a = a.replace(f"$({k})", v)
-        assert "$(" not in a, a
-        resolved.append(a)
-    parsed = serve_parser().parse_args(["serve", *resolved])
-    assert parsed.source == cm["TOUCHREAL_SOURCE"] and parsed.taxels == int(cm["TOUCHREAL_TAXELS"])
-    settings_env = {k for k in cm if k not in ("TOUCHREAL_SOURCE", "TOUCHREAL_TAXELS")} | {e["name"] for e in c["env"]}
+    # no args: the ConfigMap's and the Deployment's variables are valid settings of `touchreal serve`
+    assert "args" not in c
+    settings_env = set(cm) | {e["name"] for e in c["env"]}
     assert settings_env <= setting_names()
+    settings = ServeSettings(**{k.removeprefix("TOUCHREAL_").lower(): v for k, v in cm.items()})
+    assert settings.source == "sim" and "localhost" in settings.allowed_hosts
+    for probe in ("livenessProbe", "readinessProbe", "startupProbe"):
+        assert {"name": "Host", "value": "localhost"} in c[probe]["httpGet"]["httpHeaders"]
     env_values = {e["name"]: e["value"] for e in c["env"]}
     mounts = {m["mountPath"] for m in c["volumeMounts"]}
     assert {env_values["TOUCHREAL_STATE_DIR"]} == mounts
@@ -175,7 +172,7 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
                    TOUCHREAL_STATE_DIR=str(tmp_path / "state"),
                    NUMBA_CACHE_DIR=str(tmp_path / "numba"))
         # the image compiles the numba kernels at build time: run that step the same way
-        (warm,) = [r for w, r in dockerfile() if w == "RUN" and "warm_up" in r]
+        (warm,) = [r for w, r in dockerfile() if w == "RUN" and "prove_runnable" in r]
         warm_cmd = shlex.split(warm.split("&&")[0])
         assert warm_cmd[0] == "python"
         subprocess.run([py, *warm_cmd[1:]], env=env, cwd=tmp_path, check=True, timeout=600)

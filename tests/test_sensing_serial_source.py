@@ -18,7 +18,7 @@ from helpers import synthetic_trial
 from touchreal.encoding.encoder import SpikeEvents
 from touchreal.params import default_params
 from touchreal.recording import Trial, write_dataset
-from touchreal.sensing.mcu_emulator import Faults, PtyPort, frame_schedule, play
+from touchreal.sensing.mcu_emulator import STALL_JITTERS, Faults, Link, PtyPort, departures, frame_schedule, play
 from touchreal.sensing.raw import RawChunk
 from touchreal.sensing.serial_frame import Channel, Frame, FrameParser, encode_frame
 from touchreal.sensing.serial_source import SampleCollector, SerialSource
@@ -126,8 +126,8 @@ def test_missing_port_never_raises_and_close_ends_the_stream(tmp_path):
     assert chunk is not None and chunk.st_t.size == chunk.pvdf_t.size == 0
     status = src.status()
     assert status["state"] in ("connecting", "disconnected") and status["connects"] == 0
-    time.sleep(0.15)
-    assert "could not open port" in src.status()["last_error"]
+    wait_until(lambda: "could not open port" in src.status()["last_error"])
+    assert src.clock() is None and src.status()["clock_error_us"] == -1
     src.close()
     assert src.next_chunk() is None and src.status()["state"] == "closed"
 
@@ -158,10 +158,30 @@ def test_non_finite_samples_pass_through_and_the_encoder_stays_finite(tmp_path):
     assert len(events) > 0 and np.all(np.isfinite(events.t_s))
 
 
+def test_a_step_of_the_wall_clock_moves_the_mapping_in_a_new_epoch(tmp_path):
+    step_ns = 0
+    port = PtyPort(tmp_path / "ttyTR0")
+    port.plug()
+    src = SerialSource(str(port.path), update_s=0.02, wall_ns=lambda: time.time_ns() + step_ns)
+    try:
+        wait_until(lambda: src.status()["connects"] > 0)
+        with emulated(port, [synthetic_trial(duration_s=1.0)], speed=1.0):
+            wait_until(lambda: src.clock() is not None)
+            before = src.clock()
+            step_ns = 5_000_000_000  # the wall clock is stepped 5 s ahead (NTP at boot)
+            after, again = src.clock(), src.clock()
+    finally:
+        src.close()
+        port.close()
+    assert after.epoch == again.epoch == before.epoch + 1
+    moved = after.wall_us - before.wall_us - (after.sensor_us - before.sensor_us) * after.rate
+    assert abs(moved - 5_000_000) <= before.error_us + after.error_us
+
+
 def test_a_second_reader_of_the_same_port_is_refused_and_says_why(tmp_path):
     with reading(tmp_path / "ttyTR0") as (port, first):
         second = SerialSource(str(port.path), update_s=0.01)
-        time.sleep(0.3)
+        wait_until(lambda: "lock" in second.status()["last_error"])
         status = second.status()
         second.close()
     assert first.status()["connects"] == 1 and not port.host_attached()
@@ -189,6 +209,19 @@ def test_device_restart_rebases_the_clock_so_time_keeps_increasing():
     assert chunk.pvdf_t[10] == pytest.approx(5.0045 + 0.75) and chunk.pvdf_t[20] == pytest.approx(5.7545 + 0.005)
     assert parser.stats.restarts == 1 and parser.stats.gaps == 0 and coll.wrong_taxels == 1
     assert coll.take().pvdf_t.size == 0
+    assert coll.device_clock.epoch == 1 and coll.last_us == round(chunk.pvdf_t[-1] * 1e6)  # a new device clock, a new epoch
+    est = coll.device_clock.estimate(coll.last_us)
+    assert est is not None and est.epoch == 1 and est.host_us == 100_755_000  # provisional: rate 1 through the fastest frame
+
+
+def test_frames_stamped_beyond_the_sensor_clock_are_dropped_and_counted():
+    parser, coll = FrameParser(), SampleCollector(n_taxels=1)
+    x = np.ones((2, 1), np.float32)
+    for seq, t0 in enumerate([1_000, 2**63 + 5, 2**64 - 1, (1 << 62) - 500, 3_000]):  # a device clock gone wild
+        coll.add(parser.feed(encode_frame(Channel.PVDF, seq, 1, t0, x)), now_s=1.0 + seq / 1000)
+    chunk = coll.take()
+    assert coll.bad_times == 3 and chunk.pvdf_t.tolist() == [0.001, 0.0015, 0.003, 0.0035]
+    assert coll.last_us == 3_500 and coll.device_clock.estimate(coll.last_us) is not None
 
 
 def test_samples_nobody_takes_are_bounded_and_counted():
@@ -240,6 +273,10 @@ def test_emulator_command_reports_bad_arguments_clearly(tmp_path, capsys):
     assert "values per frame" in capsys.readouterr().err and not (tmp_path / "p").exists()
     assert main(["mcu-emulate", str(tmp_path), "--port", str(tmp_path / "p")]) == 2
     assert "no manifest.json" in capsys.readouterr().err
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--clock-drift-ppm", "1e6"]) == 2
+    assert "drift_ppm must be in" in capsys.readouterr().err and not (tmp_path / "p").exists()
+    assert main(["mcu-emulate", str(root), "--port", str(tmp_path / "p"), "--jitter-ms", "nan"]) == 2
+    assert "jitter_ms must be in" in capsys.readouterr().err
 
 
 def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
@@ -258,7 +295,7 @@ def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
         src = SerialSource(str(path), update_s=0.02)
         try:
             got, states = drain(src, lambda: proc.poll() is not None, timeout_s=30)
-            status = src.status()
+            status, clock = src.status(), src.clock()
         finally:
             src.close()
         device = json.loads(proc.stdout.read().strip().splitlines()[-1])
@@ -275,8 +312,68 @@ def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
     assert status["frames"] + status["frames_missed"] == (i_st[-1] + 1) + (i_pv[-1] // 10 + 1)
     assert status["frames"] == got.st_t.size + got.pvdf_t.size // 10
     assert device["plugs"] >= 3 and device["frames_unread"] > 0
+    assert clock is not None and clock.epoch == status["reconnects"]  # one device clock, a new epoch per reconnect
     # the stream went on after each unplug: samples arrived in the last 0.5 s of the trial
     assert got.st_t[-1] > trial.st_t[-1] - 0.5
     assert states[0] in ("connecting", "streaming") and "disconnected" in states
     assert states.index("disconnected") < len(states) - 1 - states[::-1].index("streaming")
     assert not path.exists()
+
+
+def test_link_drifts_the_device_clock_delays_frames_in_order_and_stalls():
+    frames = [(5_000 * k, b"f%d" % k) for k in range(4000)]  # 20 s of 5 ms frames
+    ideal = list(departures(frames, Link(drift_ppm=-250.0), speed=2.0))
+    assert [(d, a) for d, a, leave, _ in ideal] == [(d, a) for d, a, a2, _ in ideal if a2 == a]  # no jitter: leave when acquired
+    assert ideal[-1][1] == pytest.approx(19.995 / 2 / (1 - 250e-6), abs=1e-9)  # a slow device clock: more host time
+    got = list(departures(frames, Link(drift_ppm=100.0, jitter_ms=2.0, seed=4)))
+    device, acquired, leave = (np.array([g[i] for g in got]) for i in range(3))
+    assert np.array_equal(device, [d for d, _ in frames]) and [g[3] for g in got] == [f for _, f in frames]
+    assert np.allclose(acquired, device / 1e6 / (1 + 100e-6), rtol=0, atol=1e-12)
+    delay = leave - acquired
+    assert np.all(np.diff(leave) >= 0) and np.all(delay >= 0)  # in order, never before acquisition
+    assert 0.0015 < np.median(delay) < 0.006  # exponential jitter, made longer by queueing behind stalls
+    stalled = delay > STALL_JITTERS * 0.002 * 0.75  # held by a stall of 20 ms (a 2 ms exponential: 1 frame in 1800)
+    assert 8 < np.count_nonzero(np.diff(stalled.astype(int)) == 1) < 40  # about one stall a second
+    assert list(departures(frames, Link(drift_ppm=100.0, jitter_ms=2.0, seed=4))) == got  # seeded
+    with pytest.raises(ValueError, match="jitter_ms"):
+        Link(jitter_ms=-1.0)
+
+
+def test_clock_of_a_drifting_device_behind_a_jittery_link_through_a_pty(tmp_path):
+    """The real ``touchreal mcu-emulate`` process, device clock 100 ppm fast, 2 ms mean jitter with
+    stalls: after settling, the wall time SerialSource.clock() states for a sample is within 2 ms of
+    when the emulator acquired it (its --truth file), and the estimated rate within 50 ppm."""
+    trial = synthetic_trial(duration_s=5.0, seed=6)
+    root = tmp_path / "data"
+    entry = {"id": "syn", "protocol": "ramp", "condition": "press", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.0}
+    write_dataset(root, {"trials": [entry]}, {"syn": trial})
+    path, truth_file = tmp_path / "ttyTR0", tmp_path / "truth.csv"
+    cmd = [sys.executable, "-m", "touchreal", "mcu-emulate", str(root), "--port", str(path), "--clock-drift-ppm", "100",
+           "--jitter-ms", "2", "--truth", str(truth_file), "--wait-for-host", "20", "--seed", "8"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    points = []
+    try:
+        assert proc.stdout.readline().strip() == str(path)
+        src = SerialSource(str(path), update_s=0.02)
+        try:
+            drain(src, lambda: proc.poll() is not None, lambda c: points.append(src.clock()), timeout_s=30)
+            status = src.status()
+        finally:
+            src.close()
+    finally:
+        proc.kill() if proc.poll() is None else None
+        proc.wait(5)
+    assert proc.returncode == 0
+    truth = np.loadtxt(truth_file, delimiter=",", skiprows=1, dtype=np.int64)
+    points = [p for p in points if p is not None]
+    assert points and {p.epoch for p in points} == {0}
+    settled = [p for p in points if p.sensor_us >= truth[0, 0] + 3_000_000]
+    assert len(settled) > 50
+    sensor = np.array([p.sensor_us for p in settled])
+    err = np.array([p.wall_us for p in settled]) - np.interp(sensor, truth[:, 0], truth[:, 1].astype(np.float64))
+    print(f"clock error after settling: max {np.abs(err).max():.0f} us, median {np.median(np.abs(err)):.0f} us, stated <= {max(p.error_us for p in settled)} us")
+    assert np.abs(err).max() <= 2000, np.abs(err).max()
+    assert settled[-1].rate == pytest.approx(1 / (1 + 100e-6), abs=50e-6)  # the drift is seen (6 s, loaded host)
+    assert max(p.error_us for p in settled) <= 3000
+    assert status["clock_drift_ppm"] == pytest.approx(100, abs=50) and status["clock_resets"] == 0
+    assert 0 < status["clock_error_us"] <= 3000

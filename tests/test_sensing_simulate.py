@@ -79,10 +79,15 @@ def test_reference_spikes_come_from_the_reference_model():
     assert spikes.size > 20
     # spikes on the recording clock: during contact, not before the onset
     assert spikes.min() > entry["onset_s"] and spikes.max() < entry["duration_s"]
+    # the same call simulate_trial makes (its third child seed drives the reference): the same trains
+    ref_seed = int(np.random.SeedSequence(5).spawn(3)[2].generate_state(1)[0])
     again = reference_trains(
         trial.cmd_depth.astype(np.float64), fs_hz=5000.0, probe_xy_mm=(0.0, 0.0), afferent_xy_mm=(0.0, 0.0),
-        repeats=6, noisy=False, delays=False, seed=0,
+        repeats=6, noisy=True, delays=False, seed=ref_seed, pin_radius_mm=0.5,
     )
+    for c in ("SA1", "RA", "PC"):
+        got, want = trial.reference[c].trains(), again[c].trains()
+        assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
     assert set(again) == {"SA1", "RA", "PC"}
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 
 import numpy as np
 from touchreal_client import protocol as P
@@ -68,3 +69,48 @@ def test_a_full_queue_drops_counts_and_finally_kicks_the_subscriber():
     sub = asyncio.run(go())
     assert sub.kick is not None and sub.kick[0] == P.CLOSE_SLOW_CONSUMER and sub.kicked.is_set()
     assert sub.dropped == 4
+
+
+def test_control_replies_are_bounded_by_count_and_bytes():
+    async def go():
+        by_count = Subscriber(1, capacity=2, slow_timeout_s=1.0)
+        for i in range(P.CONTROL_QUEUE_MESSAGES):
+            by_count.say(f'{{"type":"time","id":{i}}}')
+        assert by_count.kick is None and len(by_count.control) == P.CONTROL_QUEUE_MESSAGES
+        by_count.pop_control()  # the sender took one: room for one more
+        by_count.say("{}")
+        assert by_count.kick is None
+        by_count.say("{}")
+        assert by_count.kick[0] == P.CLOSE_FLOODING and by_count.kicked.is_set()
+        assert len(by_count.control) == P.CONTROL_QUEUE_MESSAGES  # the overflowing reply was not queued
+        by_bytes = Subscriber(2, capacity=2, slow_timeout_s=1.0)
+        big = "x" * (P.CONTROL_QUEUE_BYTES // 3)
+        for _ in range(3):
+            by_bytes.say(big)
+        assert by_bytes.kick is None and by_bytes.control_chars == 3 * len(big)
+        by_bytes.say("x" * (P.CONTROL_QUEUE_BYTES - 3 * len(big) + 1))
+        assert by_bytes.kick[0] == P.CLOSE_FLOODING
+        assert by_bytes.pop_control() == big and by_bytes.control_chars == 2 * len(big)
+
+    asyncio.run(go())
+
+
+def test_admit_fills_a_bare_subscribe_with_what_is_served_and_refuses_what_is_not():
+    hub = Hub(capacity=4, slow_timeout_s=1.0)
+    assert hub.admit({"type": "subscribe", "taxels": [40]}).taxels == [40]  # unconfigured (gateway before hello)
+    hub.configure(4, ["PC"], {"texture": ["PC"]})
+    bare = hub.admit({"type": "subscribe"})
+    assert bare.classes == ["PC"] and bare.taxels is None
+    for msg, fragment in [({"classes": ["SA1", "PC"]}, r"classes \['SA1'\] are not served"),
+                          ({"taxels": [1, 4, 70000 - 5000]}, r"taxels \[4, 65000\] do not exist"),
+                          ({"streams": ["decoded"], "decoders": ["force"]}, r"decoders \['force'\] are not offered")]:
+        try:
+            hub.admit({"type": "subscribe", **msg})
+        except P.ProtocolError as exc:
+            assert exc.code == "not_served" and re.search(fragment, str(exc)), str(exc)
+        else:
+            raise AssertionError(f"{msg} was admitted")
+    # a subscription made before the served classes shrank asks for nothing that is not served
+    hub.subscribe(hub.add(), P.Subscription(classes=["SA1", "PC"]))
+    hub.subscribe(hub.add(), P.Subscription(taxels=[2, 9]))
+    assert hub.demand.columns == {"PC": (0, 1, 2, 3)}

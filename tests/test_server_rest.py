@@ -24,7 +24,7 @@ def _params_json(**class_updates) -> dict:
 def test_health_ready_status_and_metrics(tmp_path):
     with running_server(tmp_path) as (addr, svc):
         with httpx.Client(base_url=f"http://{addr}") as http:
-            assert http.get("/v1/health").json() == {"status": "ok", "session": svc.session}
+            assert http.get("/v1/health").json() == {"status": "ok", "session": svc.session, "reason": None}
             for _ in range(50):
                 r = http.get("/v1/ready")
                 if r.status_code == 200:

@@ -9,9 +9,11 @@ import sys
 import time
 
 import httpx
+import numpy as np
 from helpers import synthetic_trial
 from server_harness import collect, connect, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
+from touchreal_client.clock import ClockPoint
 
 from touchreal.recording import write_dataset
 from touchreal.server.settings import RuntimeConfig
@@ -25,7 +27,7 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
     port = tmp_path / "ttyTR0"
     cmd = [sys.executable, "-m", "touchreal", "mcu-emulate", str(root), "--port", str(port), "--loop",
            "--corrupt-rate", "0.003", "--drop-rate", "0.003", "--unplug-after", "2.5", "--replug-after", "0.5",
-           "--seed", "1"]  # fmt: skip
+           "--clock-drift-ppm", "-100", "--jitter-ms", "1", "--truth", str(tmp_path / "truth.csv"), "--seed", "1"]  # fmt: skip
     emu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -34,10 +36,12 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
             time.sleep(0.05)
         with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{port}")) as (addr, svc):
 
+            clocks: list[dict] = []
+
             async def go():
                 async with connect(addr) as ws:
                     await hello_and_subscribe(ws, streams=["spikes", "channels"])
-                    return await collect(ws, 8.0)
+                    return await collect(ws, 8.0, clock=clocks)
 
             frames = asyncio.run(asyncio.wait_for(go(), 40))
             status = httpx.get(f"http://{addr}/v1/status").json()
@@ -59,3 +63,15 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
     assert faults["source_reconnects"] >= 1 and faults["source_crc_errors"] >= 1 and faults["source_gaps"] >= 1
     assert status["source"]["state"] in ("streaming", "connecting", "disconnected")
     assert 'touchreal_input_faults{kind="source_reconnects"}' in metrics
+    # the device clock's mapping: restated at >= 1 Hz, a new epoch after the unplug, the rate near 1,
+    # and once settled (3 s) within 2 ms of when the emulator acquired the sample (its truth file)
+    points = [ClockPoint.from_json(m) for m in clocks]
+    assert len(points) >= 6 and all(abs(p.rate - 1) < 1e-3 for p in points[1:])
+    assert [p.epoch for p in points] == sorted(p.epoch for p in points) and points[-1].epoch > points[0].epoch
+    assert all(a.sensor_us <= b.sensor_us for a, b in zip(points, points[1:]))
+    truth = np.loadtxt(tmp_path / "truth.csv", delimiter=",", skiprows=1, dtype=np.int64)
+    settled = [p for p in points if p.sensor_us >= truth[0, 0] + 3_000_000]
+    assert len(settled) >= 3 and settled[-1].error_us <= 3000
+    err = [p.wall_us - np.interp(p.sensor_us, truth[:, 0], truth[:, 1].astype(np.float64)) for p in settled]
+    print(f"service clock error after settling: max {max(abs(e) for e in err):.0f} us over {len(err)} messages")
+    assert max(abs(e) for e in err) <= 2000, err

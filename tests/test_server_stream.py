@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import websockets
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two
+from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two, until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -84,14 +84,14 @@ def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 
         async def go():
-            await asyncio.sleep(0.5)
             rt = svc.runtime
+            await until(lambda: rt.state == "idle" and rt.encoder is not None, 10, "the runtime idles")
             idle = rt.state, rt.encoder.active, rt.encoder.running
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, classes=["SA1"])
                 frames = _spikes(await collect(ws, 1.0))
                 busy = rt.state, rt.encoder.active
-            await asyncio.sleep(0.5)
+            await until(lambda: rt.state == "idle", 10, "the runtime idles again once the client left")
             return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.running)
 
         idle, frames, busy, after = run(go())

@@ -23,6 +23,8 @@ COMMAND_MODULES = (
     "touchreal.decoding.command",
     "touchreal.server.command",
     "touchreal.bridge.command",
+    "touchreal.commands.record",
+    "touchreal.commands.export",
 )
 
 
@@ -36,13 +38,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def one_line(exc: BaseException) -> str:
+    """An expected error as one line (a pydantic ValidationError lists each field: its problem)."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or exc.title}: {e['msg']}" for e in exc.errors())
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, OSError) as exc:  # clear message, no traceback, for user errors
-        print(f"touchreal {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError, ImportError) as exc:  # clear message, no traceback: bad input, a missing extra
+        print(f"touchreal {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
 
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DATA
+from .settings import CLASSES, DEFAULT_UPDATE_MS, DEFAULT_WINDOW_MS, PACKAGE_DATA, PVDF_FS_HZ
 
 SCHEMA_NAME = "touchreal.params"
 #: Written version. Version 1 files (no ``ClassParams.lowpass_hz`` / ``negative_lead_ms``) are still
@@ -33,6 +33,33 @@ class ParamsError(ValueError):
     """An invalid parameter file or upload; the message lists every problem."""
 
 
+#: A number: an int or a float, never a bool or a numeric string (strict).
+Num = Annotated[float, Field(strict=True)]
+#: A whole number (strict: no bool, no float, no string).
+Int = Annotated[int, Field(strict=True)]
+
+PROVENANCE_MAX_BYTES = 65536  #: the provenance's compact JSON, at most
+PROVENANCE_MAX_DEPTH = 8  #: nesting levels of lists and objects in the provenance
+PROVENANCE_MAX_INT = 10**18  #: magnitude of an integer in the provenance
+
+
+def _provenance_depth(v: object) -> int:
+    """Nesting depth of lists/dicts (iterative: a deep value cannot exhaust the stack)."""
+    deepest, todo = 0, [(v, 0)]
+    while todo:
+        x, d = todo.pop()
+        if isinstance(x, (list, dict)):
+            deepest = max(deepest, d + 1)
+            if deepest > PROVENANCE_MAX_DEPTH:
+                return deepest
+            todo.extend((y, d + 1) for y in (x.values() if isinstance(x, dict) else x))
+        elif isinstance(x, float) and not math.isfinite(x):
+            raise ValueError("numbers must be finite")
+        elif isinstance(x, int) and not isinstance(x, bool) and abs(x) > PROVENANCE_MAX_INT:
+            raise ValueError(f"integers above {PROVENANCE_MAX_INT:.0e} in magnitude are not allowed")
+    return deepest
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
@@ -40,26 +67,26 @@ class _Strict(BaseModel):
 class ClassParams(_Strict):
     """Encoder parameters of one afferent class (TouchSim-style LIF at 5 kHz)."""
 
-    weights: list[float] = Field(
+    weights: list[Num] = Field(
         min_length=8, max_length=8, description="w1..w8 on (max(x,0), max(-x,0)) of ST [N], dST [N/s], PVDF [V], dPVDF [V/s]"
     )
-    i_sat: float = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
-    tau_ms: float = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
-    ih: list[float] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
-    delay_ms: float = Field(
+    i_sat: Num = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
+    tau_ms: Num = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
+    ih: list[Num] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
+    delay_ms: Num = Field(
         ge=0.0,
         le=500.0,
         description="physiological output delay added to spike times (ms, >= 0: a spike's stamp never precedes "
         "the sensor sample that caused it); a rig's lag behind its reference is in EncoderParams.alignment",
     )
-    lowpass_hz: float | None = Field(
+    lowpass_hz: Num | None = Field(
         default=None,
         ge=5.0,
         le=2000.0,
         description="cutoff (Hz) of the class's causal 3rd-order Butterworth input low-pass on all four "
         "channels before rectification (TouchSim's per-model input filter); None = no filter",
     )
-    negative_lead_ms: float = Field(
+    negative_lead_ms: Num = Field(
         default=0.0,
         ge=0.0,
         le=100.0,
@@ -67,7 +94,7 @@ class ClassParams(_Strict):
         "parts are delayed by it before summation (compensates a sensor whose unloading lags its loading)",
     )
 
-    window_ms: float | None = Field(
+    window_ms: Num | None = Field(
         default=None,
         ge=4.0,
         le=512.0,
@@ -90,10 +117,12 @@ class ClassParams(_Strict):
 class GateCalibration(_Strict):
     """PVDF spectral gate: per-frequency noise floor measured on a contact-free baseline."""
 
-    freqs_hz: list[float] = Field(min_length=2, description="frequency grid (Hz), increasing")
-    noise_asd: list[float] = Field(min_length=2, description="noise amplitude spectral density (V/sqrt(Hz))")
-    factor: float = Field(default=3.0, gt=0.0, le=100.0, description="keep bins above factor x expected noise magnitude")
-    attenuation: float = Field(default=0.05, ge=0.0, le=1.0, description="gain applied to bins below threshold")
+    freqs_hz: list[Annotated[Num, Field(ge=0.0, le=PVDF_FS_HZ / 2)]] = Field(
+        min_length=2, max_length=4097, description="frequency grid (Hz, 0..PVDF Nyquist), increasing")
+    noise_asd: list[Annotated[Num, Field(ge=0.0, le=1e3)]] = Field(
+        min_length=2, max_length=4097, description="noise amplitude spectral density (V/sqrt(Hz), 0..1e3)")
+    factor: Num = Field(default=3.0, gt=0.0, le=100.0, description="keep bins above factor x expected noise magnitude")
+    attenuation: Num = Field(default=0.05, ge=0.0, le=1.0, description="gain applied to bins below threshold")
 
     @model_validator(mode="after")
     def _consistent(self) -> "GateCalibration":
@@ -101,31 +130,40 @@ class GateCalibration(_Strict):
             raise ValueError("freqs_hz and noise_asd must have equal length")
         if np.any(np.diff(self.freqs_hz) <= 0):
             raise ValueError("freqs_hz must be strictly increasing")
-        if min(self.noise_asd) < 0:
-            raise ValueError("noise_asd must be >= 0")
         return self
 
 
 class PreprocessParams(_Strict):
     """Causal preprocessing: raw SingleTact/PVDF -> ST, dST, PVDF, dPVDF at 5 kHz."""
 
-    window_ms: float = Field(default=DEFAULT_WINDOW_MS, ge=4.0, le=512.0, description="causal PVDF STFT window (ms)")
-    update_ms: float = Field(default=DEFAULT_UPDATE_MS, ge=1.0, le=1000.0, description="online update interval (ms)")
-    st_lowpass_hz: float = Field(default=20.0, gt=0.0, lt=50.0, description="SingleTact Butterworth low-pass cutoff (Hz)")
-    st_alpha: float = Field(default=0.5, gt=0.0, le=1.0, description="alpha-beta estimator position gain")
-    st_beta: float = Field(default=0.1, gt=0.0, lt=2.0, description="alpha-beta estimator velocity gain")
-    pvdf_lowpass_hz: float = Field(default=800.0, gt=0.0, lt=1000.0, description="PVDF Butterworth low-pass cutoff (Hz)")
-    mains_hz: float = Field(default=50.0, gt=0.0, description="mains frequency (Hz)")
-    notch_harmonics: list[int] = Field(default_factory=lambda: [1, 3, 5, 7], description="mains harmonics to notch")
-    notch_q: float = Field(default=30.0, gt=0.5, le=1000.0, description="quality factor of each notch")
+    window_ms: Num = Field(default=DEFAULT_WINDOW_MS, ge=4.0, le=512.0, description="causal PVDF STFT window (ms)")
+    update_ms: Num = Field(default=DEFAULT_UPDATE_MS, ge=1.0, le=1000.0, description="online update interval (ms)")
+    st_lowpass_hz: Num = Field(default=20.0, ge=0.5, lt=50.0, description="SingleTact Butterworth low-pass cutoff (Hz, "
+                               "0.5 .. below the 50 Hz Nyquist)")
+    st_alpha: Num = Field(default=0.5, gt=0.0, le=1.0, description="alpha-beta estimator position gain")
+    st_beta: Num = Field(default=0.1, gt=0.0, lt=2.0, description="alpha-beta estimator velocity gain "
+                         "(stable only with 4 - 2 alpha - beta > 0)")
+    pvdf_lowpass_hz: Num = Field(default=800.0, ge=10.0, lt=1000.0, description="PVDF Butterworth low-pass cutoff "
+                                 "(Hz, 10 .. below the 1 kHz Nyquist)")
+    mains_hz: Num = Field(default=50.0, ge=40.0, le=70.0, description="mains frequency (Hz, 40..70)")
+    notch_harmonics: list[Annotated[Int, Field(ge=1, le=40)]] = Field(
+        default_factory=lambda: [1, 3, 5, 7], max_length=40,
+        description="mains harmonics to notch (1..40; those at or above the PVDF Nyquist are skipped)")
+    notch_q: Num = Field(default=30.0, gt=0.5, le=1000.0, description="quality factor of each notch")
     gate: GateCalibration | None = Field(default=None, description="spectral gate; None passes all bins")
 
     @field_validator("notch_harmonics")
     @classmethod
     def _harmonics(cls, v: list[int]) -> list[int]:
-        if any(h < 1 for h in v) or len(set(v)) != len(v):
+        if len(set(v)) != len(v):
             raise ValueError("harmonics must be distinct integers >= 1")
         return sorted(v)
+
+    @model_validator(mode="after")
+    def _stable_estimator(self) -> "PreprocessParams":
+        if 4.0 - 2.0 * self.st_alpha - self.st_beta <= 0.0:
+            raise ValueError("st_alpha, st_beta: the alpha-beta estimator is unstable unless 4 - 2 alpha - beta > 0")
+        return self
 
 
 class ReferenceAlignment(_Strict):
@@ -137,13 +175,13 @@ class ReferenceAlignment(_Strict):
     times are ``stamp - lag_ms``; fit, evaluate and ``touchreal encode`` apply it for a dataset.
     """
 
-    lag_ms: float = Field(
+    lag_ms: Num = Field(
         default=0.0,
         ge=0.0,
         le=1000.0,
         description="the rig's lag (ms): reference-clock time = TouchReal stamp - lag_ms",
     )
-    dataset: str = Field(default="", description="name of the dataset the lag belongs to ('' = unknown)")
+    dataset: str = Field(default="", max_length=1024, description="name of the dataset the lag belongs to ('' = unknown)")
 
 
 def legacy_alignment(data: dict) -> dict:
@@ -177,7 +215,9 @@ class EncoderParams(_Strict):
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
     alignment: ReferenceAlignment = Field(default_factory=ReferenceAlignment)
-    provenance: dict[str, str | float | int | list | dict] = Field(default_factory=dict)
+    provenance: dict[str, str | float | int | list | dict] = Field(
+        default_factory=dict, description=f"free-form record of how the set was made (JSON, at most "
+        f"{PROVENANCE_MAX_BYTES} bytes and {PROVENANCE_MAX_DEPTH} levels deep, finite numbers)")
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
 
@@ -185,6 +225,15 @@ class EncoderParams(_Strict):
     @classmethod
     def _legacy_delays(cls, data: object) -> object:
         return legacy_alignment(data) if isinstance(data, dict) else data
+
+    @field_validator("provenance")
+    @classmethod
+    def _bounded_provenance(cls, v: dict) -> dict:
+        if _provenance_depth(v) > PROVENANCE_MAX_DEPTH:
+            raise ValueError(f"nested deeper than {PROVENANCE_MAX_DEPTH} levels")
+        if len(json.dumps(v, separators=(",", ":"))) > PROVENANCE_MAX_BYTES:
+            raise ValueError(f"larger than {PROVENANCE_MAX_BYTES} bytes")
+        return v
 
     @field_validator("classes")
     @classmethod

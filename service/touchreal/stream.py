@@ -32,6 +32,13 @@ def class_source(params: EncoderParams, cls: str) -> Source:
     return float(params.window_ms(cls))
 
 
+def class_latency_s(params: EncoderParams, cls: str) -> float:
+    """Algorithmic latency of a class, the upper bound of emission minus stamp (s) with
+    ``delay_ms`` excluded (the look-ahead of the branches its source reads, less the one grid
+    sample a spike's stamp is ahead of its sample); a spike's stamp moves by ``delay_ms``."""
+    return Preprocessor.latency_s(class_source(params, cls)) - 1.0 / OUT_FS_HZ
+
+
 class _TaxelBlock:
     """The branches and encoders of a contiguous block of taxels: a Preprocessor on the shared
     acquisition and one Encoder per source. A block none of whose columns is active runs nothing;
@@ -231,10 +238,8 @@ class StreamEncoder:
 
     @property
     def latency_s(self) -> dict[str, float]:
-        """Per class: algorithmic latency, the upper bound of emission minus stamp (s) with
-        ``delay_ms`` excluded (the look-ahead of the branches its source reads, less the one grid
-        sample a spike's stamp is ahead of its sample); a spike's stamp moves by ``delay_ms``."""
-        return {c: Preprocessor.latency_s(self.source[c]) - 1.0 / OUT_FS_HZ for c in self.classes}
+        """Per class: :func:`class_latency_s`."""
+        return {c: class_latency_s(self.params, c) for c in self.classes}
 
     @property
     def stats(self) -> dict[str, dict[str, int]]:

@@ -249,7 +249,7 @@ def missing_spike_bound(
     ``ratio_inter_intra``, ``count_error`` and ``added_per_ramp_trial``."""
     out: dict[str, dict[str, Any]] = {}
     for cls in classes:
-        ramps = [t for t in held if t.entry["protocol"] == "ramp" and t.ts.get(cls)]
+        ramps = [t for t in held if tp.is_commanded_ramp(t.entry) and t.ts.get(cls)]
         if not ramps:
             continue
         cache: dict[tuple[str, str], float] = {}
@@ -567,7 +567,7 @@ def evaluate(dataset_dir: str | Path, params: EncoderParams, out_dir: str | Path
         metrics["fig7_condition"] = cond
 
     # spikes at the ramp's turning points (where the count error comes from)
-    ramp_held = [t for t in held if t.entry["protocol"] == "ramp"]
+    ramp_held = [t for t in held if tp.is_commanded_ramp(t.entry)]
     if ramp_held:
         metrics["turning_points"] = tp.turning_point_table(ramp_held, classes)
         if cfg.bound_jitters_ms:

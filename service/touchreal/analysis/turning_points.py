@@ -31,6 +31,14 @@ import numpy as np
 EVENTS = ("onset", "hold", "peak", "release", "end")
 
 
+def is_commanded_ramp(entry: dict[str, Any]) -> bool:
+    """A ramp trial that describes its commanded ramp (speeds and turning-point times); a recorded
+    live session (clients/examples/record_session.py) is filed as ``ramp`` without them."""
+    p, ev = entry.get("params"), entry.get("events")
+    return (entry.get("protocol") == "ramp" and isinstance(p, dict) and isinstance(ev, dict)
+            and {"v_up_mm_s", "v_down_mm_s"} <= p.keys() and {"hold_start_s", "release_start_s"} <= ev.keys())
+
+
 def turning_points(entry: dict[str, Any]) -> list[tuple[str, float, float]]:
     """(name, time in s after the commanded onset, speed in mm/s) of a ramp entry's turning points."""
     p, ev, on = entry["params"], entry["events"], float(entry["onset_s"])
@@ -98,7 +106,7 @@ def turning_point_table(trials: Sequence[Any], classes: Sequence[str]) -> dict[s
     for cls in classes:
         acc: dict[tuple[str, float], dict[str, list[float]]] = {}
         for tr in trials:
-            if tr.entry.get("protocol") != "ramp" or not tr.ts.get(cls):
+            if not is_commanded_ramp(tr.entry) or not tr.ts.get(cls):
                 continue
             tps = turning_points(tr.entry)
             times = [t for _, t, _ in tps]

@@ -56,6 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
     p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
     p.add_argument("--nats-subscribers", default="1,100,300", help="subscriber counts through the gateways")
+    p.add_argument("--url", default=None, help="measure an already running service (http://HOST:PORT) instead of "
+                   "starting one: parts 1 (as its clients see it) and 2 only")
 
 
 # -- client side (runs in child processes) -------------------------------------------------------------
@@ -156,8 +158,8 @@ def _stats_ms(x: np.ndarray) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..server.app import serving
-
+    if args.url:
+        return _run_remote(args)
     params = EncoderParams.load(args.params) if args.params else default_params()
     print(f"TouchReal service benchmark: simulated e-skin, update {params.preprocess.update_ms:g} ms "
           f"({1000 / params.preprocess.update_ms:.2f} Hz), windows "
@@ -179,6 +181,23 @@ def run(args: argparse.Namespace) -> int:
                    "the publisher's emission), all classes and taxels")
             _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
     _part3(params, args.taxels)
+    return 0
+
+
+def _run_remote(args: argparse.Namespace) -> int:
+    """Parts 1 and 2 against a running service, from its clients' side only."""
+    import httpx
+
+    addr = args.url.split("://", 1)[-1].rstrip("/")
+    status = httpx.get(f"http://{addr}/v1/status", timeout=10).json()
+    print(f"TouchReal service benchmark against {args.url} (session {status.get('session')}, source "
+          f"{status.get('source', {}).get('spec')}); server-side figures are not available from here")
+    print(f"\n1. Latency of each spike as a client holds it (clock model), 1 subscriber, {args.seconds:g} s; ms p50 / p95 / max")
+    ((_, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
+    print(f"   client clock offset {offset:+.0f} us")
+    for c in CLASSES:
+        print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes")
+    _part2([addr], args, args.subscribers or "1,10,100", "2. Fan-out (receipt minus emission), what the service streams")
     return 0
 
 

@@ -9,6 +9,12 @@ faithful loss counter; a product is exact when clients ask for products, as they
 protocol), full-rate channels for the union of the channel taxels, and each announced decoder for
 the union of its taxels. Announcements that expire (a gateway gone) stop counting, so computing
 stops too.
+
+Announcements are bounded (anyone allowed to publish demand could otherwise make the service
+compute everything or grow without limit): at most :data:`MAX_ANNOUNCEMENT_BYTES`, a TTL of at
+most :data:`MAX_TTL_MS`, gateway ids and decoder names that are subject tokens, at most
+:data:`MAX_DECODERS` decoders, taxel ids of existing taxels, and at most ``max_gateways`` live
+gateways. Anything else raises :class:`Rejected` with its reason, for the publisher to drop and count.
 """
 
 from __future__ import annotations
@@ -22,6 +28,19 @@ from touchreal_client import protocol as P
 from .subjects import token_ok
 
 DEFAULT_TTL_S = 3.0
+MAX_ANNOUNCEMENT_BYTES = 256 * 1024
+MAX_TTL_MS = 60_000
+MAX_DECODERS = 64
+MAX_GATEWAYS = 64  #: live gateways per sensor, by default
+REJECT_REASONS = ("oversized", "malformed", "out_of_range", "too_many_gateways")
+
+
+class Rejected(ValueError):
+    """An announcement that is dropped; ``reason`` is one of :data:`REJECT_REASONS`."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -51,36 +70,52 @@ def _taxel_list(v) -> bool:
     return isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 65536 for x in v)
 
 
-def parse_announcement(data: bytes) -> tuple[str, Announced, float]:
-    """(gateway id, its demand, ttl in s); raises ValueError on a malformed message. ``channels`` and
-    ``decoders`` are optional."""
+def parse_announcement(data: bytes, n_taxels: int = 65536) -> tuple[str, Announced, float]:
+    """(gateway id, its demand, ttl in s); raises :class:`Rejected` for an oversized or malformed
+    message or one naming taxels outside ``0..n_taxels-1``. ``channels`` and ``decoders`` are optional."""
+    if len(data) > MAX_ANNOUNCEMENT_BYTES:
+        raise Rejected("oversized", f"demand announcement of {len(data)} bytes exceeds {MAX_ANNOUNCEMENT_BYTES}")
     try:
         msg = json.loads(data)
         gid, ttl, cols = msg["gateway"], msg["ttl_ms"], msg["columns"]
         chan, decs = msg.get("channels", []), msg.get("decoders", {})
-        ok = (isinstance(gid, str) and isinstance(ttl, int) and 0 < ttl <= 600_000 and isinstance(cols, dict)
+        ok = (isinstance(gid, str) and token_ok(gid) and isinstance(ttl, int) and not isinstance(ttl, bool)
+              and 0 < ttl <= MAX_TTL_MS and isinstance(cols, dict)
               and all(c in P.CLASSES and _taxel_list(t) for c, t in cols.items()) and _taxel_list(chan)
-              and isinstance(decs, dict) and all(token_ok(n) and _taxel_list(t) for n, t in decs.items()))
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"malformed demand announcement: {exc!r}") from exc
+              and isinstance(decs, dict) and len(decs) <= MAX_DECODERS
+              and all(token_ok(n) and _taxel_list(t) for n, t in decs.items()))
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
+        raise Rejected("malformed", f"malformed demand announcement: {exc!r}"[:300]) from exc
     if not ok:
-        raise ValueError("malformed demand announcement: expected gateway (str), ttl_ms (1..600000), "
-                         "columns {class: [taxel]}, channels [taxel], decoders {name: [taxel]}")
+        raise Rejected("malformed", f"malformed demand announcement: expected gateway (a subject token), ttl_ms "
+                       f"(1..{MAX_TTL_MS}), columns {{class: [taxel]}}, channels [taxel], decoders {{name: [taxel]}} "
+                       f"(at most {MAX_DECODERS})")
+    taxels = [*chan, *(t for ts in cols.values() for t in ts), *(t for ts in decs.values() for t in ts)]
+    if taxels and max(taxels) >= n_taxels:
+        raise Rejected("out_of_range", f"gateway {gid}: taxel {max(taxels)} does not exist (ids 0..{n_taxels - 1})")
     return (gid, Announced({c: list(t) for c, t in cols.items()}, list(chan), {n: list(t) for n, t in decs.items()}),
             ttl / 1000.0)
 
 
 class ForwardedDemand:
-    """Live announcements by gateway id; times in seconds of any monotonic clock."""
+    """Live announcements by gateway id (at most ``max_gateways``); times in seconds of any monotonic clock."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_gateways: int = MAX_GATEWAYS) -> None:
+        self.max_gateways = max_gateways
         self._live: dict[str, tuple[Announced, float]] = {}
 
     def announce(self, gateway_id: str, demand: Announced, ttl_s: float, now: float) -> None:
+        """Record (or withdraw, when empty) a gateway's demand; a new gateway beyond ``max_gateways``
+        live ones raises :class:`Rejected` (``too_many_gateways``)."""
         if demand.empty:
             self._live.pop(gateway_id, None)
-        else:
-            self._live[gateway_id] = (demand, now + ttl_s)
+            return
+        if gateway_id not in self._live and len(self._live) >= self.max_gateways:
+            self.expire(now)
+            if len(self._live) >= self.max_gateways:
+                raise Rejected("too_many_gateways", f"{len(self._live)} gateways already announce demand "
+                               f"(max_gateways); {gateway_id} is not counted")
+        self._live[gateway_id] = (demand, now + ttl_s)
 
     def expire(self, now: float) -> None:
         for gid in [g for g, (_, until) in self._live.items() if until <= now]:

@@ -4,7 +4,8 @@ A gateway is stateless: it reads the publisher's hello (a NATS request), subscri
 subject and feeds every frame, as an :class:`~touchreal.server.runtime.Update`, into the same
 :class:`~touchreal.server.hub.Hub` and ``/v1/stream`` WebSocket layer the service uses (so
 subscriptions, per-client queues, slow-consumer closes and stamping are one code). What its clients
-subscribe to is forwarded to the publisher as demand (:mod:`.demand`).
+subscribe to is forwarded to the publisher as demand (:mod:`.demand`). Its decoder routes
+(``/v1/decoders``...) ask the publisher over NATS, so clients that download a model work through it.
 
 Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
 gateway's bounded pending buffer dropped) advances every spikes subscriber's ``seq`` and ``dropped``
@@ -36,15 +37,20 @@ from touchreal_client.clock import ClockPoint
 
 from .. import __version__
 from ..server import ws
-from ..server.hub import Hub
+from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
-from ..server.runtime import wall_us
 from . import subjects
+from .auth import NatsAuth
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 
 log = logging.getLogger("touchreal.bridge")
 HELLO_RETRY_S = 0.5  #: how often a gateway asks for the hello until the publisher answers (s)
+UPSTREAM_REQUEST_S = 5.0  #: how long a decoders/model request waits for the publisher (s)
+
+
+class UpstreamUnavailable(RuntimeError):
+    """The publisher did not answer a request (not connected, not running, or too slow)."""
 
 
 class GatewaySettings(BaseSettings):
@@ -55,13 +61,17 @@ class GatewaySettings(BaseSettings):
     nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
     host: str = "127.0.0.1"
-    port: int = Field(default=8765, ge=0, le=65535)
+    port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
     queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1)
     pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
                                 "dropping them (each loss becomes a gap its clients see)")
     demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
+    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
+                                   "client this often (s)")
+    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
+                                  "within this time is closed with 1011 (s)")
 
 
 class AnnouncingHub(Hub):
@@ -87,13 +97,15 @@ class Gateway:
     """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
     ``ended``, ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
 
-    def __init__(self, settings: GatewaySettings):
+    def __init__(self, settings: GatewaySettings, auth: NatsAuth | None = None):
         self.settings = settings
+        self.auth = auth or NatsAuth()
         self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
         self.id = uuid.uuid4().hex[:12]
         self._demand_dirty = asyncio.Event()
         self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty)
         self.metrics = Metrics()
+        self.hub.on_drop = self.metrics.count_drop
         r = self.metrics.registry
         self.m_lost = Counter("touchreal_gateway_upstream_lost_frames", "frames lost between publisher and gateway "
                               "(seq jumps on any subject: spikes, channels, decoded)", registry=r)
@@ -132,7 +144,8 @@ class Gateway:
         s = self.settings
         self.nc = await nats.connect(
             s.nats.split(","), name=f"touchreal-gateway-{self.sensor_id}-{self.id}", max_reconnect_attempts=-1,
-            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn)
+            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn,
+            **self.auth.connect_options())
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
         await self.nc.subscribe(subjects.clock(self.sensor_id), cb=self._on_clock)
@@ -146,7 +159,7 @@ class Gateway:
     async def _fetch_hello(self) -> None:
         while True:
             try:
-                msg = await self.nc.request(subjects.hello(self.sensor_id), b"", timeout=HELLO_RETRY_S)
+                msg = await self.nc.request(subjects.hello_request(self.sensor_id), b"", timeout=HELLO_RETRY_S)
                 self._set_hello(json.loads(msg.data))
                 return
             except (NatsError, asyncio.TimeoutError, ValueError) as exc:
@@ -190,7 +203,7 @@ class Gateway:
         return None if self.clock is None else json.dumps(self.clock.to_json(), separators=(",", ":"))
 
     async def _on_hello(self, msg) -> None:
-        if msg.reply or not msg.data:  # a gateway's request, not an announcement
+        if not msg.data:
             return
         try:
             self._set_hello(json.loads(msg.data))
@@ -267,11 +280,30 @@ class Gateway:
                 "streams": {**up.get("streams", {"spikes": {"event_bytes": P.EVENT_DTYPE.itemsize}}),
                             "decoded": {"decoders": self._decoders()}},
                 "encodings": list(P.ENCODINGS), "default_encoding": "binary",
-                "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": s.queue_frames,
-                           "slow_timeout_s": s.slow_timeout_s}}
+                "limits": limits(s)}
 
     def latency_us(self) -> dict[str, int]:
         return dict((self.upstream_hello or {}).get("latency_us", {}))
+
+    async def _ask(self, subject: str, payload: bytes = b""):
+        if self.nc is None or not self.nc.is_connected:
+            raise UpstreamUnavailable(f"not connected to NATS at {self.settings.nats}")
+        try:
+            return await self.nc.request(subject, payload, timeout=UPSTREAM_REQUEST_S)
+        except (NatsError, asyncio.TimeoutError) as exc:
+            raise UpstreamUnavailable(f"the publisher of sensor {self.sensor_id!r} did not answer ({exc!r})") from exc
+
+    async def decoders(self) -> list[dict[str, Any]]:
+        """The publishing service's ``GET /v1/decoders``, asked over NATS."""
+        return json.loads((await self._ask(subjects.decoders_request(self.sensor_id))).data)
+
+    async def model(self, name: str) -> bytes:
+        """The publishing service's decoder model ``name`` (ONNX bytes); LookupError if it has none."""
+        msg = await self._ask(subjects.model_request(self.sensor_id), name.encode())
+        error = (msg.headers or {}).get(subjects.ERROR_HEADER)
+        if error:
+            raise LookupError(error)
+        return msg.data
 
     def ready(self) -> tuple[bool, str]:
         if self.nc is None or not self.nc.is_connected:
@@ -282,7 +314,7 @@ class Gateway:
 
     def status(self) -> dict[str, Any]:
         u = self.upstream
-        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats,
+        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats, "auth": self.auth.describe(),
                 "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
                 "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
@@ -313,6 +345,42 @@ def ready(request: Request) -> Any:
 @router.get("/v1/status", tags=["status"])
 def status(request: Request) -> dict[str, Any]:
     return request.app.state.service.status()
+
+
+@router.get("/v1/decoders", tags=["decoders"], responses={503: {"description": "the publisher does not answer"}})
+async def decoders(request: Request) -> Any:
+    """The publishing service's installed decoders (asked over NATS; docs/decoders.md)."""
+    try:
+        return await request.app.state.service.decoders()
+    except UpstreamUnavailable as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+
+
+@router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})
+async def decoder(name: str, request: Request) -> Any:
+    found = await decoders(request)
+    if isinstance(found, Response):
+        return found
+    for m in found:
+        if m["name"] == name:
+            return m
+    return JSONResponse({"detail": f"no decoder model named {name[:64]!r}"}, status_code=404)
+
+
+@router.get("/v1/decoders/{name}/model.onnx", tags=["decoders"],
+            responses={200: {"content": {"application/octet-stream": {}}}, 404: {"description": "no such decoder"}})
+async def decoder_onnx(name: str, request: Request) -> Response:
+    """The publishing service's ONNX file of decoder ``name`` (asked over NATS)."""
+    if len(name) > 128:
+        return JSONResponse({"detail": "no decoder model of that name"}, status_code=404)
+    try:
+        data = await request.app.state.service.model(name)
+    except UpstreamUnavailable as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+    except LookupError as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+    return Response(data, media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{name}.onnx"'} if subjects.token_ok(name) else {})
 
 
 @router.get("/metrics", tags=["status"])

@@ -6,6 +6,7 @@ loopback port and stops it again.
 
 from __future__ import annotations
 
+import os
 import shutil
 import socket
 import subprocess
@@ -13,6 +14,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 BINARY = "nats-server"
 
@@ -28,15 +30,18 @@ def free_port() -> int:
 
 
 @contextmanager
-def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstream: bool = False) -> Iterator[str]:
+def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstream: bool = False,
+                      config: Path | None = None, env: dict[str, str] | None = None) -> Iterator[str]:
     """Run ``nats-server -a 127.0.0.1 -p PORT`` (with ``-js`` and a temporary store directory when
-    ``jetstream``); yields its URL once it accepts connections."""
+    ``jetstream``; with ``-c config`` and more environment ``env`` for the variables it references,
+    e.g. deploy/nats/nats-server.conf); yields its URL once it accepts connections."""
     if not available():
         raise FileNotFoundError(f"{BINARY} is not installed (Debian: apt-get install nats-server)")
     port = port or free_port()
     store = tempfile.TemporaryDirectory(prefix="touchreal-nats-") if jetstream else None
-    cmd = [BINARY, "-a", "127.0.0.1", "-p", str(port)] + (["-js", "-sd", store.name] if store else [])
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cmd = [BINARY, "-a", "127.0.0.1", "-p", str(port)] + (["-js", "-sd", store.name] if store else []) \
+        + (["-c", str(config)] if config else [])
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, **(env or {})})
     try:
         deadline = time.monotonic() + timeout_s
         while True:

@@ -33,10 +33,12 @@ from nats.js.errors import BadRequestError
 from prometheus_client import Counter, Gauge
 from touchreal_client import protocol as P
 
+from ..decoding.model import DecoderModelError
 from ..server.hub import Subscriber
 from ..server.service import Service
 from . import subjects
-from .demand import ForwardedDemand, parse_announcement
+from .auth import NatsAuth
+from .demand import MAX_GATEWAYS, REJECT_REASONS, ForwardedDemand, Rejected, parse_announcement
 
 log = logging.getLogger("touchreal.bridge")
 EXPIRE_EVERY_S = 0.25  #: how often forwarded demand is checked for expiry (s)
@@ -47,14 +49,16 @@ class NatsPublisher:
     hub subscribers (lanes) show in the service's ``/v1/status`` clients like any other."""
 
     def __init__(self, service: Service, url: str, sensor_id: str, publish_all: bool = False,
-                 pending_bytes: int = 8 << 20, retain_s: float = 0.0, retain_bytes: int = 64 << 20):
+                 pending_bytes: int = 8 << 20, retain_s: float = 0.0, retain_bytes: int = 64 << 20,
+                 auth: NatsAuth | None = None, max_gateways: int = MAX_GATEWAYS):
         self.service, self.url, self.sensor_id = service, url, subjects.check_sensor_id(sensor_id)
+        self.auth = auth or NatsAuth()
         self.publish_all, self.pending_bytes = publish_all, pending_bytes
         if retain_s < 0 or retain_bytes <= 0:
             raise ValueError("retain_s must be >= 0 and retain_bytes > 0")
         self.retain_s, self.retain_bytes = retain_s, retain_bytes
         self.retain_error: str | None = None
-        self.demand = ForwardedDemand()
+        self.demand = ForwardedDemand(max_gateways)
         self.nc: nats.NATS | None = None
         self.spikes_subject, self.channels_subject = subjects.frames(sensor_id), subjects.channels(sensor_id)
         self.lanes: dict[str, Subscriber] = {}  #: subject -> the hub subscriber feeding it
@@ -67,6 +71,10 @@ class NatsPublisher:
                                 "buffer full, or closed)", registry=r)
         self.m_connected = Gauge("touchreal_nats_connected", "1 while the publisher is connected to NATS", registry=r)
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
+        self.m_rejected = Counter("touchreal_nats_demand_rejected", "demand announcements dropped (oversized, "
+                                  "malformed, out_of_range taxels, too_many_gateways)", ["reason"], registry=r)
+        for reason in REJECT_REASONS:
+            self.m_rejected.labels(reason)
 
     async def start(self) -> None:
         self._wakeup = asyncio.Event()
@@ -94,9 +102,11 @@ class NatsPublisher:
 
     def status(self) -> dict:
         """The ``nats`` section of the service's ``/v1/status``."""
-        return {"url": self.url, "sensor_id": self.sensor_id, "connected": bool(self.nc and self.nc.is_connected),
+        return {"url": self.url, "sensor_id": self.sensor_id, "auth": self.auth.describe(),
+                "connected": bool(self.nc and self.nc.is_connected),
                 "published": self.published, "failures": int(self.m_failed._value.get()),
                 "gateways": self.demand.gateways,
+                "demand_rejected": {r: int(self.m_rejected.labels(r)._value.get()) for r in REJECT_REASONS},
                 "retain": {"seconds": self.retain_s, "max_bytes": self.retain_bytes,
                            "stream": subjects.stream_name(self.sensor_id), "error": self.retain_error}
                 if self.retain_s else None,
@@ -109,10 +119,12 @@ class NatsPublisher:
         self.nc = await nats.connect(
             self.url, name=f"touchreal-publisher-{self.sensor_id}", max_reconnect_attempts=-1, reconnect_time_wait=1,
             pending_size=self.pending_bytes, error_cb=self._on_error, disconnected_cb=self._on_conn,
-            reconnected_cb=self._on_conn)
+            reconnected_cb=self._on_conn, **self.auth.connect_options())
         self.m_connected.set(1)
-        await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello_request)
+        await self.nc.subscribe(subjects.hello_request(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        await self.nc.subscribe(subjects.decoders_request(self.sensor_id), cb=self._on_decoders_request)
+        await self.nc.subscribe(subjects.model_request(self.sensor_id), cb=self._on_model_request)
         self.service.clock_listeners.append(self._on_clock)
         if self.retain_s:
             await self._retain()
@@ -162,11 +174,12 @@ class NatsPublisher:
     # -- demand and hello -----------------------------------------------------------------------
     async def _on_demand(self, msg) -> None:
         try:
-            gid, announced, ttl = parse_announcement(msg.data)
-        except ValueError as exc:
-            log.warning("%s: %s", msg.subject, exc)
+            gid, announced, ttl = parse_announcement(msg.data, self.service.n_taxels)
+            self.demand.announce(gid, announced, ttl, time.monotonic())
+        except Rejected as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            log.debug("%s: %s", msg.subject, exc)  # counted; a flood must not flood the log
             return
-        self.demand.announce(gid, announced, ttl, time.monotonic())
         self._apply_demand()
 
     def _expire(self) -> None:
@@ -216,6 +229,25 @@ class NatsPublisher:
         # gets no answer and asks again
         if msg.reply and self.service.runtime is not None:
             await self.nc.publish(msg.reply, self._hello_bytes())
+
+    async def _on_decoders_request(self, msg) -> None:
+        if msg.reply:
+            await self.nc.publish(msg.reply, json.dumps(self.service.decoders_view()).encode())
+
+    async def _on_model_request(self, msg) -> None:
+        """Reply with the named model's ONNX bytes, or with :data:`.subjects.ERROR_HEADER` saying why not."""
+        if not msg.reply:
+            return
+        try:
+            data = await asyncio.to_thread(self.service.models.path(msg.data.decode(errors="replace")).read_bytes)
+        except (DecoderModelError, OSError) as exc:
+            await self.nc.publish(msg.reply, b"", headers={subjects.ERROR_HEADER: str(exc)[:300]})
+            return
+        if len(data) > self.nc.max_payload:
+            await self.nc.publish(msg.reply, b"", headers={subjects.ERROR_HEADER: f"model of {len(data)} bytes exceeds "
+                                                           f"the broker's max_payload ({self.nc.max_payload})"})
+            return
+        await self.nc.publish(msg.reply, data)
 
     def _hello_bytes(self) -> bytes:
         return json.dumps(self.service.hello(), separators=(",", ":")).encode()

@@ -9,9 +9,14 @@
 * ``decoded.<name>``: binary decoded frames of decoder ``<name>`` for the taxels some gateway wants,
   with their own ``seq`` per decoder (a jump = that decoder's frames lost); only while demanded, and
   only for decoders whose name is one subject token (:func:`token_ok`).
-* ``hello``: the service's ``hello`` JSON; a request (any payload, with a reply subject) is answered
-  with the current one, and the publisher announces a new one here when it changes.
+* ``hello``: the publisher announces the service's ``hello`` JSON here when it changes.
+* ``hello.request``: a request (any payload, with a reply subject) is answered with the current
+  hello. Requests and announcements have their own subjects so broker permissions can let gateways
+  ask without letting them announce (deploy/nats/nats-server.conf).
 * ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+* ``decoders.request``: answered with the service's ``GET /v1/decoders`` JSON; ``model.request``
+  (payload: a decoder name) with that model's ONNX bytes, or an empty reply with header
+  :data:`ERROR_HEADER` naming why not. So a gateway serves the decoder routes too.
 * ``clock``: the service's ``clock`` messages (its clock model), as it tells its own clients.
 
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
@@ -23,6 +28,7 @@ from __future__ import annotations
 import re
 
 SESSION_HEADER = "Touchreal-Session"
+ERROR_HEADER = "Touchreal-Error"
 _TOKEN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -50,8 +56,20 @@ def hello(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.hello"
 
 
+def hello_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.hello.request"
+
+
 def clock(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.clock"
+
+
+def decoders_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.decoders.request"
+
+
+def model_request(sensor_id: str) -> str:
+    return f"touchreal.{sensor_id}.model.request"
 
 
 def demand(sensor_id: str) -> str:

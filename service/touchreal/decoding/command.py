@@ -106,17 +106,20 @@ def _load_models(folder: str | None, tasks: tuple[str, ...]):
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    from ..recording import Dataset
+    from ..recording import Dataset, RecordingError
     from .evaluate import TrialCache, evaluate_models, protocol_of
     from .model import params_warning
     from .plan import spec_from_meta
-    from .windows import require_trials
+    from .windows import require_trials, split_entries
 
     ds = Dataset.open(args.dataset)
     params = _params(args.params)
     models = _load_models(args.models, args.tasks)
-    for task in {m.meta["task"] for m in models}:
+    for task in sorted({m.meta["task"] for m in models}):
         require_trials(ds, protocol_of(task), f"evaluating the {task} decoders")
+        if not split_entries(ds, params, protocol_of(task), args.split)[0]:
+            raise RecordingError(f"{ds.root}: no {protocol_of(task)} trials in the {args.split} split, nothing to "
+                                 f"evaluate the {task} decoders on (a test-only dataset: --split all)")
     warnings = [w for w in (params_warning(m.meta, params) for m in models) if w]
     for w in warnings[:3]:
         print(f"warning: {w}", file=sys.stderr)

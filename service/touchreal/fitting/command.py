@@ -117,8 +117,7 @@ def run(args: argparse.Namespace) -> int:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .dask_executor import DaskExecutor, dask_client
-
+    DaskExecutor, dask_client = _dask()
     with dask_client(args.scheduler, args.dask_workers) as client:
         if len(jobs) == 1:
             _fit_one(*jobs[0], executor=DaskExecutor.factory(client))
@@ -129,6 +128,15 @@ def run(args: argparse.Namespace) -> int:
             for fut in [pool.submit(_fit_on_scheduler, client.scheduler.address, *job) for job in jobs]:
                 fut.result()
     return 0
+
+
+def _dask():
+    """(DaskExecutor, dask_client), or an ImportError whose message is the install hint."""
+    try:
+        from .dask_executor import DaskExecutor, dask_client
+    except ImportError as exc:
+        raise ImportError(f"fitting on Dask needs the fit-dask extra: pip install -e '.[fit-dask]' ({exc})") from None
+    return DaskExecutor, dask_client
 
 
 def _fit_one(dataset: Path, out: Path, cfg: FitConfig, init: EncoderParams | None, prefix: bool,

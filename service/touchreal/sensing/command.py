@@ -17,7 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(manifest.json + trials/*.npz) with TouchSim reference spike trains.",
     )
     p.add_argument("protocols", nargs="+", choices=sorted(PROTOCOL_GROUPS) + ["all"], metavar="PROTOCOL",
-                   help="ramp, sine, texture, spatial (spatial_ramp + spatial_sine) or all")
+                   help="ramp, sine, texture, spatial (spatial_ramp + spatial_sine), all (the paper's four), or "
+                   "texture-fine (eight close combs at three close speeds, for the texture decoder)")
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--trials", type=_trial_counts, default=4,
                    help="trials per protocol, spread over its conditions: N for every protocol, or "
@@ -25,7 +26,39 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--no-reference", action="store_true", help="skip the TouchSim reference spike trains")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    g = p.add_argument_group("sensor build (docs/simulator.md; ratios to the nominal rig-v1 build)")
+    g.add_argument("--build", default=None, metavar="NAME|FILE",
+                   help="a shipped build (nominal, weak-film-60hz, noisy-amplifier, stiff-film-slow-rig) or a JSON file; "
+                   "the options below override its fields")
+    for name, kind, text in BUILD_OPTIONS:
+        g.add_argument("--" + name.replace("_", "-"), dest=f"build_{name}", type=kind, default=None, help=text)
     p.set_defaults(func=run)
+
+
+BUILD_OPTIONS = (
+    ("pvdf_coupling", float, "film sensitivity x this (real builds 0.5-1.5)"),
+    ("st_gain", float, "SingleTact sensitivity x this (0.8-1.2)"),
+    ("st_noise", float, "SingleTact noise x this (0.5-3)"),
+    ("pvdf_noise", float, "PVDF noise x this (0.5-3)"),
+    ("mains_hz", float, "mains frequency, 50 or 60 Hz"),
+    ("mains_level", float, "mains pickup x this (0.5-3)"),
+    ("mains_harmonics", int, "highest mains harmonic, 1-9 (nominal 8)"),
+    ("harmonic_gain", float, "mains harmonics 2 and up x this (0.5-3)"),
+    ("rig_lag_ms", float, "physical stimulus behind its command, ms (nominal 6.5; real rigs up to 120)"),
+)
+
+
+def build_from_args(args: argparse.Namespace):
+    """The build the options name (None: nominal, nothing asked)."""
+    import dataclasses
+
+    from .build import SensorBuild, load_build
+
+    over = {name: getattr(args, f"build_{name}") for name, _, _ in BUILD_OPTIONS if getattr(args, f"build_{name}") is not None}
+    if args.build is None and not over:
+        return None
+    base = load_build(args.build) if args.build else SensorBuild()
+    return dataclasses.replace(base, **over, name=base.name if not over else f"{base.name}+custom")
 
 
 def _trial_counts(text: str) -> int | dict[str, int]:
@@ -47,13 +80,15 @@ def run(args: argparse.Namespace) -> int:
     from .simulate import simulate_dataset
 
     if isinstance(args.trials, dict):
-        unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS.get("spatial", ()))
+        unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS["spatial"]) - set(PROTOCOL_GROUPS["texture-fine"])
         if unknown:
             raise ValueError(f"--trials names protocols not being simulated: {sorted(unknown)}")
-    protocols = list(PROTOCOL_GROUPS) if "all" in args.protocols else args.protocols
+    protocols = [g for g in PROTOCOL_GROUPS if g != "texture-fine"] if "all" in args.protocols else args.protocols
     t0 = time.perf_counter()
     progress = None if args.quiet else (lambda tid: print(f"  {tid}", file=sys.stderr))
-    ds = simulate_dataset(protocols, args.out, args.trials, args.seed, reference=not args.no_reference, progress=progress)
+    build = build_from_args(args)
+    ds = simulate_dataset(protocols, args.out, args.trials, args.seed, reference=not args.no_reference, build=build,
+                          progress=progress)
     counts = ", ".join(f"{k} {v}" for k, v in ds.manifest["counts"].items())
     print(f"wrote {len(ds.trials)} trials ({counts}) to {ds.root} in {time.perf_counter() - t0:.1f} s")
     return 0

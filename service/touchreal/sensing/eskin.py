@@ -70,6 +70,7 @@ class SkinParams:
     st_latency_s: float = 0.007  #: sensor output latency (s) (fit: ST onset vs PVDF onset)
     st_offset_n: float = 0.037  #: mean zero-force baseline (N) (fit: pre-contact baseline)
     st_offset_sd_n: float = 0.012  #: sd of the baseline between instances (N) (fit)
+    st_gain: float = 1.0  #: sensitivity: reading per N of contact force (1 for the rig-v1 build; see sensing/build.py)
     st_noise_n: float = 0.004  #: white noise sd before quantisation (N) (fit: baseline sd 0.005 N)
     st_wander_n: float = 0.004  #: baseline wander sd (N) (assumed)
     st_wander_tau_s: float = 2.0  #: baseline wander time constant (s) (assumed)
@@ -409,7 +410,7 @@ class ESkin:
         init = ContactInput.still(1, initial_depth_mm, initial_xy_mm)
         g_st, g_pv, a_sp = self._geometry(init)
         z0 = np.maximum(initial_depth_mm + self._zero, 0.0)
-        fe0 = (g_st * self._stiff * z0 ** p.exponent)[0]
+        fe0 = (p.st_gain * g_st * self._stiff * z0 ** p.exponent)[0]
         s0 = self._film(initial_depth_mm + self._zero[None, :], z0[None, :], g_pv)[0]
         self._z = z0.copy()
         self._zi_coup = np.zeros(2)
@@ -506,7 +507,7 @@ class ESkin:
 
         # SingleTact: contact force, viscoelastic relaxation, sensor low-pass and latency
         stiff = self._stiff[None, :] * np.where(c.comb, p.comb_stiffness_factor, 1.0)[:, None]
-        fe = g_st * stiff * z_st ** p.exponent
+        fe = p.st_gain * g_st * stiff * z_st ** p.exponent
         f = self._st_filter.process(fe)
         if self._st_delay_n:
             f = np.concatenate([self._st_delay, f])

@@ -5,7 +5,9 @@ device time (us) it goes out: trials back to back on one continuous device clock
 frame per ``st_block`` samples (10 ms each) and one PVDF frame per ``pvdf_block`` samples (0.5 ms
 each), a frame sent when its last sample is taken. Faults are drawn from a seeded generator:
 dropped frames (their sequence numbers are used up, as when the MCU's buffer overflows) and
-corrupted frames (one byte flipped).
+corrupted frames (one byte flipped). :class:`Link` and :func:`departures` (sans-I/O) add a device
+clock that drifts against the host's and a USB link that delays frames at random and stalls now
+and then; the true acquisition instants are reported so a host's clock estimate can be checked.
 
 :class:`PtyPort` is the thin I/O layer: a pty pair whose slave is reachable through a symlink
 (like a udev ``/dev/ttyACM0`` link). As a USB CDC device only transmits while the host holds the
@@ -33,6 +35,8 @@ from .serial_frame import PERIOD_US, Channel, encode_frame
 
 
 HOST_SETTLE_S = 0.1  #: pause after a host opens the port before playback starts (wait_for_host_s)
+STALLS_PER_S = 1.0  #: mean rate of link stalls (Poisson, host time) when there is jitter
+STALL_JITTERS = 10.0  #: a stall lasts this many mean jitters
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,50 @@ class Faults:
         for name in ("drop_rate", "corrupt_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class Link:
+    """The device clock against the host's and the delays of the link.
+
+    The device clock runs ``drift_ppm`` fast (negative: slow): a device second lasts
+    1 / (1 + drift_ppm 1e-6) host seconds. Each frame leaves ``jitter_ms`` late on average
+    (exponential), and about STALLS_PER_S times a second the link stalls for STALL_JITTERS x
+    ``jitter_ms``: frames acquired meanwhile leave together when it ends. Frames leave in order.
+    """
+
+    drift_ppm: float = 0.0
+    jitter_ms: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not -10_000 <= self.drift_ppm <= 10_000:
+            raise ValueError(f"drift_ppm must be in [-10000, 10000], got {self.drift_ppm}")
+        if not 0.0 <= self.jitter_ms <= 1000.0:
+            raise ValueError(f"jitter_ms must be in [0, 1000], got {self.jitter_ms}")
+
+
+def departures(
+    schedule: Iterable[tuple[int, bytes]], link: Link = Link(), speed: float = 1.0
+) -> Iterator[tuple[int, float, float, bytes]]:
+    """(device us of the frame's newest sample, host s it was acquired, host s it leaves, frame) for
+    ``schedule``; host times count from the first frame's acquisition, ``speed`` x real time."""
+    rng = np.random.default_rng((link.seed, 1))
+    scale = 1e-6 / speed / (1.0 + link.drift_ppm * 1e-6)
+    jitter_s = link.jitter_ms / 1e3
+    stall_s = STALL_JITTERS * jitter_s
+    first_us: int | None = None
+    stall_at = float(rng.exponential(1 / STALLS_PER_S)) if jitter_s > 0 else math.inf
+    leave = 0.0
+    for device_us, data in schedule:
+        first_us = device_us if first_us is None else first_us
+        acquired = (device_us - first_us) * scale
+        while stall_at + stall_s <= acquired:
+            stall_at += stall_s + float(rng.exponential(1 / STALLS_PER_S))
+        leave = max(leave, acquired + (float(rng.exponential(jitter_s)) if jitter_s > 0 else 0.0))
+        if stall_at <= acquired:
+            leave = max(leave, stall_at + stall_s)
+        yield device_us, acquired, leave, data
 
 
 def _channel_frames(
@@ -203,8 +251,12 @@ def play(
     wait_for_host_s: float = 0.0,
     linger_s: float = 0.5,
     should_stop: Callable[[], bool] = lambda: False,
+    link: Link = Link(),
+    on_acquired: Callable[[int, float], None] = lambda device_us, mono_s: None,
 ) -> PortStats:
-    """Send ``schedule`` through ``port`` paced at ``speed`` x real time.
+    """Send ``schedule`` through ``port`` paced at ``speed`` x real time, through ``link``
+    (:func:`departures`); ``on_acquired(device_us, mono_s)`` is told, per frame, the host monotonic
+    time (s) at which its newest sample was acquired.
 
     With ``unplug_after_s`` the port is unplugged after that many seconds of playback (recording
     time) and replugged ``replug_after_s`` later, repeatedly; the device clock and sequence numbers
@@ -221,12 +273,13 @@ def play(
         time.sleep(HOST_SETTLE_S)
     start = time.monotonic()
     first_us: int | None = None
-    for send_us, data in schedule:
+    for send_us, acquired_s, leave_s, data in departures(schedule, link, speed):
         if should_stop():
             break
         first_us = send_us if first_us is None else first_us
         rec_s = (send_us - first_us) / 1e6
-        delay = start + rec_s / speed - time.monotonic()
+        on_acquired(send_us, start + acquired_s)
+        delay = start + leave_s - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         if unplug_after_s is not None:

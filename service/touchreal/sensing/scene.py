@@ -86,7 +86,7 @@ class Scene:
             d, x = executed_command(ev.stimulus, trel, robot)
             out["depth"][sel] = d
             out["x"][sel] = x
-            out["vib"][sel] = ev.stimulus.vibration(trel)
+            out["vib"][sel] = ev.stimulus.vibration(trel - robot.exciter_latency_s)
             out["xy"][sel] = ev.xy_mm
             out["comb"][sel] = ev.stimulus.contactor == "comb"
             out["spacing"][sel] = ev.stimulus.spacing_mm

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..recording import Dataset, Trial, write_dataset
 from ..settings import PVDF_FS_HZ, ST_FS_HZ
+from .build import SensorBuild
 from .eskin import SkinParams
 from .scene import Scene, SceneEvent, SceneSource
 from .stimuli import RampHold, RobotParams, SineBurst, Stimulus, TextureSlide
@@ -57,6 +58,19 @@ PROTOCOL_DESIGN: dict[str, Any] = {
         "record_s": 3.0,
         "labels": ["comb_0.5mm", "comb_2mm", "comb_4mm"],
     },
+    "texture_fine": {
+        "stimulus": "eight comb textures of close spacings, each slid at one of three close speeds (a nuisance the "
+        "decoder must see through); recorded as protocol 'texture', label = the comb",
+        "spacing_mm": [1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75],
+        "speed_mm_s": [25.0, 30.0, 35.0],
+        "depth_mm": 0.5,
+        "press_speed_mm_s": 10.0,
+        "dwell_s": 0.1,
+        "slide_s": 2.0,
+        "record_s": 3.0,
+        "labels": ["comb_1mm", "comb_1.25mm", "comb_1.5mm", "comb_1.75mm", "comb_2mm", "comb_2.25mm", "comb_2.5mm",
+                   "comb_2.75mm"],
+    },
     "spatial_ramp": {
         "probe": "1 mm probe at offset (r, theta) from the sensor centre",
         "v_mm_s": 10.0,
@@ -69,10 +83,11 @@ PROTOCOL_DESIGN: dict[str, Any] = {
 }
 
 #: Independent noisy TouchSim repeats per trial (as rig-v1).
-REFERENCE_REPEATS = {"ramp": 6, "sine": 10, "texture": 0, "spatial_ramp": 3, "spatial_sine": 3}
+REFERENCE_REPEATS = {"ramp": 6, "sine": 10, "texture": 0, "texture_fine": 0, "spatial_ramp": 3, "spatial_sine": 3}
 
 #: CLI protocol names -> recording protocols.
-PROTOCOL_GROUPS = {"ramp": ("ramp",), "sine": ("sine",), "texture": ("texture",), "spatial": ("spatial_ramp", "spatial_sine")}
+PROTOCOL_GROUPS = {"ramp": ("ramp",), "sine": ("sine",), "texture": ("texture",), "texture-fine": ("texture_fine",),
+                   "spatial": ("spatial_ramp", "spatial_sine")}
 
 
 @dataclass(frozen=True)
@@ -117,6 +132,12 @@ def conditions(protocol: str, skin: SkinParams | None = None) -> list[Condition]
         return [
             Condition("texture", f"texture_s{s}", TextureSlide(float(s), t["speed_mm_s"], t["depth_mm"], t["press_speed_mm_s"], t["dwell_s"], t["slide_s"]))
             for s in t["spacing_mm"]
+        ]
+    if protocol == "texture_fine":
+        t = d["texture_fine"]
+        return [
+            Condition("texture", f"texture_fine_s{s}_v{v:g}", TextureSlide(float(s), float(v), t["depth_mm"], t["press_speed_mm_s"], t["dwell_s"], t["slide_s"]))
+            for s in t["spacing_mm"] for v in t["speed_mm_s"]
         ]
     if protocol == "spatial_ramp":
         sr = d["spatial_ramp"]
@@ -223,6 +244,7 @@ def simulate_dataset(
     reference: bool = True,
     skin: SkinParams | None = None,
     robot: RobotParams | None = None,
+    build: SensorBuild | None = None,
     progress=None,
 ) -> Dataset:
     """Write a dataset of ``trials`` trials per recording protocol to the folder ``out``.
@@ -232,7 +254,12 @@ def simulate_dataset(
 
     ``protocols``: one name or several, recording protocols (``ramp``, ``sine``, ``texture``,
     ``spatial_ramp``, ``spatial_sine``) or the CLI group ``spatial`` (both spatial protocols).
+
+    ``build``: a sensor build (:mod:`.build`) applied to ``skin`` and ``robot`` (default: nominal);
+    the manifest records it under ``simulator.build``.
     """
+    if build is not None:
+        skin, robot = build.skin(skin), build.robot(robot)
     protos: list[str] = []
     for p in [protocols] if isinstance(protocols, str) else protocols:
         for q in PROTOCOL_GROUPS.get(p, (p,)):
@@ -256,7 +283,7 @@ def simulate_dataset(
             recorded[tid] = trial
             if progress is not None:
                 progress(tid)
-    counts = {p: sum(e["protocol"] == p for e in entries) for p in protos}
+    counts = {p: sum(e["id"].rsplit("_", 1)[0] == p for e in entries) for p in protos}
     manifest = {
         "name": Path(out).name,
         "description": "Simulated e-skin recordings (touchreal.sensing: robot dynamics + SingleTact/PVDF physics), "
@@ -266,7 +293,8 @@ def simulate_dataset(
         "protocols": {k: v for k, v in PROTOCOL_DESIGN.items() if k in protos or k in ("offsets", "spatial_offsets")},
         "reference": _reference_meta(reference),
         "counts": counts,
-        "simulator": {"module": "touchreal.sensing", "seed": seed, "trials_per_protocol": trials},
+        "simulator": {"module": "touchreal.sensing", "seed": seed, "trials_per_protocol": trials,
+                      "build": (build or SensorBuild()).to_json()},
         "trials": entries,
     }
     return write_dataset(out, manifest, recorded)

@@ -36,6 +36,7 @@ class RobotParams:
     damping: float = 1.0  #: damping ratio of the position loop
     max_accel_mm_s2: float = 1900.0  #: acceleration limit (mm/s^2)
     reversal_dwell_s: float = 0.013  #: dwell before the vertical motion reverses (s)
+    exciter_latency_s: float = 0.0  #: command -> exciter vibration latency (s) (0 on the rig-v1 build)
 
 
 @numba.njit(cache=True, nogil=True)

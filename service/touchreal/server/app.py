@@ -11,12 +11,17 @@ from typing import Protocol
 
 import uvicorn
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 from fastapi.staticfiles import StaticFiles
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
 from . import rest, ws
+from .limits import uvicorn_limits
+from .security import BodyGuard, validation_error
 from .service import Service
+from .settings import ServeSettings
 
 #: The live dashboard: plain static files (no build step), package data of the wheel.
 DASHBOARD_DIR = Path(__file__).with_name("dashboard")
@@ -53,6 +58,10 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
         lifespan=lifespan,
     )
     app.state.service = service
+    app.state.allowed_origins = service.settings.allowed_origins  # /v1/stream's Origin check (security.admit)
+    app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_middleware(BodyGuard, token=lambda: service.settings.token, max_body_bytes=service.settings.max_body_bytes)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=service.settings.allowed_hosts)  # outermost: first
     app.include_router(rest.router)
     app.include_router(ws.router)
     # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed
@@ -60,12 +69,18 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
     return app
 
 
-def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning") -> uvicorn.Config:
+def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning",
+                   limits: ServeSettings | None = None) -> uvicorn.Config:
     """The server configuration (``touchreal serve``, the tests and the benchmark use this one):
     websockets' sans-I/O implementation, client messages capped at the protocol's limit,
-    permessage-deflate only for clients that offer it."""
+    permessage-deflate only for clients that offer it, the connection limits of ``limits`` (default: the
+    settings' defaults; :mod:`.limits`) and keepalive pings as the app's service's settings say (a client
+    that stops reading is closed with 1011 after at most interval + timeout)."""
+    s = app.state.service.settings
     return uvicorn.Config(app, host=host, port=port, ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
-                          ws_per_message_deflate=True, log_level=log_level, lifespan="on")
+                          ws_per_message_deflate=True, ws_ping_interval=s.ping_interval_s,
+                          ws_ping_timeout=s.ping_timeout_s, log_level=log_level, lifespan="on",
+                          **uvicorn_limits(limits or ServeSettings.model_construct()))
 
 
 @contextmanager
@@ -76,16 +91,17 @@ def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level:
 
     For benchmarks and tests that need the real server next to their own code (``port=0``: a free port).
     """
-    with serving_app(create_app(service, companions), host, port, log_level) as addr:
+    with serving_app(create_app(service, companions), host, port, log_level, service.settings) as addr:
         if not service.opened.wait(120.0):
             raise RuntimeError("the service did not finish its warm-up within 120 s")
         yield addr
 
 
 @contextmanager
-def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> Iterator[str]:
+def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
+                limits: ServeSettings | None = None) -> Iterator[str]:
     """Run any of our apps (the service, a gateway) under uvicorn on its own thread; yields ``host:port``."""
-    config = uvicorn_config(app, host, port, log_level)
+    config = uvicorn_config(app, host, port, log_level, limits)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="touchreal-uvicorn", daemon=True)
     thread.start()

@@ -36,8 +36,9 @@ def build_demand(
     allowed_classes: Sequence[str],
     decoder_classes: Mapping[str, Sequence[str]],
 ) -> Demand:
-    """Union of the subscriptions, limited to existing taxels and the classes the service may compute.
-    A decoded-output subscription adds the classes its decoders read (``decoder_classes[name]``)."""
+    """Union of the subscriptions, limited to existing taxels and the classes the service may compute
+    (a subscription's ``classes`` None: all of those). A decoded-output subscription adds the classes
+    its decoders read (``decoder_classes[name]``)."""
     cols: dict[str, set[int]] = {c: set() for c in CLASSES}
     spikes: dict[str, set[int]] = {c: set() for c in CLASSES}
     chan: set[int] = set()
@@ -45,7 +46,7 @@ def build_demand(
     for sub in subscriptions:
         taxels = set(range(n_taxels)) if sub.taxels is None else {t for t in sub.taxels if t < n_taxels}
         if "spikes" in sub.streams:
-            for c in sub.classes:
+            for c in allowed_classes if sub.classes is None else sub.classes:
                 cols[c] |= taxels
                 spikes[c] |= taxels
         if "channels" in sub.streams:

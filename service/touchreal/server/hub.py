@@ -4,7 +4,10 @@ Sans-I/O apart from an ``asyncio.Event`` per subscriber for wake-up: :meth:`Hub.
 waits. Each :class:`Subscriber` has a bounded queue; a frame that does not fit is dropped for that
 subscriber only (its ``seq`` still advances, so the client sees the gap, and ``dropped`` counts
 it); a subscriber whose queue stays full for ``slow_timeout_s`` is marked for closing with
-:data:`~touchreal_client.protocol.CLOSE_SLOW_CONSUMER`. Other subscribers are unaffected.
+:data:`~touchreal_client.protocol.CLOSE_SLOW_CONSUMER`. Other subscribers are unaffected. Its control
+replies are never dropped but bounded (:data:`~touchreal_client.protocol.CONTROL_QUEUE_MESSAGES` and
+``CONTROL_QUEUE_BYTES``): a client that asks faster than it reads is marked for closing with
+:data:`~touchreal_client.protocol.CLOSE_FLOODING`.
 
 Queued items are rendered frames without the per-connection fields; the sender stamps ``seq``,
 ``dropped`` and ``sent_us`` when it hands the frame to the socket (:meth:`Subscriber.render`).
@@ -26,6 +29,14 @@ from touchreal_client import protocol as P
 from .demand import Demand, build_demand
 from .runtime import Update, wall_us
 
+DROP_QUEUE_FULL = "queue_full"  #: a frame that did not fit a client's queue
+DROP_UPSTREAM = "upstream_loss"  #: a frame lost before it reached the hub (a gateway's broker hop)
+DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM)
+
+
+def _uncounted(reason: str, n: int) -> None:
+    pass
+
 
 @dataclass
 class Queued:
@@ -37,8 +48,10 @@ class Queued:
 class Subscriber:
     """One connection's subscription, queue and counters (the WebSocket layer drives it)."""
 
-    def __init__(self, sub_id: int, capacity: int, slow_timeout_s: float, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, sub_id: int, capacity: int, slow_timeout_s: float, clock: Callable[[], float] = time.monotonic,
+                 on_drop: Callable[[str, int], None] = _uncounted):
         self.id = sub_id
+        self.on_drop = on_drop  #: told (reason, frames) of every drop: DROP_QUEUE_FULL or DROP_UPSTREAM
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
         self.clock = clock
@@ -50,15 +63,25 @@ class Subscriber:
         self.full_since: float | None = None
         self.kick: tuple[int, str] | None = None  #: (close code, reason) once it must go
         self.kicked = asyncio.Event()
-        self.control: deque[str] = deque()  #: JSON replies (subscribed, time, error): never dropped
+        self.control: deque[str] = deque()  #: JSON messages (hello, clock, subscribed, time, error): never dropped
+        self.control_chars = 0  #: characters queued in ``control``
         self.after_frames: deque[str] = deque()  #: JSON messages that follow every frame queued before them (ended)
         #: False for a subscriber no client reads control messages from (a NATS publisher's lane)
         self.takes_control = True
         self.wakeup = asyncio.Event()
 
     def say(self, text: str) -> None:
-        """Queue a control message; it goes out before any queued frame."""
+        """Queue a control message; it goes out before any queued frame. One that would overflow the
+        bounded reply queue marks the subscriber for closing (CLOSE_FLOODING) instead."""
+        if self.kick is not None:
+            return
+        if len(self.control) >= P.CONTROL_QUEUE_MESSAGES or self.control_chars + len(text) > P.CONTROL_QUEUE_BYTES:
+            self.kick = (P.CLOSE_FLOODING, f"flooding: {len(self.control)} control messages ({self.control_chars} "
+                         "bytes) unsent; read the replies before sending more requests")
+            self.kicked.set()
+            return
         self.control.append(text)
+        self.control_chars += len(text)
         self.wakeup.set()
 
     def say_after_frames(self, text: str) -> None:
@@ -66,10 +89,17 @@ class Subscriber:
         self.after_frames.append(text)
         self.wakeup.set()
 
+    def pop_control(self) -> str:
+        """The oldest queued control message (for the sender)."""
+        text = self.control.popleft()
+        self.control_chars -= len(text)
+        return text
+
     def offer(self, kind: int, payload: bytes | str) -> None:
         seq, self.seq = self.seq, self.seq + 1
         if len(self.queue) >= self.capacity:
             self.dropped += 1
+            self.on_drop(DROP_QUEUE_FULL, 1)
             now = self.clock()
             if self.full_since is None:
                 self.full_since = now
@@ -87,6 +117,7 @@ class Subscriber:
         its ``seq`` jumps and ``dropped`` counts them, exactly as for a frame its own queue dropped."""
         self.seq += n
         self.dropped += n
+        self.on_drop(DROP_UPSTREAM, n)
 
     def render(self, item: Queued) -> tuple[bytes | str, int]:
         """The frame as this connection sends it now, and its sent_us."""
@@ -95,6 +126,17 @@ class Subscriber:
         if isinstance(item.payload, str):
             return P.render_json(item.payload, item.seq, self.dropped, sent), sent
         return bytes(P.stamp(item.payload, item.seq, self.dropped, sent)), sent
+
+
+def limits(settings) -> dict[str, int | float]:
+    """The hello's ``limits``: what one connection may send and have queued, and the keepalive (``settings``:
+    serve's or a gateway's: ``queue_frames``, ``slow_timeout_s``, ``max_clients``, ``ping_interval_s``,
+    ``ping_timeout_s``; times in s)."""
+    return {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": settings.queue_frames,
+            "slow_timeout_s": settings.slow_timeout_s, "control_messages": P.CONTROL_QUEUE_MESSAGES,
+            "control_bytes": P.CONTROL_QUEUE_BYTES, "max_errors_in_a_row": P.MAX_ERRORS_IN_A_ROW,
+            "max_clients": settings.max_clients, "ping_interval_s": settings.ping_interval_s,
+            "ping_timeout_s": settings.ping_timeout_s}
 
 
 class Hub:
@@ -106,15 +148,17 @@ class Hub:
         self.subscribers: dict[int, Subscriber] = {}
         self._ids = itertools.count(1)
         self.demand = Demand()
+        self.on_drop: Callable[[str, int], None] = _uncounted  #: given to every subscriber (metrics)
         self.n_taxels = 1
         self.allowed_classes: Sequence[str] = P.CLASSES
         self.decoder_classes: Mapping[str, Sequence[str]] = {}
         self.decoder_names: list[str] = []
+        self.known = False  #: configured: what is served is known (a gateway learns it from the publisher's hello)
         self.frames_rendered = 0
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
-        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s)
+        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s, on_drop=self.on_drop)
         self.subscribers[sub.id] = sub
         return sub
 
@@ -132,7 +176,30 @@ class Hub:
         sub.subscription = subscription
         self.refresh_demand()
 
+    def admit(self, msg: Mapping) -> P.Subscription:
+        """A subscribe message as a subscription of what is served. Without ``classes`` it asks for
+        the classes served; naming a class not served, a taxel that does not exist or a decoder not
+        offered raises :class:`~touchreal_client.protocol.ProtocolError` with code ``not_served``
+        (the connection keeps its previous subscription). Until the hub is configured (a gateway
+        before its publisher's hello) anything well-formed is admitted."""
+        s = P.parse_subscribe(dict(msg))
+        if s.classes is None:
+            s.classes = [c for c in P.CLASSES if c in self.allowed_classes]
+        if not self.known:
+            return s
+        problems = []
+        if bad := [c for c in s.classes if c not in self.allowed_classes]:
+            problems.append(f"classes {bad} are not served (served: {list(self.allowed_classes)})")
+        if bad := [t for t in s.taxels or () if t >= self.n_taxels]:
+            problems.append(f"taxels {bad[:8]}{'...' if len(bad) > 8 else ''} do not exist (ids 0..{self.n_taxels - 1})")
+        if "decoded" in s.streams and (bad := [d for d in s.decoders or () if d not in self.decoder_classes]):
+            problems.append(f"decoders {bad[:8]} are not offered (offered: {self.decoder_names})")
+        if problems:
+            raise P.ProtocolError("; ".join(problems) + "; the previous subscription stays", "not_served")
+        return s
+
     def configure(self, n_taxels: int, allowed_classes: Sequence[str], decoder_classes: Mapping[str, Sequence[str]]) -> None:
+        self.known = True
         self.n_taxels, self.allowed_classes = n_taxels, list(allowed_classes)
         self.decoder_classes = dict(decoder_classes)
         self.decoder_names = list(decoder_classes)
@@ -150,7 +217,8 @@ class Hub:
             s = sub.subscription
             if s is None or sub.kick is not None:
                 continue
-            key = (None if s.taxels is None else tuple(s.taxels), tuple(s.classes), tuple(s.streams), s.encoding,
+            key = (None if s.taxels is None else tuple(s.taxels), None if s.classes is None else tuple(s.classes),
+                   tuple(s.streams), s.encoding,
                    s.decimation, None if s.decoders is None else tuple(s.decoders))
             frames = cache.get(key)
             if frames is None:
@@ -175,9 +243,10 @@ class Hub:
         taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
         if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
-            cls_idx = [P.CLASSES.index(c) for c in s.classes]
+            classes = self.allowed_classes if s.classes is None else s.classes
+            cls_idx = [P.CLASSES.index(c) for c in classes]
             sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
-            final = {c: (upd.final_us.get(c) if c in s.classes else None) for c in P.CLASSES}
+            final = {c: (upd.final_us.get(c) if c in classes else None) for c in P.CLASSES}
             out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
         if "channels" in s.streams and upd.channels is not None and upd.channels.n_samples:
             ch = upd.channels

@@ -6,6 +6,8 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from touchreal_client.protocol import CLASSES
 
+from .hub import DROP_REASONS
+
 _LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3, 0.5, 1.0)
 _COMPUTE_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 
@@ -25,11 +27,21 @@ class Metrics:
         self.clients = Gauge("touchreal_clients_connected", "connected stream clients", registry=r)
         self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
                                   registry=r)
-        self.drops = Counter("touchreal_dropped_frames", "frames dropped for slow clients", registry=r)
-        self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers", registry=r)
+        self.drops = Counter("touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "
+                             "the client's queue was full; upstream_loss: lost on a gateway's broker hop)", ["reason"],
+                             registry=r)
+        self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers (4008)", registry=r)
+        self.flooding = Counter("touchreal_clients_closed_flooding", "clients closed for sending requests faster than "
+                                "they read the replies (4029)", registry=r)
         self.faults = Gauge("touchreal_input_faults", "cumulative input faults (sanitizer: NaN/Inf, gaps, ...; "
                             "serial: CRC errors, gaps, resyncs, reconnects)", ["kind"], registry=r)
         self.source_state = Gauge("touchreal_source_state", "1 for the source's current state", ["state"], registry=r)
         self.ready = Gauge("touchreal_ready", "1 when the source delivers and the pipeline is warm", registry=r)
         for c in CLASSES:
             self.events.labels(c)
+        for reason in DROP_REASONS:
+            self.drops.labels(reason)
+
+    def count_drop(self, reason: str, frames: int) -> None:
+        """A hub's ``on_drop``: frames dropped for a client, by reason."""
+        self.drops.labels(reason).inc(frames)

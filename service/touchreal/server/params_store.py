@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from ..params import EncoderParams, default_params
+from ..params import EncoderParams, ParamsError, default_params
 
+log = logging.getLogger("touchreal.server")
 HISTORY_KEEP = 20  #: revisions kept on disk
 
 
@@ -31,7 +33,7 @@ class Revision:
     rev: int
     sha256: str
     created_us: int
-    origin: str  #: "shipped", "file:PATH", "upload", "config", "rollback:N"
+    origin: str  #: "shipped", "file:PATH", "upload", "config", "rollback:N", "fallback:N" / "fallback:shipped"
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -49,17 +51,50 @@ class ParamsStore:
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         self.revisions: list[Revision] = []
+        #: why the set the service started with, or ran, is not the one it was asked for (None: it is)
+        self.fallback_reason: str | None = None
         hist = self.dir / "history.json"
+        active_rev = None
         if hist.is_file():
-            data = json.loads(hist.read_text())
-            self.revisions = [Revision(**r) for r in data["revisions"]]
-            active_rev = data["active"]
+            try:
+                data = json.loads(hist.read_text())
+                self.revisions = [Revision(**r) for r in data["revisions"]]
+                active_rev = int(data["active"])
+            except (ValueError, KeyError, TypeError) as exc:
+                log.error("%s is unreadable (%s); starting a new history", hist, exc)
+                self.revisions = []
         if initial is not None:
             self.current = self._add(EncoderParams.load(initial), f"file:{initial}")
-        elif self.revisions:
-            self.current = (active_rev, self.load(active_rev))
+        elif active_rev is not None:
+            self.current = self._last_loadable(active_rev)
         else:
             self.current = self._add(default_params(), "shipped")
+
+    def _last_loadable(self, active_rev: int) -> tuple[int, EncoderParams]:
+        """The persisted active revision; if it no longer loads (the schema's bounds tightened, a
+        damaged file), the newest earlier one that does, else the shipped set, activated as a new
+        revision ``fallback:N`` with the reason logged and kept in :attr:`fallback_reason`."""
+        try:
+            return active_rev, self.load(active_rev)
+        except (KeyError, ParamsError) as exc:
+            reason = f"persisted parameter revision {active_rev} cannot be used: {exc}"
+        for r in reversed([r.rev for r in self.revisions if r.rev < active_rev]):
+            try:
+                return self.fall_back(r, reason)
+            except (KeyError, ParamsError):
+                continue
+        return self.fall_back(None, reason)
+
+    def fall_back(self, rev: int | None, reason: str) -> tuple[int, EncoderParams]:
+        """Activate revision ``rev`` (None: the shipped set) as a new revision ``fallback:REV``,
+        logging ``reason``; returns the new (revision, parameters)."""
+        params = default_params() if rev is None else self.load(rev)
+        with self._lock:
+            self.current = self._add(params, f"fallback:{'shipped' if rev is None else rev}")
+        self.fallback_reason = f"{reason}; running revision {self.current[0]} (a copy of " \
+                               f"{'the shipped set' if rev is None else f'revision {rev}'})"
+        log.error(self.fallback_reason)
+        return self.current
 
     def _path(self, rev: int) -> Path:
         return self.dir / f"rev-{rev:06d}.json"
@@ -92,15 +127,10 @@ class ParamsStore:
         return EncoderParams.load(self._path(rev))
 
     def put(self, params: EncoderParams, origin: str = "upload") -> int:
-        """Make ``params`` (already validated) the active set; returns its revision."""
+        """Make ``params`` (already validated and proved runnable) the active set; returns its revision."""
         with self._lock:
             self.current = self._add(params, origin)
-            return self.current[0]
-
-    def rollback(self, rev: int) -> int:
-        """Activate an earlier revision again (as a new revision, so the history stays linear)."""
-        with self._lock:
-            self.current = self._add(self.load(rev), f"rollback:{rev}")
+            self.fallback_reason = None
             return self.current[0]
 
     def info(self, rev: int | None = None) -> Revision:

@@ -1,23 +1,27 @@
 """The ``/v1`` REST surface: thin handlers over the :class:`~.service.Service` (OpenAPI at /openapi.json).
 
 Reads are open; writes (PATCH /v1/config, PUT /v1/params, POST /v1/params/rollback) need
-``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``).
+``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``),
+checked before the body is read, and bodies are bounded before they are parsed
+(:class:`~.security.BodyGuard`); 422s name the field and never echo the input.
 """
 
 from __future__ import annotations
 
-import secrets
 from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request, Response
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
-from ..decoding.model import DecoderModelError, params_warning
-from ..params import EncoderParams
+from ..decoding.model import DecoderModelError
+from ..params import EncoderParams, ParamsError
 from .params_store import params_sha256
+from .security import token_ok
+from .service import SourceOpenError
+from .sources import SourceRefused
 from .settings import ConfigPatch
 
 router = APIRouter()
@@ -29,17 +33,17 @@ def service_of(request: Request):
 
 
 def require_token(request: Request, cred: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
-    token = service_of(request).settings.token
-    if token is None:
-        return
-    if cred is None or not secrets.compare_digest(cred.credentials.encode(), token.encode()):
+    """The write endpoints' token check, as OpenAPI shows it (:class:`~.security.BodyGuard` applies
+    the same check before a body is read)."""
+    if not token_ok(service_of(request).settings.token, request.headers.get("authorization")):
         raise HTTPException(401, "this endpoint needs 'Authorization: Bearer <token>'",
                             headers={"WWW-Authenticate": "Bearer"})
 
 
 class Health(BaseModel):
-    status: str
+    status: str = Field(description="ok | degraded (the parameters in force are a fallback) | failed")
     session: str
+    reason: str | None = Field(default=None, description="why degraded or failed")
 
 
 class Ready(BaseModel):
@@ -54,16 +58,22 @@ class ParamsInfo(BaseModel):
 
 
 class Rollback(BaseModel):
-    rev: int = Field(ge=1, description="an earlier revision from GET /v1/params/history")
+    model_config = ConfigDict(extra="forbid")
+
+    rev: int = Field(ge=1, le=2**31, strict=True, description="an earlier revision from GET /v1/params/history")
 
 
 @router.get("/v1/health", response_model=Health, tags=["health"], responses={503: {"model": Health}})
 def health(request: Request) -> Any:
-    """Liveness: the process serves and its acquisition thread has not failed."""
+    """Liveness: the process serves and its acquisition thread has not failed; ``degraded`` while a
+    parameter set that failed has been replaced by a fallback (the reason says which)."""
     svc = service_of(request)
-    ok = svc.runtime is None or svc.runtime.state != "failed"
-    return JSONResponse(Health(status="ok" if ok else "failed", session=svc.session).model_dump(),
-                        status_code=200 if ok else 503)
+    state = svc.health()
+    status, _, reason = state.partition(": ")
+    if status == "failed":
+        reason = svc.runtime.error
+    return JSONResponse(Health(status=status, session=svc.session, reason=reason or None).model_dump(),
+                        status_code=503 if status == "failed" else 200)
 
 
 @router.get("/v1/ready", response_model=Ready, tags=["health"], responses={503: {"model": Ready}})
@@ -85,12 +95,21 @@ def get_config(request: Request) -> dict[str, Any]:
 
 
 @router.patch("/v1/config", tags=["config"], dependencies=[Depends(require_token)],
-              responses={400: {"description": "invalid value"}, 401: {"description": "token missing or wrong"}})
+              responses={400: {"description": "invalid value"}, 401: {"description": "token missing or wrong"},
+                         403: {"description": "a source outside what this service lets clients open"},
+                         409: {"description": "the source cannot be opened; the previous source runs again"},
+                         422: {"description": "invalid value, or the new preprocessing does not run"}})
 async def patch_config(patch: ConfigPatch, request: Request) -> dict[str, Any]:
     """Change the source, taxels, replay speed/loop, update interval, default window or computed classes;
     the answer says what was restarted (``source``, ``pipeline``)."""
     try:
         return await service_of(request).patch_config(patch)
+    except SourceRefused as exc:
+        raise HTTPException(403, str(exc)) from exc
+    except SourceOpenError as exc:
+        raise HTTPException(409, str(exc)) from exc
+    except ParamsError as exc:
+        raise HTTPException(422, str(exc)) from exc
     except ValueError as exc:
         raise HTTPException(400, str(exc)) from exc
 
@@ -104,11 +123,16 @@ def get_params(request: Request) -> ParamsInfo:
 
 @router.put("/v1/params", response_model=ParamsInfo, tags=["params"], dependencies=[Depends(require_token)],
             responses={401: {"description": "token missing or wrong"},
-                       422: {"description": "invalid parameter set: every bad field is listed; the old set stays"}})
-def put_params(params: EncoderParams, request: Request) -> ParamsInfo:
-    """Upload a parameter set (the versioned JSON of ``touchreal fit``). It becomes active between two
-    updates and is persisted in the state directory."""
-    rev = service_of(request).put_params(params)
+                       422: {"description": "invalid parameter set (every bad field is listed) or one that does not "
+                                            "run (the dry run's reason); the old set stays"}})
+async def put_params(params: EncoderParams, request: Request) -> ParamsInfo:
+    """Upload a parameter set (the versioned JSON of ``touchreal fit``). It is proved runnable (a dry run
+    of the whole chain on silence, saturation and vibration), becomes active between two updates and is
+    persisted in the state directory."""
+    try:
+        rev = await service_of(request).put_params(params)
+    except ParamsError as exc:
+        raise HTTPException(422, str(exc)) from exc
     return ParamsInfo(rev=rev, sha256=params_sha256(params))
 
 
@@ -119,24 +143,25 @@ def params_history(request: Request) -> dict[str, Any]:
 
 
 @router.post("/v1/params/rollback", response_model=ParamsInfo, tags=["params"], dependencies=[Depends(require_token)],
-             responses={401: {"description": "token missing or wrong"}, 404: {"description": "no such revision"}})
-def rollback(body: Rollback, request: Request) -> ParamsInfo:
+             responses={401: {"description": "token missing or wrong"}, 404: {"description": "no such revision"},
+                        422: {"description": "that revision no longer validates or runs"}})
+async def rollback(body: Rollback, request: Request) -> ParamsInfo:
     """Activate an earlier revision again (recorded as a new revision)."""
-    store = service_of(request).store
+    svc = service_of(request)
     try:
-        rev = store.rollback(body.rev)
+        rev = await svc.rollback(body.rev)
     except KeyError as exc:
         raise HTTPException(404, str(exc.args[0])) from exc
-    return ParamsInfo(rev=rev, sha256=store.info().sha256)
+    except ParamsError as exc:
+        raise HTTPException(422, str(exc)) from exc
+    return ParamsInfo(rev=rev, sha256=svc.store.info(rev).sha256)
 
 
 @router.get("/v1/decoders", tags=["decoders"])
 def decoders(request: Request) -> list[dict[str, Any]]:
     """Installed decoder models (shipped with the package, plus the state directory's models/):
     metadata, and a warning where the active parameters differ from the ones it was trained on."""
-    svc = service_of(request)
-    params = svc.store.active
-    return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in svc.models.list()]
+    return service_of(request).decoders_view()
 
 
 @router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})

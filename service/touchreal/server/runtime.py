@@ -37,7 +37,7 @@ from .demand import Demand
 
 log = logging.getLogger("touchreal.server")
 
-_SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects")  # source counters that flag a gap
+_SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects", "bad_times")  # source counters that flag a gap
 _SANITIZER_FAULTS = ("non_finite", "gaps", "bad_time", "duplicate", "out_of_range")
 
 
@@ -80,12 +80,17 @@ class Runtime:
         publish: Callable[[Update], None],
         make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
         taxel_block: int | None = None,
+        fallback: Callable[[int, int | None, Exception], bool] | None = None,
         on_end: Callable[[], None] | None = None,
     ):
         self.source = source
         self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
         self._demand, self._params, self._publish = demand, params, publish
         self._make_decoder = make_decoder
+        #: ``fallback(failed rev, last good rev or None, error)``: on a pipeline failure, activate
+        #: other parameters and return True to keep streaming (False: the runtime fails)
+        self._fallback = fallback
+        self.good_rev: int | None = None  #: the last revision that completed an update
         self._on_end = on_end  #: called on this thread once the source has ended and its last spikes are published
         self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
         self.encoder: StreamEncoder | None = None
@@ -134,10 +139,24 @@ class Runtime:
                     self._end_of_stream()
                     break
                 clock = getattr(self.source, "clock", None)  # a source without a clock model: see step()
-                self.step(chunk, wall_us(), clock() if clock is not None else None)
+                self._step_or_fall_back(chunk, clock() if clock is not None else None)
         except Exception as exc:  # the service reports it (ready goes false); clients stay connected
             log.exception("acquisition thread failed")
             self.state, self.error = "failed", f"{type(exc).__name__}: {exc}"
+
+    def _step_or_fall_back(self, chunk: RawChunk, clock: ClockPoint | None) -> None:
+        """One update; if the encoder fails, let ``fallback`` swap the parameters and go on with a
+        fresh encoder from the next chunk (the failed chunk's spikes are lost, flagged as a restart)."""
+        try:
+            self.step(chunk, wall_us(), clock)
+            self.good_rev = self.enc_rev
+        except Exception as exc:
+            failed = self.enc_rev
+            if self._fallback is None or not self._fallback(failed, self.good_rev, exc):
+                raise
+            log.error("parameter revision %d failed in the pipeline (%s: %s); fell back", failed, type(exc).__name__, exc)
+            self.encoder, self.decoders = None, {}
+            self._pending_flags |= FLAG_RESTARTED
 
     # -- one update -----------------------------------------------------------------------------
     def step(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None = None) -> Update | None:
@@ -153,11 +172,11 @@ class Runtime:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
         if self.encoder is None:
-            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block)
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
+            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block)
             self.decoders = {}
         self._follow_decoder_demand(demand)
-        columns = dict(demand.columns)
+        columns = {c: t for c, t in demand.columns.items() if c in self.encoder.classes}  # what this set serves
         if columns != self.active or demand.channel_taxels != self.active_channels:
             self.encoder.set_active(columns, demand.channel_taxels)
             self.active, self.active_channels = columns, demand.channel_taxels

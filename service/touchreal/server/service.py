@@ -28,43 +28,38 @@ from touchreal_client.clock import ClockPoint
 
 from .. import __version__
 from ..decoding.model import ModelStore, params_warning
-from ..params import EncoderParams
-from .hub import Hub
+from ..dryrun import prove_runnable
+from ..params import EncoderParams, ParamsError
+from .hub import Hub, limits
 from .metrics import Metrics
 from .params_store import ParamsStore
 from .runtime import Runtime, Update, wall_us
 from .settings import ConfigPatch, RuntimeConfig, ServeSettings
-from .sources import open_source, parse_source
+from .sources import SourceRefused, confine_source, open_source, parse_source
 
 log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
 CLOCK_EVERY_US = 1_000_000  #: the clock model is restated at least this often (us)
 
 
-def warm_up(params: EncoderParams) -> None:
-    """Compile the pipeline's numba kernels (cached on disk after the first run) on a short
-    synthetic stream, so the first client does not wait for the JIT."""
-    import numpy as np
-
-    from ..sensing.raw import RawChunk
-    from ..stream import StreamEncoder
-
-    se = StreamEncoder(params, 1)
-    st_t, pv_t = np.arange(50) / 100.0, np.arange(1000) / 2000.0
-    se.process(RawChunk(st_t, np.ones((50, 1)), pv_t, np.zeros((1000, 1))))
-    se.finish()
+class SourceOpenError(ValueError):
+    """A source change whose source cannot be opened (the previous source was restored)."""
 
 
 class Service:
     def __init__(self, settings: ServeSettings, config: RuntimeConfig):
-        parse_source(config.source)  # fail early on a bad spec
+        kind, arg = parse_source(config.source)  # fail early on a bad spec
         self.settings, self.config = settings, config
+        #: where PATCH /v1/config may open replays: STATE_DIR/datasets, the settings' roots, serve's own --source folder
+        self.data_roots = [Path(settings.state_dir) / "datasets", *settings.data_roots,
+                           *([Path(arg.partition(":")[0])] if kind == "replay" else [])]
         self.session = uuid.uuid4().hex
         self.started_us = wall_us()
         self.store = ParamsStore(settings.state_dir, settings.params)
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
@@ -90,10 +85,34 @@ class Service:
 
     async def _warm_and_open(self) -> None:
         try:
-            await asyncio.to_thread(warm_up, self.store.active)
+            await asyncio.to_thread(self._prove_active)
             await self._open_runtime()
         finally:
             self.opened.set()
+
+    def _prove_active(self) -> None:
+        """The dry run of the active set (which also compiles the numba kernels, cached on disk
+        after the first run); a set that does not run is replaced by the shipped one, logged."""
+        rev, params = self.store.current
+        try:
+            prove_runnable(params)
+        except ParamsError as exc:
+            self.store.fall_back(None, f"parameter revision {rev} does not run: {exc}")
+            prove_runnable(self.store.active)
+
+    def _fall_back(self, failed: int, good: int | None, exc: Exception) -> bool:
+        """Called on the acquisition thread when revision ``failed`` raised in the pipeline: activate
+        the last revision that ran (else the shipped set) unless ``failed`` is itself a fallback."""
+        if self.store.active_rev != failed:
+            return True  # a newer set is already active: the runtime takes it up next update
+        if self.store.info(failed).origin.startswith("fallback:"):
+            return False
+        reason = f"parameter revision {failed} failed in the pipeline: {type(exc).__name__}: {exc}"
+        try:
+            self.store.fall_back(good if good not in (None, failed) else None, reason)
+        except (KeyError, ParamsError):  # the good revision left the history meanwhile
+            self.store.fall_back(None, reason)
+        return True
 
     async def stop(self) -> None:
         if self._startup is not None and not self._startup.done():
@@ -104,25 +123,28 @@ class Service:
             rt, self.runtime = self.runtime, None
             await asyncio.to_thread(rt.stop)
 
-    async def _open_runtime(self) -> None:
+    async def _open_runtime(self) -> str | None:
+        """Open the configured source and start the runtime on it; returns why it could not open (None: it did)."""
         update_s = self.store.active.preprocess.update_ms / 1000.0
         try:
             source = await asyncio.to_thread(open_source, self.config, self.settings, update_s)
         except (ValueError, OSError) as exc:
             self.source_error = str(exc)
             log.error("cannot open source %s: %s", self.config.source, exc)
-            return
+            return self.source_error
         self.source_error, self.ended = None, None
-        self.hub.configure(source.n_taxels, self.config.classes, self.decoder_classes())
+        self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
-                               self.settings.taxel_block or None, self._post_end)
+                               self.settings.taxel_block or None, self._fall_back, self._post_end)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again
+        return None
 
-    async def restart_source(self) -> None:
+    async def restart_source(self) -> str | None:
+        """Close and reopen the source; returns why it could not open (None: it did)."""
         await self.stop()
-        await self._open_runtime()
+        return await self._open_runtime()
 
     # -- acquisition thread -> event loop ------------------------------------------------------------
     def _post(self, upd: Update) -> None:
@@ -174,6 +196,7 @@ class Service:
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
+        self._follow_served_classes()  # whichever way a parameter set became active
         self._tell_clock(upd.clock)
         if self._hello_key != self._describe():
             self.announce_hello()
@@ -215,16 +238,20 @@ class Service:
     def n_taxels(self) -> int:
         return self.hub.n_taxels
 
+    def _follow_served_classes(self) -> None:
+        if self.served_classes() != self.hub.allowed_classes:
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
+
+    def served_classes(self) -> list[str]:
+        """Classes computed for subscribers: those the active parameters define and the config allows."""
+        return [c for c in P.CLASSES if c in self.store.active.classes and c in self.config.classes]
+
     def latency_us(self) -> dict[str, int]:
-        """Per class: algorithmic latency (us) of the pipeline with the active parameters (the look-ahead
-        of the branches its source reads, less the grid sample a stamp is ahead of its sample)."""
-        from ..preprocess.pipeline import Preprocessor
-        from ..settings import OUT_FS_HZ
-        from ..stream import class_source
+        """Per class of the active set: algorithmic latency of the pipeline (us)."""
+        from ..stream import class_latency_s
 
         params = self.store.active
-        return {c: int(round((Preprocessor.latency_s(class_source(params, c)) - 1.0 / OUT_FS_HZ) * 1e6))
-                for c in params.classes}
+        return {c: int(round(class_latency_s(params, c) * 1e6)) for c in params.classes}
 
     def hello(self) -> dict[str, Any]:
         params = self.store.active
@@ -243,7 +270,7 @@ class Service:
             "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
             "latency_us": self.latency_us(),
             "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
-            "classes": [c for c in P.CLASSES if c in params.classes and c in self.config.classes],
+            "classes": self.served_classes(),
             "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
             "streams": {
                 "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
@@ -254,13 +281,18 @@ class Service:
             "encodings": list(P.ENCODINGS),
             "default_encoding": "binary",
             "params": {"rev": info.rev, "sha256": info.sha256},
-            "limits": {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": self.settings.queue_frames,
-                       "slow_timeout_s": self.settings.slow_timeout_s},
+            "limits": limits(self.settings),
         }
 
     def decoder_classes(self) -> dict[str, list[str]]:
         """Usable installed decoders (name -> the classes they read), in the hello's order."""
         return {m["name"]: list(m["classes"]) for m in self.models.list() if "error" not in m}
+
+    def decoders_view(self) -> list[dict[str, Any]]:
+        """Installed decoder models (``GET /v1/decoders``, also through a gateway): metadata, and a
+        warning where the active parameters differ from the ones a model was trained on."""
+        params = self.store.active
+        return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in self.models.list()]
 
     def decoder_list(self) -> list[dict[str, Any]]:
         """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
@@ -298,7 +330,8 @@ class Service:
             "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
                         for s in self.hub.subscribers.values()],
             "faults": dict(rt.counters) if rt else {},
-            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256},
+            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256,
+                       "fallback": self.store.fallback_reason},
             "ended": self.ended,
             **{name: section() for name, section in self.status_sections.items()},
         }
@@ -316,7 +349,14 @@ class Service:
             return False, f"source {st}"
         if rt.state == "starting":
             return False, "pipeline warming up"
-        return True, "ok"
+        return True, self.health()
+
+    def health(self) -> str:
+        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback; ``failed`` once the
+        acquisition thread has failed."""
+        if self.runtime is not None and self.runtime.state == "failed":
+            return "failed"
+        return f"degraded: {self.store.fallback_reason}" if self.store.fallback_reason else "ok"
 
     def config_view(self) -> dict[str, Any]:
         p = self.store.active.preprocess
@@ -324,10 +364,14 @@ class Service:
 
     # -- changes --------------------------------------------------------------------------------
     async def patch_config(self, patch: ConfigPatch) -> dict[str, Any]:
-        """Apply a validated patch; returns the new config and what was restarted."""
+        """Apply a validated patch; returns the new config and what was restarted. Raises ValueError
+        (nothing changed), ParamsError (the new preprocessing does not run; nothing changed) or
+        :class:`SourceOpenError` (the new source cannot be opened; the previous one runs again)."""
         changes = patch.model_dump(exclude_none=True)
+        if not self.settings.source_changes and changes.keys() & {"source", "taxels", "speed", "loop"}:
+            raise SourceRefused("source changes are off on this service (TOUCHREAL_SOURCE_CHANGES)")
         if "source" in changes:
-            parse_source(changes["source"])
+            confine_source(changes["source"], self.data_roots, self.settings.serial_urls)
         if "classes" in changes:
             bad = [c for c in changes["classes"] if c not in P.CLASSES]
             if bad:
@@ -337,18 +381,33 @@ class Service:
         if pre:
             params = self.store.active
             new = params.model_copy(update={"preprocess": params.preprocess.model_copy(update=pre)})
-            self.store.put(EncoderParams.parse(new.to_json()), "config")
+            await self.put_params(EncoderParams.parse(new.to_json()), "config")
             restarted.append("pipeline")
-        cfg = self.config.model_copy(update=changes)
-        source_change = any(getattr(cfg, k) != getattr(self.config, k) for k in ("source", "taxels", "speed", "loop"))
+        old, cfg = self.config, self.config.model_copy(update=changes)
+        source_change = any(getattr(cfg, k) != getattr(old, k) for k in ("source", "taxels", "speed", "loop"))
         self.config = cfg
         if source_change or "update_ms" in pre:
-            await self.restart_source()
+            error = await self.restart_source()
+            if error is not None and source_change:
+                self.config = old
+                await self.restart_source()
+                raise SourceOpenError(f"cannot open source: {error} (the previous source {old.source!r} runs again)")
             restarted.append("source")
         elif "classes" in changes:
-            self.hub.configure(self.n_taxels, cfg.classes, self.decoder_classes())
+            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
         return {"config": self.config_view(), "restarted": restarted}
 
-    def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
-        """Validated parameters become active at the start of the next update."""
-        return self.store.put(params, origin)
+    async def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
+        """A validated set, proved runnable (:func:`~touchreal.dryrun.prove_runnable`, raises
+        ParamsError), becomes active at the start of the next update; a failed runtime restarts."""
+        await asyncio.to_thread(prove_runnable, params)
+        rev = self.store.put(params, origin)
+        self._follow_served_classes()
+        if self.runtime is not None and self.runtime.state == "failed":
+            await self.restart_source()
+        return rev
+
+    async def rollback(self, rev: int) -> int:
+        """Activate revision ``rev`` again as a new revision (KeyError: not kept; ParamsError: it no
+        longer validates or runs)."""
+        return await self.put_params(self.store.load(rev), f"rollback:{rev}")

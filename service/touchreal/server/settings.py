@@ -1,36 +1,112 @@
 """Service settings: command-line flags over ``TOUCHREAL_*`` environment variables over defaults.
 
-:class:`ServeSettings` is fixed for the life of the process; :class:`RuntimeConfig` is the part a
-client may change at run time (``PATCH /v1/config``).
+:class:`ServeSettings` is the one model of ``touchreal serve``: every field is a flag
+(``--state-dir``) and an environment variable (``TOUCHREAL_STATE_DIR``), fixed for the life of the
+process (docs/service.md's table is generated from it: :mod:`.settings_doc`). :class:`RuntimeConfig`
+is the part a client may change at run time (``PATCH /v1/config``); it starts from the settings.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..settings import CLASSES
 
+log = logging.getLogger("touchreal.server")
+
+#: Replay speeds (x real time) the service accepts: slow enough to step through, fast enough to
+#: skim, and the replay's stamp arithmetic stays finite over any recording.
+SPEED_RANGE = (0.01, 1000.0)
+SOURCE_SPEC = "sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT"
+
+#: A list given as one comma-separated value (flag or environment variable), not JSON.
+CommaList = Annotated[list[str], NoDecode]
+
 
 class ServeSettings(BaseSettings):
-    """Process-wide settings of ``touchreal serve`` (environment: ``TOUCHREAL_<NAME>``)."""
+    """Every setting of ``touchreal serve``: flag ``--NAME`` (``_`` -> ``-``), environment ``TOUCHREAL_<NAME>``."""
 
     model_config = SettingsConfigDict(env_prefix="TOUCHREAL_", extra="ignore")
 
-    host: str = "127.0.0.1"
-    port: int = Field(default=8765, ge=0, le=65535)
-    token: str | None = Field(default=None, description="bearer token required by write endpoints; None = open")
+    source: str = Field(default="sim", description=SOURCE_SPEC)
+    taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
+    speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
+    loop: bool = Field(default=False, description="replay: start again after the last trial")
+    host: str = Field(default="127.0.0.1", description="bind address")
+    port: int = Field(default=8765, ge=0, le=65535, description="port")
+    token: str | None = Field(default=None, description="bearer token required by write endpoints; unset or empty = "
+                              "writes open to whoever reaches the port")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")
     params: Path | None = Field(default=None, description="initial parameter file (default: last active, else shipped)")
-    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
-    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
-    max_clients: int = Field(default=1000, ge=1)
     taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
                              "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
-    seed: int = 0
+    log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = Field(
+        default="warning", description="uvicorn log level")
+    publish: str | None = Field(default=None, description="also publish the frames to this NATS URL "
+                                "(docs/scale-out.md), e.g. nats://127.0.0.1:4222")
+    sensor_id: str | None = Field(default=None, description="with --publish: subjects touchreal.<ID>.*")
+    publish_all: bool = Field(default=False, description="with --publish: every class and taxel, whatever the "
+                              "gateways forward as demand")
+    retain_s: float = Field(default=0.0, ge=0.0, le=3600.0, description="with --publish: keep the last S seconds of "
+                            "frames in an in-memory JetStream stream touchreal_<ID> for late joiners")
+    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
+    max_clients: int = Field(default=1000, ge=1, description="WebSocket clients at once (more: close 1013)")
+    max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
+                                "larger ones get 413 without being read")
+    allowed_hosts: CommaList = Field(default_factory=lambda: ["127.0.0.1", "localhost"], description="Host header "
+                                     "values served (others: 400), e.g. the name behind a proxy; * = any")
+    allowed_origins: CommaList = Field(default_factory=list, description="browser origins (scheme://host[:port]) "
+                                       "that may open /v1/stream besides the service's own; * = any")
+    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list, description="folders under which PATCH /v1/config may "
+                                  "open replay: datasets, besides STATE_DIR/datasets and serve's own --source folder")
+    serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
+                              "serial: ports; they can reach files and hosts")
+    source_changes: bool = Field(default=True, description="PATCH /v1/config may change source, taxels, speed, loop")
+    header_timeout_s: float = Field(default=10.0, gt=0, le=300, description="a connection that has not sent "
+                                    "complete request headers this long after connecting (or after its last "
+                                    "response) is closed")
+    keep_alive_s: int = Field(default=5, ge=1, le=300, description="an idle HTTP keep-alive connection is closed after this")
+    max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20, description="largest request head "
+                                  "(request line + headers, bytes; h11's max incomplete event size)")
+    limit_concurrency: int = Field(default=1200, ge=10, description="open connections (HTTP + WebSocket) before new "
+                                   "requests get 503; keep it above max_clients")
+    seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
+    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
+                                   "client this often (s)")
+    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
+                                  "within this time is closed with 1011 (s)")
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v: str) -> str:
+        from .sources import parse_source  # the spec grammar lives with the sources
+
+        parse_source(v)
+        return v
+
+    @field_validator("token")
+    @classmethod
+    def _token(cls, v: str | None) -> str | None:
+        if v == "":
+            log.warning("the token is empty: treated as no token, write endpoints are open")
+            return None
+        return v
+
+    @field_validator("allowed_hosts", "allowed_origins", "data_roots", mode="before")
+    @classmethod
+    def _comma_list(cls, v: object) -> object:
+        return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
+
+    def runtime_config(self) -> "RuntimeConfig":
+        """The run-time config the service starts with."""
+        return RuntimeConfig(source=self.source, taxels=self.taxels, speed=self.speed, loop=self.loop)
 
 
 class RuntimeConfig(BaseModel):
@@ -38,24 +114,26 @@ class RuntimeConfig(BaseModel):
     the source; ``update_ms`` or ``window_ms`` restart the pipeline; ``classes`` only changes what is
     computed (classes outside it are never encoded, whoever subscribes)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
-    source: str = Field(default="sim", description="sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT")
+    source: str = Field(default="sim", max_length=4096, description=SOURCE_SPEC)
     taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
-    speed: float = Field(default=1.0, gt=0.0, le=1000.0, description="replay speed (x real time)")
+    speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], allow_inf_nan=False,
+                         description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
-    classes: list[str] = Field(default_factory=lambda: list(CLASSES), description="classes the service may compute")
+    classes: list[str] = Field(default_factory=lambda: list(CLASSES), max_length=len(CLASSES),
+                               description="classes the service may compute")
 
 
 class ConfigPatch(BaseModel):
-    """A partial :class:`RuntimeConfig` (``PATCH /v1/config``)."""
+    """A partial :class:`RuntimeConfig` (``PATCH /v1/config``); strict types (``loop: 0`` is not a bool)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
-    source: str | None = None
+    source: str | None = Field(default=None, max_length=4096, description=SOURCE_SPEC)
     taxels: int | None = Field(default=None, ge=1, le=4096)
-    speed: float | None = Field(default=None, gt=0.0, le=1000.0)
+    speed: float | None = Field(default=None, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool | None = None
     update_ms: float | None = Field(default=None, ge=1.0, le=1000.0)
     window_ms: float | None = Field(default=None, ge=4.0, le=512.0)
-    classes: list[str] | None = None
+    classes: list[str] | None = Field(default=None, max_length=len(CLASSES))

@@ -1,7 +1,10 @@
-"""``--source`` specs -> live sources (:mod:`touchreal.sensing.live`, the serial reader)."""
+"""``--source`` specs -> live sources (:mod:`touchreal.sensing.live`, the serial reader), and the
+confinement of specs a client sends (:func:`confine_source`)."""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..recording import Dataset
@@ -19,6 +22,35 @@ def parse_source(spec: str) -> tuple[str, str]:
     raise ValueError(f"source must be 'sim', 'replay:DATASET_DIR[:TRIAL_ID,...]' or 'serial:PORT', got {spec!r}")
 
 
+class SourceRefused(ValueError):
+    """A source the service will not open for a client: outside the data roots, a pyserial URL
+    while those are off, or any source change while remote source changes are off."""
+
+
+def real(path: str | Path) -> Path:
+    """``path`` absolute with every symlink and ``..`` resolved (whether or not it exists)."""
+    return Path(os.path.realpath(path))
+
+
+def confine_source(spec: str, data_roots: Sequence[Path], serial_urls: bool) -> None:
+    """Refuse (:class:`SourceRefused`) a spec a client may not open. ``replay:DIR`` only for a DIR
+    under one of ``data_roots``; ``serial:PORT`` only for a device under /dev (or a link to one) and
+    pyserial URLs (``spy://``, ``socket://``, ``loop://``...) only with ``serial_urls``. The
+    messages are the same whether the path exists or not."""
+    kind, arg = parse_source(spec)
+    if kind == "replay":
+        folder = real(arg.partition(":")[0])
+        if not any(folder.is_relative_to(real(r)) for r in data_roots):
+            raise SourceRefused("replay: datasets are read only under the data roots "
+                                f"({', '.join(str(r) for r in data_roots) or 'none'}; TOUCHREAL_DATA_ROOTS)")
+    elif kind == "serial":
+        if "://" in arg:
+            if not serial_urls:
+                raise SourceRefused("serial: takes a device path; pyserial URLs are off (TOUCHREAL_SERIAL_URLS)")
+        elif not real(arg).is_relative_to("/dev"):
+            raise SourceRefused("serial: takes a device path under /dev (or a link to one)")
+
+
 def open_source(config: RuntimeConfig, settings: ServeSettings, update_s: float) -> LiveSource:
     """Open the source a config names (raises ValueError/OSError with a clear message)."""
     kind, arg = parse_source(config.source)
@@ -32,4 +64,4 @@ def open_source(config: RuntimeConfig, settings: ServeSettings, update_s: float)
         return ReplayLiveSource(Dataset.open(folder), trial_ids, update_s, config.speed, config.loop)
     from ..sensing.serial_source import SerialSource
 
-    return SerialSource(arg, n_taxels=config.taxels, update_s=update_s)
+    return SerialSource(arg, n_taxels=config.taxels, update_s=update_s, allow_urls=settings.serial_urls)

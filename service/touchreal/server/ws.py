@@ -18,10 +18,10 @@ from touchreal_client import protocol as P
 
 from .hub import Subscriber
 from .runtime import wall_us
+from .security import admit
 
 log = logging.getLogger("touchreal.server")
 router = APIRouter()
-MAX_ERRORS_IN_A_ROW = 10
 #: How long a close may wait for a stalled client's socket to take the close frame; afterwards the
 #: transport is closed without it (the subscriber left the hub at once either way).
 CLOSE_TIMEOUT_S = 30.0
@@ -33,6 +33,8 @@ def _dumps(msg: dict[str, Any]) -> str:
 
 @router.websocket("/v1/stream")
 async def stream(ws: WebSocket) -> None:
+    if not await admit(ws):
+        return
     service = ws.app.state.service
     hub = service.hub
     await ws.accept()
@@ -64,7 +66,7 @@ async def stream(ws: WebSocket) -> None:
         except KeyError:  # never labelled: it dropped nothing
             pass
         if sub.kick is not None:
-            service.metrics.kicked.inc()
+            (service.metrics.flooding if sub.kick[0] == P.CLOSE_FLOODING else service.metrics.kicked).inc()
             close = sub.kick
         if close is not None:
             try:
@@ -79,7 +81,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
     while True:
         recv = asyncio.ensure_future(ws.receive())
         done, _ = await asyncio.wait({recv, sender, kicked}, return_when=asyncio.FIRST_COMPLETED)
-        if recv not in done:
+        if recv not in done or len(done) > 1:  # a kick wins over a message that arrived with it
             recv.cancel()
             return sub.kick if kicked in done else None  # the sender ended: the socket is gone
         msg = recv.result()
@@ -94,7 +96,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
             if m["type"] == "time":
                 sub.say(_dumps(P.time_reply(m, t1, wall_us())))
             else:
-                s = P.parse_subscribe(m)
+                s = service.hub.admit(m)
                 service.hub.subscribe(sub, s)
                 sub.say(_dumps({"type": "subscribed", **{k: v for k, v in s.to_json().items() if k != "type"},
                                 "latency_us": service.latency_us()}))
@@ -108,7 +110,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
                 await _drain_control(ws, sub)
                 return P.CLOSE_TOO_BIG, "message too big"
             errors += 1
-            if errors >= MAX_ERRORS_IN_A_ROW:
+            if errors >= P.MAX_ERRORS_IN_A_ROW:
                 await _drain_control(ws, sub)
                 return P.CLOSE_TOO_MANY_ERRORS, f"{errors} malformed messages in a row"
 
@@ -128,7 +130,7 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
             sub.wakeup.clear()
             while sub.control or sub.queue or sub.after_frames:
                 if sub.control:
-                    await ws.send_text(sub.control.popleft())
+                    await ws.send_text(sub.pop_control())
                     continue
                 if not sub.queue:
                     await ws.send_text(sub.after_frames.popleft())

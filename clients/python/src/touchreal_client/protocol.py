@@ -17,6 +17,7 @@ frame rendered once can be stamped for each connection (:func:`stamp`) without r
 from __future__ import annotations
 
 import json
+import math
 import struct
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,6 +34,14 @@ ENCODINGS = ("binary", "json")
 STREAMS = ("spikes", "channels", "decoded")
 MAGIC = b"TR"
 MAX_CLIENT_MESSAGE_BYTES = 65536  #: larger client messages are refused (close 1009)
+MAX_INT_DIGITS = 20  #: a JSON integer literal of a client message has at most this many digits
+MAX_TIME_ID_CHARS = 128  #: a ``time`` request's string ``id`` has at most this many characters
+MAX_ERROR_CHARS = 300  #: an ``error`` message's text is cut to this many characters
+MAX_ERRORS_IN_A_ROW = 10  #: this many refused messages in a row close the connection (4400)
+#: A client's unsent replies (``hello``, ``subscribed``, ``time``, ``error``) are bounded by count and by
+#: bytes; a client that sends requests faster than it reads the replies is closed (CLOSE_FLOODING).
+CONTROL_QUEUE_MESSAGES = 256
+CONTROL_QUEUE_BYTES = 1 << 20
 
 # frame kinds
 KIND_SPIKES = 1
@@ -54,6 +63,7 @@ CLOSE_INTERNAL = 1011
 CLOSE_TRY_AGAIN = 1013  #: too many connections
 CLOSE_UNSUPPORTED_VERSION = 4001  #: subscribe asked for a protocol version the server does not speak
 CLOSE_SLOW_CONSUMER = 4008  #: the client did not read its frames fast enough; its queue overflowed
+CLOSE_FLOODING = 4029  #: the client sent requests faster than it read the replies; its reply queue overflowed
 CLOSE_TOO_MANY_ERRORS = 4400  #: too many malformed messages in a row
 
 #: Common header: magic, version, kind, flags, header_len, seq, dropped, update, emit_us, sent_us,
@@ -309,10 +319,11 @@ def frame_from_json(msg: dict[str, Any]) -> Frame:
 # -- control messages --------------------------------------------------------------------------------
 @dataclass
 class Subscription:
-    """What a connection wants. ``taxels``/``classes`` ``None`` mean all; empty lists mean none."""
+    """What a connection wants. ``taxels`` ``None``: all; ``classes`` ``None``: every class the service
+    serves (its ``subscribed`` reply names them); empty lists mean none."""
 
     taxels: list[int] | None = None
-    classes: list[str] = field(default_factory=lambda: list(CLASSES))
+    classes: list[str] | None = None
     streams: list[str] = field(default_factory=lambda: ["spikes"])
     encoding: str = "binary"
     decimation: int = 25  #: channels: one 5 kHz sample in this many (25 -> 200 Hz)
@@ -345,7 +356,7 @@ def parse_subscribe(msg: dict[str, Any]) -> Subscription:
         if not isinstance(taxels, list) or not all(isinstance(t, int) and not isinstance(t, bool) and 0 <= t < 65536 for t in taxels):
             raise ProtocolError("taxels must be null or a list of taxel ids (integers)")
         sub.taxels = sorted(set(taxels))
-    sub.classes = _names(msg, "classes", CLASSES, sub.classes)
+    sub.classes = None if msg.get("classes") is None else _names(msg, "classes", CLASSES, [])
     sub.streams = _names(msg, "streams", STREAMS, sub.streams)
     enc = msg.get("encoding", sub.encoding)
     if enc not in ENCODINGS:
@@ -377,19 +388,52 @@ def _names(msg: dict[str, Any], key: str, allowed: tuple[str, ...], default: lis
     return [x for x in allowed if x in v]
 
 
+def _refuse_constant(name: str) -> Any:
+    raise ProtocolError(f"{name} is not valid JSON: numbers must be finite")
+
+
+def _bounded_int(literal: str) -> int:
+    if len(literal.lstrip("-")) > MAX_INT_DIGITS:
+        raise ProtocolError(f"an integer of {len(literal)} digits; at most {MAX_INT_DIGITS} are accepted")
+    return int(literal)
+
+
+def _finite_float(literal: str) -> float:
+    v = float(literal)
+    if not math.isfinite(v):
+        raise ProtocolError(f"the number {literal[:40]} overflows: numbers must be finite")
+    return v
+
+
 def parse_client_message(text: str | bytes) -> dict[str, Any]:
-    """Decode a client's text message: a JSON object with a known ``type``."""
+    """Decode a client's text message: a JSON object with a known ``type``. Strict JSON: no
+    ``NaN``/``Infinity``, finite numbers, integers of at most :data:`MAX_INT_DIGITS` digits, bounded
+    nesting; anything else raises :class:`ProtocolError` (``bad_message``), never another exception."""
     if len(text) > MAX_CLIENT_MESSAGE_BYTES:
         raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_CLIENT_MESSAGE_BYTES}", "too_big")
     try:
-        msg = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        msg = json.loads(text, parse_constant=_refuse_constant, parse_int=_bounded_int, parse_float=_finite_float)
+    except ProtocolError:
+        raise
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError; nesting past the stack limit
         raise ProtocolError(f"not valid JSON: {exc}") from exc
     if not isinstance(msg, dict) or msg.get("type") not in ("subscribe", "time"):
         raise ProtocolError('expected a JSON object with "type": "subscribe" or "time"')
-    if msg["type"] == "time" and not _is_uint(msg.get("t0_us", 0)):
-        raise ProtocolError("time.t0_us must be a non-negative integer (client clock, us)")
+    if msg["type"] == "time":
+        if not _is_uint(msg.get("t0_us", 0)):
+            raise ProtocolError("time.t0_us must be a non-negative integer (client clock, us)")
+        if not _time_id_ok(msg.get("id")):
+            raise ProtocolError(f"time.id must be null, a string of at most {MAX_TIME_ID_CHARS} characters or an "
+                                "integer in [-2^63, 2^64)")
     return msg
+
+
+def _time_id_ok(v: Any) -> bool:
+    if v is None:
+        return True
+    if isinstance(v, str):
+        return len(v) <= MAX_TIME_ID_CHARS
+    return isinstance(v, int) and not isinstance(v, bool) and -(2**63) <= v < 2**64
 
 
 def _is_uint(v: Any) -> bool:
@@ -409,4 +453,7 @@ def clock_offset(t0_us: int, t1_us: int, t2_us: int, t3_us: int) -> tuple[float,
 
 
 def error_message(code: str, message: str) -> dict[str, Any]:
+    """An ``error`` message; its text is cut to :data:`MAX_ERROR_CHARS` (it may quote the client)."""
+    if len(message) > MAX_ERROR_CHARS:
+        message = message[: MAX_ERROR_CHARS - 1] + "…"
     return {"type": "error", "code": code, "message": message}

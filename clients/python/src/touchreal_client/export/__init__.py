@@ -1,0 +1,1 @@
+"""Exports of recorded sessions to other tools' formats (:mod:`.nwb`: Neurodata Without Borders)."""

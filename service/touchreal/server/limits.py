@@ -1,0 +1,52 @@
+"""Connection limits of the HTTP server (uvicorn): the keyword arguments from the settings, and the
+request-head timeout uvicorn lacks (it only times out idle keep-alive connections, so a client that
+opens connections and never finishes its headers would hold their descriptors forever)."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import h11
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from .settings import ServeSettings
+
+
+class HeadTimeoutH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol, plus: a connection whose request head is not complete
+    :attr:`head_timeout_s` after it connected (or after its last response) is closed."""
+
+    head_timeout_s: float = 10.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._arm_head_timer()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._arm_head_timer()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+        super().connection_lost(exc)
+
+    def _arm_head_timer(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+        self._head_timer = self.loop.call_later(self.head_timeout_s, self._head_timed_out)
+
+    def _head_timed_out(self) -> None:
+        self._head_timer = None
+        waiting = self.conn.their_state is h11.IDLE  # no complete request head since (re)arming
+        if waiting and self.transport.get_protocol() is self and not self.transport.is_closing():
+            self.transport.close()
+
+
+def uvicorn_limits(settings: ServeSettings) -> dict[str, Any]:
+    """uvicorn.Config keyword arguments for the settings' connection limits."""
+    protocol = type("HeadTimeoutH11Protocol", (HeadTimeoutH11Protocol,), {"head_timeout_s": settings.header_timeout_s})
+    return {"http": protocol, "timeout_keep_alive": settings.keep_alive_s,
+            "h11_max_incomplete_event_size": settings.max_header_bytes, "limit_concurrency": settings.limit_concurrency}
