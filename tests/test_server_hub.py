@@ -71,6 +71,28 @@ def test_a_full_queue_drops_counts_and_finally_kicks_the_subscriber():
     assert sub.dropped == 4
 
 
+def test_a_frame_older_than_the_max_age_is_dropped_not_sent():
+    now, drops = [0.0], []
+
+    async def go():
+        sub = Subscriber(1, capacity=100, slow_timeout_s=1.0, clock=lambda: now[0], max_age_s=0.25,
+                         on_drop=lambda reason, n: drops.append((reason, n)))
+        for i in range(3):  # queued at 0, 0.1 and 0.2 s
+            sub.offer(P.KIND_SPIKES, bytes([i]))
+            now[0] += 0.1
+        now[0] = 0.36  # the first two are now older than 0.25 s
+        first = sub.next_frame()
+        return sub, first
+
+    sub, first = asyncio.run(go())
+    assert first is not None and first.seq == 2 and first.payload == bytes([2])  # the fresh one, seq 0 and 1 skipped
+    assert sub.dropped == 2 and drops == [("stale", 1), ("stale", 1)] and sub.next_frame() is None
+    unlimited = Subscriber(2, capacity=4, slow_timeout_s=1.0, clock=lambda: 100.0, max_age_s=None)
+    unlimited.offer(P.KIND_SPIKES, b"x")
+    unlimited.clock = lambda: 1e6
+    assert unlimited.next_frame() is not None and unlimited.dropped == 0
+
+
 def test_control_replies_are_bounded_by_count_and_bytes():
     async def go():
         by_count = Subscriber(1, capacity=2, slow_timeout_s=1.0)
@@ -114,3 +136,36 @@ def test_admit_fills_a_bare_subscribe_with_what_is_served_and_refuses_what_is_no
     hub.subscribe(hub.add(), P.Subscription(classes=["SA1", "PC"]))
     hub.subscribe(hub.add(), P.Subscription(taxels=[2, 9]))
     assert hub.demand.columns == {"PC": (0, 1, 2, 3)}
+
+
+def test_a_spikes_frame_with_nothing_new_for_a_subscription_is_not_sent():
+    """Updates come every hop: a subscriber gets a spikes frame when its classes' final_us moved, a
+    spike of its own arrived or a flag is set; never a frame that repeats what it already has."""
+    def hop(n: int, final: dict[str, int], cls: int | None = None, flags: int = 0) -> Update:
+        t = np.array([] if cls is None else [final["SA1"] - 1], np.uint64)
+        c = np.array([] if cls is None else [cls], np.uint8)
+        return Update(n, 1, flags, 0, 5, t, np.zeros(t.size, np.uint16), c, final)
+
+    async def go():
+        hub = Hub(capacity=64, slow_timeout_s=1.0)
+        hub.configure(1, P.CLASSES, {})
+        fast, slow, both = hub.add(), hub.add(), hub.add()
+        hub.subscribe(fast, P.Subscription(classes=["SA1", "RA"]))
+        hub.subscribe(slow, P.Subscription(classes=["PC"]))
+        hub.subscribe(both, P.Subscription())
+        updates = [
+            hop(1, {"SA1": 5000, "RA": 5000, "PC": 0}),  # first: everyone learns the finals
+            hop(2, {"SA1": 10000, "RA": 10000, "PC": 0}),  # the fast classes moved
+            hop(3, {"SA1": 15000, "RA": 15000, "PC": 32000}),  # PC's update
+            hop(4, {"SA1": 15000, "RA": 15000, "PC": 32000}),  # nothing moved
+            hop(5, {"SA1": 15000, "RA": 15000, "PC": 32000}, cls=2),  # a PC spike
+            hop(6, {"SA1": 15000, "RA": 15000, "PC": 32000}, flags=P.FLAG_SOURCE_GAP),  # a flag
+        ]
+        for u in updates:
+            hub.publish(u)
+        return [[P.decode_frame(q.payload).header.update for q in s.queue] for s in (fast, slow, both)]
+
+    fast, slow, both = asyncio.run(go())
+    assert fast == [1, 2, 3, 6]
+    assert slow == [1, 3, 5, 6]
+    assert both == [1, 2, 3, 5, 6]

@@ -150,7 +150,9 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
                 await collect(good, 0.5)
                 before = proc.memory_info().rss
                 results, done = [], False
-                reading = asyncio.create_task(collect(good, 120.0, lambda fs: done))
+                # the other client reads on through both floods, and for at least 20 frames
+                reading = asyncio.create_task(collect(good, 120.0, lambda fs: done and sum(
+                    isinstance(f, P.SpikesFrame) for f in fs) >= 20))
                 for message in (json.dumps({"type": "time", "id": "x" * P.MAX_TIME_ID_CHARS, "t0_us": 1}),
                                 json.dumps({"type": "time", "id": "x" * 60000})):
                     results.append(await flood(message))

@@ -406,3 +406,39 @@ def test_class_channels_give_the_stream_spikes_offline():
         got = encode_population(ch.data[:, 0, :], ch.t0_s, [params.classes[c]])[0]
         np.testing.assert_allclose(got, trains[c], rtol=0, atol=1e-12, err_msg=c)  # same samples; t0 + k/fs vs (k0 + k)/fs
         assert got.size > 0 or c == "RA"
+
+
+HOP_S = 0.005  #: the service's default hop (serve --hop-ms)
+
+
+@pytest.mark.parametrize("windows,pvdf_free", COMBINATIONS)
+def test_hop_cadence_gives_the_offline_spikes(windows, pvdf_free):
+    """Fast sources every 5 ms hop, slow windows on the 32 ms update: the spikes of offline encode,
+    bit for bit, on the hop and on irregular chunks."""
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params(windows, pvdf_free)
+    whole = _trains(encode_chunks(params, [ReplaySource(tr).read(10.0)]))
+    _assert_trains_equal(whole, _trains(encode_chunks(params, ReplaySource(tr).chunks(HOP_S), update_s=0.032)))
+    _assert_trains_equal(whole, _trains(encode_chunks(params, _irregular_chunks(tr, seed=7), update_s=0.032)))
+
+
+def test_fast_sources_go_out_every_hop_and_slow_ones_once_per_gate_frame():
+    tr = synthetic_trial(duration_s=1.2)
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    se = StreamEncoder(params, update_s=0.032)
+    assert se.slow == {128.0}
+    assert StreamEncoder(_params({"SA1": 32.0, "RA": 8.0, "PC": 256.0}), update_s=0.032).slow == {256.0}
+    assert StreamEncoder(params).slow == frozenset()  # offline: every source every call
+    finals, pc_late = [], []
+    delay = params.classes["PC"].delay_ms / 1000
+    for chunk in ReplaySource(tr).chunks(HOP_S):
+        ev = se.process(chunk)
+        finals.append(dict(se.final_s))
+        # PC goes out in the hop that completes its frame: no wait for an update on top of its bound
+        pc_late += list(_newest(chunk) - (ev.train("PC") - delay) - se.latency_s["PC"])
+    sa1 = np.array([f["SA1"] for f in finals[40:]])
+    pc = np.array([f["PC"] for f in finals[40:]])
+    assert np.all(np.diff(sa1) > 0)  # the fast classes' watermark moves every hop
+    frames = sa1.size * HOP_S / 0.032  # the 128 ms gate's hop
+    assert frames - 1 <= np.sum(np.diff(pc) > 0) <= frames + 1  # PC's moves once per gate frame
+    assert pc_late and max(pc_late) <= HOP_S + 1e-9, "the trial must drive PC, within a hop of its bound"

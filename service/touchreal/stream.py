@@ -16,10 +16,11 @@ import numpy as np
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
 from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
+from .preprocess.stft_gate import frame_length
 from .recording import Trial
 from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
-from .settings import CLASSES, OUT_FS_HZ
+from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
 
@@ -60,12 +61,15 @@ class _TaxelBlock:
         self.shows = shows
         self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else []))
 
-    def encode(self) -> tuple[Channels | None, list[SpikeEvents]]:
+    def encode(self, slow: frozenset[Source] = frozenset()) -> tuple[Channels | None, list[SpikeEvents]]:
         """Spikes of every active source (global taxel indices), and the channels of the channels
-        source if this block shows them (else None)."""
+        source if this block shows them and it ran (else None). A ``slow`` source runs only when its
+        gate has a new frame (:meth:`Preprocessor.frame_ready`)."""
         channels = None
         parts = []
         for s in self.pre.sources:
+            if s in slow and not self.pre.frame_ready(s):
+                continue
             ch = self.pre.take(s)
             ev = self.encoders[s].process(ch)
             parts.append(SpikeEvents(ev.t_s, ev.taxel + self.taxels.start, ev.cls) if self.taxels.start else ev)
@@ -88,6 +92,15 @@ class StreamEncoder:
     block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent);
     channels equal to rounding (~1e-15).
 
+    ``update_s`` (the service's ``preprocess.update_ms``) splits the sources into two cadences: a
+    PVDF window whose gate emits at most once per update (window / 4 >= ``update_s``: the 128 ms
+    window at 32 ms) runs only in a call that completes one of its gate frames (once per frame,
+    32 ms for 128 ms, and then at once); the SingleTact and the short windows run every call. A live
+    source calls :meth:`process` on a short hop, so the fast classes go out on the hop and the slow
+    ones keep their frame cadence without paying the hop's per-call cost. None (offline, tests):
+    every source every call. Spikes are the same either way (chunk invariance); only when they are
+    returned changes.
+
     Not thread-safe: call :meth:`set_active` between :meth:`process` calls (same thread or lock).
     """
 
@@ -98,6 +111,7 @@ class StreamEncoder:
         classes: Sequence[str] | None = None,
         dtype: type = np.float64,
         taxel_block: int | None = None,
+        update_s: float | None = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
@@ -105,6 +119,8 @@ class StreamEncoder:
             raise ValueError(f"parameter set has no class {missing}")
         if taxel_block is not None and taxel_block < 1:
             raise ValueError("taxel_block must be >= 1")
+        if update_s is not None and not update_s > 0:
+            raise ValueError("update_s must be > 0")
         self.params = params
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in wanted)
@@ -121,6 +137,9 @@ class StreamEncoder:
                        for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
+        #: sources run only in a call that completes one of their gate frames (the others every call)
+        self.slow: frozenset[Source] = frozenset(
+            s for s in windows if update_s is not None and frame_length(s, PVDF_FS_HZ) / 4 / PVDF_FS_HZ >= update_s - 1e-9)
 
     # -- demand ---------------------------------------------------------------------------------
     def set_active(self, columns: Mapping[str, Iterable[int]], channels: Iterable[int] = ()) -> None:
@@ -176,20 +195,20 @@ class StreamEncoder:
         return self._encode()
 
     def finish(self) -> SpikeEvents:
-        """End of stream: flush every running branch and return the last spikes."""
+        """End of stream: flush every running branch and return the last spikes (of every source)."""
         for block in self.blocks:
             block.pre.flush()
-        return self._encode()[1]
+        return self._encode(final=True)[1]
 
     def _feed(self, chunk: RawChunk) -> None:
         new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
         for block in self.blocks:
             block.pre.consume(*new)
 
-    def _encode(self) -> tuple[Channels, SpikeEvents]:
+    def _encode(self, final: bool = False) -> tuple[Channels, SpikeEvents]:
         shown, parts = [], []
         for block in self.blocks:
-            ch, evs = block.encode()
+            ch, evs = block.encode(frozenset() if final else self.slow)
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs
@@ -277,10 +296,12 @@ def class_channels(trial: Trial, params: EncoderParams, classes: Sequence[str] |
 
 
 def encode_chunks(
-    params: EncoderParams, chunks: Iterable[RawChunk], n_taxels: int = 1, dtype: type = np.float64, classes: Sequence[str] | None = None
+    params: EncoderParams, chunks: Iterable[RawChunk], n_taxels: int = 1, dtype: type = np.float64, classes: Sequence[str] | None = None,
+    update_s: float | None = None,
 ) -> SpikeEvents:
-    """Encode a finite stream of chunks (flushing at the end), every class on its own window."""
-    se = StreamEncoder(params, n_taxels, classes, dtype=dtype)
+    """Encode a finite stream of chunks (flushing at the end), every class on its own window
+    (``update_s``: the slow sources' cadence, see :class:`StreamEncoder`; it never changes the spikes)."""
+    se = StreamEncoder(params, n_taxels, classes, dtype=dtype, update_s=update_s)
     parts = [se.process(c) for c in chunks]
     parts.append(se.finish())
     return SpikeEvents.concatenate(parts)

@@ -5,6 +5,17 @@ e-skin's live scene for 1, 16 and 256 taxels in 32 ms updates and reports the co
 update (mean, p95, p99, max) and the real-time factor (update interval / mean compute time), in
 float64 and in float32 preprocessing.
 
+Part 1b compares the compute per second of sensor time of the service's hop (5 ms chunks: the
+SingleTact-only and short-window sources every hop, the 128 ms window on the 32 ms update) with
+32 ms updates (every source every update), at 1 and 256 taxels, in the service's blocks of 64
+taxels, as CPU time of the thread (the best of three runs of each, interleaved): the cost of the
+short hop is per-call overhead.
+
+Part 1c is the service's own budget without the network: the simulated e-skin chunked as ``touchreal
+serve`` chunks it (hops ending right after the SingleTact samples), and per class the spike's
+emission (its chunk's newest sample + the compute of that call) minus the sensor time of its causing
+sample (stamp minus the class delay), p50/p95/max, on the 5 ms hop and on 32 ms updates.
+
 Part 2 measures each class's latency: the live scene fed in 1 ms chunks, every spike's emission
 (the newest sample time of the chunk that returned it) minus its stamp, on the sensor clock, with
 the class's ``delay_ms`` (raw) and without it (the pipeline's own latency), next to the algorithmic
@@ -109,6 +120,72 @@ def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:
                 f"{n:6d} {np.dtype(dtype).name:>7} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f} "
                 f"{np.percentile(ms, 99):8.3f} {ms.max():8.3f} {update_s * 1000 / ms.mean():11.1f}"
             )
+
+
+def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: tuple[float, ...] = (5.0, 10.0)) -> None:
+    """Compute per second of sensor time on the service's hop against the ``update_ms`` update."""
+    update_s = params.preprocess.update_ms / 1000.0
+    print(f"\n== compute per second of sensor time: hop against the {params.preprocess.update_ms:g} ms update "
+          f"({windows_label(params)}; taxel blocks of 64; thread CPU time, best of 3)")
+    print(f"{'taxels':>6} {'chunks':>14} {'ms per s':>9} {'x update':>9} {'us per call':>11}")
+    for n in taxels:
+        block = 64 if n > 64 else None
+        runs = {None: _scene_chunks(n, seconds, update_s)} | {h: _scene_chunks(n, seconds, h / 1000.0) for h in hops_ms}
+        best: dict[float | None, float] = {}
+        for _ in range(3):  # interleaved, so a shared machine's load hits every variant alike
+            for h, chunks in runs.items():
+                step = update_s if h is None else h / 1000.0
+                se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
+                se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
+                warm = int(np.ceil(0.3 / step))  # past the stream start (hum estimate, first frames)
+                for c in chunks[:warm]:
+                    se.process(c)
+                t = time.thread_time()  # CPU time of this thread: a shared machine's load does not count
+                for c in chunks[warm:]:
+                    se.process(c)
+                per_s = (time.thread_time() - t) / ((len(chunks) - warm) * step)
+                best[h] = min(best.get(h, np.inf), per_s)
+        for h, per_s in best.items():
+            step = update_s if h is None else h / 1000.0
+            label = f"{params.preprocess.update_ms:g} ms update" if h is None else f"{h:g} ms hop"
+            print(f"{n:6d} {label:>14} {per_s * 1000:9.2f} {per_s / best[None]:9.2f} {per_s * step * 1e6:11.1f}")
+
+
+def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop_ms: float = 5.0) -> None:
+    """Per class: emission (the hop's newest sample + compute) minus the causing sample, as the service
+    chunks the sim."""
+    from ..sensing.live import SimLiveSource
+
+    update_s = params.preprocess.update_ms / 1000.0
+    delay = np.array([params.classes[c].delay_ms / 1000.0 if c in params.classes else 0.0 for c in CLASSES])
+    print(f"\n== emission minus the causing sample (ms), the sim chunked as served ({windows_label(params)}), "
+          f"{seconds:g} s; p50 / p95 / max")
+    print(f"{'taxels':>6} {'chunks':>14} {'compute/call':>12} " + " ".join(f"{c:>20}" for c in CLASSES))
+    for n in taxels:
+        for hop_s in (update_s, hop_ms / 1000.0):
+            src = SimLiveSource(n, hop_s, seed=0)
+            se = StreamEncoder(params, n, taxel_block=64 if n > 64 else None, update_s=update_s)
+            se.set_active({c: range(n) for c in se.classes})
+            lat: list[list[np.ndarray]] = [[] for _ in CLASSES]
+            spent, calls = 0.0, 0
+            while src.scene.time_s < seconds:
+                end = src.next_newest_s()
+                chunk = src.read_hop()
+                t = time.perf_counter()
+                ev = se.process(chunk)
+                dt = time.perf_counter() - t
+                if end < 0.5:  # stream start (hum estimate, JIT dispatch)
+                    continue
+                spent, calls = spent + dt, calls + 1
+                for i in range(len(CLASSES)):
+                    sel = ev.cls == i
+                    lat[i].append(end + dt - (ev.t_s[sel] - delay[i]))
+            label = f"{hop_s * 1000:g} ms " + ("update" if hop_s == update_s else "hop")
+            cols = []
+            for parts in lat:
+                ms = np.concatenate(parts) * 1000 if parts else np.zeros(0)
+                cols.append(f"{np.median(ms):6.1f} {np.percentile(ms, 95):6.1f} {ms.max():6.1f}" if ms.size else f"{'-':>20}")
+            print(f"{n:6d} {label:>14} {spent / max(calls, 1) * 1000:9.3f} ms " + " ".join(f"{c:>20}" for c in cols))
 
 
 def with_class_windows(params: EncoderParams, windows: dict[str, float | None]) -> EncoderParams:
@@ -270,6 +347,8 @@ def soak(params: EncoderParams, hours: float) -> None:
 def run(args: argparse.Namespace) -> int:
     params = EncoderParams.load(args.params) if args.params else default_params()
     timing(params, args.taxels, args.seconds)
+    hop_cost(params, [1, max(args.taxels)], min(args.seconds, 10.0))
+    served_latency(params, [1, max(args.taxels)], min(args.seconds, 10.0))
     demand(params, max(args.taxels), args.seconds)
     latency(params, args.latency_seconds)
     if not args.skip_sweep:

@@ -62,8 +62,11 @@ class GatewaySettings(BaseSettings):
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
     host: str = "127.0.0.1"
     port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
-    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
+                              "(512: 2.6 s of 5 ms hops)")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
+    max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
+                                    "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
     max_clients: int = Field(default=1000, ge=1)
     pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
                                 "dropping them (each loss becomes a gap its clients see)")
@@ -79,9 +82,9 @@ class AnnouncingHub(Hub):
     :attr:`announced` is what it forwards: the spikes its clients want as spikes (not the classes
     their decoders read: the publisher computes those for the decoders itself), channels, decoders."""
 
-    def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event):
+    def __init__(self, capacity: int, slow_timeout_s: float, changed: asyncio.Event, max_age_s: float | None):
         self.changed = changed
-        super().__init__(capacity, slow_timeout_s)
+        super().__init__(capacity, slow_timeout_s, max_age_s)
 
     @property
     def announced(self) -> Announced:
@@ -103,7 +106,8 @@ class Gateway:
         self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
         self.id = uuid.uuid4().hex[:12]
         self._demand_dirty = asyncio.Event()
-        self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty)
+        self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty,
+                                 settings.max_frame_age_ms / 1000 or None)
         self.metrics = Metrics()
         self.hub.on_drop = self.metrics.count_drop
         r = self.metrics.registry

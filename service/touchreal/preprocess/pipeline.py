@@ -246,9 +246,19 @@ class Preprocessor:
             self._pv_windows(*self.pv_filter.process(pv_new[1][:, self._cols]))
 
     def _pv_windows(self, first: int, y: np.ndarray) -> None:
-        self.pv_filtered.push(first, y)
+        """Keep filtered PVDF for the window branches, which read it when their source is taken
+        (:meth:`take`); a branch whose unread samples the ring would overwrite reads them now."""
+        lost_before = first + y.shape[0] - self.pv_filtered.buf.shape[0]
         for branch in self.pv_windows.values():
-            branch.process(first, y)
+            if branch.in_slot < lost_before:
+                self._catch_up(branch)
+                branch.process(first, y)
+        self.pv_filtered.push(first, y)
+
+    def _catch_up(self, branch: PvdfWindowBranch) -> None:
+        """Run a window branch on the filtered PVDF it has not read yet."""
+        if self.pv_filtered.count and branch.in_slot < self.pv_filtered.end:
+            branch.process(*self.pv_filtered.since(branch.in_slot))
 
     def flush(self) -> None:
         """End of stream: finish every running branch up to the last sample both sensors delivered."""
@@ -258,12 +268,25 @@ class Preprocessor:
         if self.pv_filter is not None:
             self._pv_windows(*self.pv_filter.process(np.zeros((0, self.n_taxels)), final=True))
         for branch in self.pv_windows.values():
+            self._catch_up(branch)
             branch.finish(until)
         if self.st is not None:
             self.st.finish(until)
 
+    def frame_ready(self, source: Source) -> bool:
+        """Whether a window source's gate has a new frame to run on the filtered PVDF received (a
+        source taken only then costs one gate call per frame and waits for nothing); True for the
+        SingleTact alone."""
+        if source is None:
+            return True
+        branch = self.pv_windows[float(source)]
+        unread = self.pv_filtered.end - branch.in_slot if self.pv_filtered.count else 0
+        return unread >= branch.gate.to_next_frame
+
     def take(self, source: Source) -> Channels:
-        """The newly final 5 kHz channels of an active ``source`` (PVDF and dPVDF zero for None)."""
+        """The newly final 5 kHz channels of an active ``source`` (PVDF and dPVDF zero for None).
+        A window's gate runs here, on the filtered PVDF received since its last take: a source
+        taken less often (a long window, on the update interval) costs one gate call per take."""
         source = float(source) if source is not None else None
         if source not in self.cursor:
             raise KeyError(f"source {source} is not active")
@@ -271,6 +294,8 @@ class Preprocessor:
         if k_first is None or self.st is None:
             return Channels(self.cursor[source] or 0, np.zeros((0, self.n_taxels, 4)))
         start = max(k_first, self.cursor[source] if self.cursor[source] is not None else k_first)
+        if source is not None:
+            self._catch_up(self.pv_windows[source])
         grids = [self.st.out] if source is None else [self.st.out, self.pv_windows[source].out]
         ends = [g.end for g in grids]
         end = None if None in ends else min(ends)

@@ -45,7 +45,11 @@ class StftGate:
         self._acc = np.zeros((n - self.hop, n_taxels), self.dtype)  # overlap-add tail of frames already done
         self._skip = n - self.hop  # leading outputs that belong to the virtual zeros
         self.frames = 0
-        self.gated_fraction = 0.0  # fraction of bins attenuated in the last processed chunk
+
+    @property
+    def to_next_frame(self) -> int:
+        """Input samples still needed before the next frame is complete."""
+        return self.n - self._buf.shape[0]
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """Consume input samples, return the newly finalised output samples (same units)."""
@@ -59,9 +63,7 @@ class StftGate:
         frames = buf[idx] * self.window[None, :, None]  # (F, N, taxels)
         spec = np.fft.rfft(frames, axis=1)
         if self.thresholds is not None:
-            below = np.abs(spec) < self.thresholds[None, :, None]
-            spec = np.where(below, spec * self.attenuation, spec)
-            self.gated_fraction = float(below.mean())
+            spec[np.abs(spec) < self.thresholds[None, :, None]] *= self.attenuation
         y = np.fft.irfft(spec, n=self.n, axis=1).astype(self.dtype, copy=False)  # (F, N, taxels)
         # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
         total = (n_frames - 1) * self.hop + self.n

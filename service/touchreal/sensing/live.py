@@ -1,8 +1,10 @@
 """Live sources for the service: the blocking layer over the sans-I/O sources.
 
 Every live source hands the acquisition thread one :class:`~touchreal.sensing.raw.RawChunk` per
-update interval through ``next_chunk()`` (blocking about one interval; ``None`` once the source has
-ended or was closed), and reports its state and counters through ``status()``.
+hop (``touchreal serve --hop-ms``, 5 ms by default) through ``next_chunk()`` (blocking about one
+hop; ``None`` once the source has ended or was closed), and reports its state and counters through
+``status()``. The simulated e-skin ends a hop with each SingleTact sample and halfway between, so
+a SingleTact sample waits for no hop (the fast classes wait for the SingleTact).
 
 A source's stream is a sequence of *segments*: the simulated e-skin and the serial reader have
 one; a replay has one per trial, each on its own recording clock. ``segment`` counts them and
@@ -24,11 +26,13 @@ import numpy as np
 from touchreal_client.clock import ClockPoint
 
 from ..recording import Dataset, Trial
+from ..settings import PVDF_FS_HZ
 from .raw import RawChunk
 from .replay import ReplaySource
 from .scene import SceneSource, default_scene, taxel_grid
 
 
+MAX_CATCH_UP_HOPS = 64  #: a sim that fell behind hands over up to this many hops at once
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 #: a replayed trial's span on the wire runs this long past its last sample, so that no spike of it (stamped at
 #: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
@@ -58,8 +62,9 @@ class LiveSource(Protocol):
 
 
 class _Paced:
-    """Wall-clock pacing: the k-th chunk is released at ``start + k * period_s`` (missed ones come
-    back to back, nothing is dropped). ``clock``/``sleep`` are injectable; ``close()`` wakes it."""
+    """Wall-clock pacing: the k-th chunk is released at ``start + k * period_s`` (:meth:`wait_next`),
+    or at a time the source names (:meth:`wait_until`); missed ones come back to back, nothing is
+    dropped. ``clock``/``sleep`` are injectable; ``close()`` wakes it."""
 
     def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic):
         self.period_s = period_s
@@ -68,19 +73,33 @@ class _Paced:
         self._start: float | None = None
         self._start_wall_us = 0
         self._k = 0
+        self._due_s = 0.0  #: the latest release, s after the start
         self.epoch = -1  #: increments at every (re)start of the schedule
 
     def wait_next(self) -> bool:
         """Sleep until the next release; False once closed."""
+        self._k += 1
+        return self.wait_until(self._k * self.period_s)
+
+    def wait_until(self, t_s: float) -> bool:
+        """Sleep until ``t_s`` (s) after the schedule's start (the first call); False once closed."""
         if self._start is None:
             self._start = self.clock()
             self._start_wall_us = time.time_ns() // 1000
             self.epoch += 1
-        self._k += 1
-        wait = self._start + self._k * self.period_s - self.clock()
+        self._due_s = t_s
+        wait = self._start + t_s - self.clock()
         if wait > 0:
             self._closed.wait(wait)
         return not self._closed.is_set()
+
+    def passed(self, t_s: float) -> bool:
+        """Whether ``t_s`` (s after the start) is already past; if so it becomes the latest release
+        (a source that fell behind hands over that much more at once)."""
+        if self._start is None or self._start + t_s > self.clock():
+            return False
+        self._due_s = t_s
+        return True
 
     def close(self) -> None:
         self._closed.set()
@@ -91,14 +110,21 @@ class _Paced:
 
     def release_wall_us(self) -> int:
         """Scheduled wall time (us) of the latest release: when its chunk's last instant was acquired."""
-        return self._start_wall_us + int(round(self._k * self.period_s * 1e6))
+        return self._start_wall_us + int(round(self._due_s * 1e6))
 
 
 class SimLiveSource:
     """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
     taxels (a grid of 10 mm pitch) in real time, looping forever. With several taxels the script is
     played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
-    feel each touch differently (the skin's spatial response)."""
+    feel each touch differently (the skin's spatial response).
+
+    Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk's
+    newest sample is a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact
+    period (10 ms); a chunk is released when the pace's clock reaches the instant of its newest
+    sample (the sensor clock runs from its zero at the pace's start), and its clock point says so.
+    A consumer that fell behind gets every hop already due in one chunk (up to
+    :data:`MAX_CATCH_UP_HOPS`): fewer, larger calls until it has caught up."""
 
     segment = 0
 
@@ -110,16 +136,35 @@ class SimLiveSource:
         self.scene = SceneSource(default_scene(spots), taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
         self.offset_us = 0
         self._pace = _Paced(update_s)
+        self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
+        self._zero_s = self.scene.requested_s  #: the sensor clock's instant at the pace's start
         self._chunks = 0
         self._clock: ClockPoint | None = None
 
+    def _hop_ticks_left(self) -> int:
+        """PVDF ticks in the next hop: up to and with the next tick on the SingleTact phase (mod the hop)."""
+        return (self.scene.eskin.st_phase - self.scene.eskin.tick) % self._hop_ticks + 1
+
+    def next_newest_s(self) -> float:
+        """The instant of the next hop's newest sample (s, sensor clock): the hop is over then."""
+        return self.scene.time_s + (self._hop_ticks_left() - 1) / PVDF_FS_HZ
+
+    def read_hop(self) -> RawChunk:
+        """The next hop's samples at once (no pacing: benchmarks and tests)."""
+        return self.scene.advance(self._hop_ticks_left())
+
     def next_chunk(self) -> RawChunk | None:
-        if not self._pace.wait_next():
+        newest_s = self.next_newest_s()
+        if not self._pace.wait_until(newest_s - self._zero_s):
             return None
         self._chunks += 1
-        chunk = self.scene.read(self.update_s)
-        # the skin is sampled in real time: the chunk's end instant is "now" on the pace's schedule
-        self._clock = ClockPoint(int(round(self.scene.requested_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
+        hops = [self.read_hop()]
+        while len(hops) < MAX_CATCH_UP_HOPS and self._pace.passed(self.next_newest_s() - self._zero_s):
+            newest_s = self.next_newest_s()  # behind: the hops already acquired go in this chunk too
+            hops.append(self.read_hop())
+        chunk = hops[0] if len(hops) == 1 else RawChunk.concat(hops)
+        # the skin is sampled in real time: the chunk's newest sample is "now" on the pace's schedule
+        self._clock = ClockPoint(int(round(newest_s * 1e6)), self._pace.release_wall_us(), 1.0, 0, self._pace.epoch)
         return chunk
 
     def clock(self) -> ClockPoint | None:

@@ -9,6 +9,15 @@ replies are never dropped but bounded (:data:`~touchreal_client.protocol.CONTROL
 ``CONTROL_QUEUE_BYTES``): a client that asks faster than it reads is marked for closing with
 :data:`~touchreal_client.protocol.CLOSE_FLOODING`.
 
+A queue is bounded in time as well: a frame that waited longer than ``max_age_s`` is dropped when
+the sender reaches it (:meth:`Subscriber.next_frame`; counted, a ``seq`` gap like any drop), so an
+overloaded server sends fresh frames late by at most that much instead of a backlog seconds late.
+
+An update whose spikes frame would tell a subscription nothing new (no spike of its classes and
+taxels, no flag, and the same ``final_us`` for its classes as the last one rendered for it) sends no
+spikes frame: updates come every hop (5 ms) and only the fast classes' ``final_us`` moves on most of
+them, so a PC-only subscriber gets one frame per PC update while an SA1 subscriber gets every hop's.
+
 Queued items are rendered frames without the per-connection fields; the sender stamps ``seq``,
 ``dropped`` and ``sent_us`` when it hands the frame to the socket (:meth:`Subscriber.render`).
 """
@@ -31,7 +40,9 @@ from .runtime import Update, wall_us
 
 DROP_QUEUE_FULL = "queue_full"  #: a frame that did not fit a client's queue
 DROP_UPSTREAM = "upstream_loss"  #: a frame lost before it reached the hub (a gateway's broker hop)
-DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM)
+DROP_STALE = "stale"  #: a frame that waited in a client's queue longer than its max age
+DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM, DROP_STALE)
+MAX_AGE_S = 0.25  #: default: a queued frame older than this (s) is dropped rather than sent
 
 
 def _uncounted(reason: str, n: int) -> None:
@@ -43,14 +54,16 @@ class Queued:
     kind: int  #: P.KIND_*
     payload: bytes | str  #: binary frame, or the JSON body text
     seq: int
+    queued_at: float = 0.0  #: the subscriber's clock (s) when it was queued
 
 
 class Subscriber:
     """One connection's subscription, queue and counters (the WebSocket layer drives it)."""
 
     def __init__(self, sub_id: int, capacity: int, slow_timeout_s: float, clock: Callable[[], float] = time.monotonic,
-                 on_drop: Callable[[str, int], None] = _uncounted):
+                 on_drop: Callable[[str, int], None] = _uncounted, max_age_s: float | None = MAX_AGE_S):
         self.id = sub_id
+        self.max_age_s = max_age_s  #: queued frames older than this (s) are dropped, not sent (None: no limit)
         self.on_drop = on_drop  #: told (reason, frames) of every drop: DROP_QUEUE_FULL or DROP_UPSTREAM
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
@@ -109,8 +122,19 @@ class Subscriber:
                 self.kicked.set()
             return
         self.full_since = None
-        self.queue.append(Queued(kind, payload, seq))
+        self.queue.append(Queued(kind, payload, seq, self.clock()))
         self.wakeup.set()
+
+    def next_frame(self) -> Queued | None:
+        """The oldest queued frame still fresh enough to send (None: none left); those that waited longer
+        than ``max_age_s`` are dropped on the way (DROP_STALE)."""
+        while self.queue:
+            item = self.queue.popleft()
+            if self.max_age_s is None or self.clock() - item.queued_at <= self.max_age_s:
+                return item
+            self.dropped += 1
+            self.on_drop(DROP_STALE, 1)
+        return None
 
     def skip(self, n: int) -> None:
         """``n`` frames meant for this subscriber were lost before they reached the hub (a broker hop):
@@ -136,15 +160,16 @@ def limits(settings) -> dict[str, int | float]:
             "slow_timeout_s": settings.slow_timeout_s, "control_messages": P.CONTROL_QUEUE_MESSAGES,
             "control_bytes": P.CONTROL_QUEUE_BYTES, "max_errors_in_a_row": P.MAX_ERRORS_IN_A_ROW,
             "max_clients": settings.max_clients, "ping_interval_s": settings.ping_interval_s,
-            "ping_timeout_s": settings.ping_timeout_s}
+            "ping_timeout_s": settings.ping_timeout_s, "max_frame_age_ms": settings.max_frame_age_ms}
 
 
 class Hub:
     """All subscribers of one service; lives on the event loop."""
 
-    def __init__(self, capacity: int, slow_timeout_s: float):
+    def __init__(self, capacity: int, slow_timeout_s: float, max_age_s: float | None = MAX_AGE_S):
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
+        self.max_age_s = max_age_s
         self.subscribers: dict[int, Subscriber] = {}
         self._ids = itertools.count(1)
         self.demand = Demand()
@@ -155,10 +180,11 @@ class Hub:
         self.decoder_names: list[str] = []
         self.known = False  #: configured: what is served is known (a gateway learns it from the publisher's hello)
         self.frames_rendered = 0
+        self._finals: dict[tuple, tuple] = {}  #: per distinct subscription: the final_us last rendered
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
-        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s, on_drop=self.on_drop)
+        sub = Subscriber(next(self._ids), self.capacity, self.slow_timeout_s, on_drop=self.on_drop, max_age_s=self.max_age_s)
         self.subscribers[sub.id] = sub
         return sub
 
@@ -222,10 +248,11 @@ class Hub:
                    s.decimation, None if s.decoders is None else tuple(s.decoders))
             frames = cache.get(key)
             if frames is None:
-                frames = cache[key] = self._render(upd, s)
+                frames = cache[key] = self._render(upd, s, key)
                 self.frames_rendered += len(frames)
             for kind, payload in frames:
                 sub.offer(kind, payload)
+        self._finals = {k: v for k, v in self._finals.items() if k in cache}  # forget subscriptions gone
 
     def skip(self, n_frames: int, stream: str, decoder: str | None = None) -> None:
         """``n_frames`` frames of ``stream`` (of ``decoder``'s outputs, for ``decoded``) were lost upstream (a
@@ -238,7 +265,9 @@ class Hub:
             if decoder is None or s.decoders is None or decoder in s.decoders:
                 sub.skip(n_frames)
 
-    def _render(self, upd: Update, s: P.Subscription) -> list[tuple[int, bytes | str]]:
+    def _render(self, upd: Update, s: P.Subscription, key: tuple) -> list[tuple[int, bytes | str]]:
+        """The frames of ``upd`` for subscription ``s`` (``key``), without a spikes frame that has
+        nothing new for it."""
         out: list[P.Frame] = []
         taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
         if "spikes" in s.streams and upd.spikes:
@@ -247,7 +276,10 @@ class Hub:
             cls_idx = [P.CLASSES.index(c) for c in classes]
             sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
             final = {c: (upd.final_us.get(c) if c in classes else None) for c in P.CLASSES}
-            out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
+            mark = tuple(final.values())
+            if sel.any() or upd.flags or self._finals.get(key) != mark:
+                out.append(P.SpikesFrame(h, upd.t_us[sel], upd.taxel[sel], upd.cls[sel], final))
+            self._finals[key] = mark
         if "channels" in s.streams and upd.channels is not None and upd.channels.n_samples:
             ch = upd.channels
             k = ch.k0 + np.arange(ch.n_samples)

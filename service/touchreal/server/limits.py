@@ -1,10 +1,13 @@
-"""Connection limits of the HTTP server (uvicorn): the keyword arguments from the settings, and the
+"""Connection limits of the HTTP server (uvicorn): the keyword arguments from the settings, the
 request-head timeout uvicorn lacks (it only times out idle keep-alive connections, so a client that
-opens connections and never finishes its headers would hold their descriptors forever)."""
+opens connections and never finishes its headers would hold their descriptors forever), and a
+bounded kernel send buffer per connection (with Linux's autotuning a slow WebSocket reader's frames
+wait seconds in the kernel, where the hub's frame age limit cannot drop them)."""
 
 from __future__ import annotations
 
 import asyncio
+import socket
 from typing import Any
 
 import h11
@@ -18,8 +21,12 @@ class HeadTimeoutH11Protocol(H11Protocol):
     :attr:`head_timeout_s` after it connected (or after its last response) is closed."""
 
     head_timeout_s: float = 10.0
+    send_buffer_bytes: int = 0  #: SO_SNDBUF of each connection (0: leave the kernel's autotuning)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        sock = transport.get_extra_info("socket")
+        if self.send_buffer_bytes and sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
         super().connection_made(transport)
         self._head_timer: asyncio.TimerHandle | None = None
         self._arm_head_timer()
@@ -47,6 +54,7 @@ class HeadTimeoutH11Protocol(H11Protocol):
 
 def uvicorn_limits(settings: ServeSettings) -> dict[str, Any]:
     """uvicorn.Config keyword arguments for the settings' connection limits."""
-    protocol = type("HeadTimeoutH11Protocol", (HeadTimeoutH11Protocol,), {"head_timeout_s": settings.header_timeout_s})
+    protocol = type("HeadTimeoutH11Protocol", (HeadTimeoutH11Protocol,), {"head_timeout_s": settings.header_timeout_s,
+                                                                          "send_buffer_bytes": settings.send_buffer_bytes})
     return {"http": protocol, "timeout_keep_alive": settings.keep_alive_s,
             "h11_max_incomplete_event_size": settings.max_header_bytes, "limit_concurrency": settings.limit_concurrency}

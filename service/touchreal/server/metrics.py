@@ -28,7 +28,8 @@ class Metrics:
         self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
                                   registry=r)
         self.drops = Counter("touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "
-                             "the client's queue was full; upstream_loss: lost on a gateway's broker hop)", ["reason"],
+                             "the client's queue was full; stale: it waited longer than max_frame_age_ms; upstream_loss: lost on a "
+                             "gateway's broker hop)", ["reason"],
                              registry=r)
         self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers (4008)", registry=r)
         self.flooding = Counter("touchreal_clients_closed_flooding", "clients closed for sending requests faster than "

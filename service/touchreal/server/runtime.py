@@ -1,8 +1,9 @@
 """The acquisition + encoding loop, on its own thread.
 
-Once per update it reads the source's next chunk (the source paces itself: real time, a replay's
-speed, or the serial device), looks at the current :class:`~.demand.Demand`, runs the
-:class:`~touchreal.stream.StreamEncoder` on exactly that, and hands an :class:`Update` to
+Once per hop (``serve --hop-ms``) it reads the source's next chunk (the source paces itself: real
+time, a replay's speed, or the serial device), looks at the current :class:`~.demand.Demand`, runs
+the :class:`~touchreal.stream.StreamEncoder` on exactly that (short windows every hop, long ones
+once per gate frame: ``update_s``), and hands an :class:`Update` to
 ``publish`` (which must not block: the service posts it to the event loop). The network side can
 therefore never stall acquisition, and compute never stalls the network side.
 
@@ -173,7 +174,8 @@ class Runtime:
             self.encoder = None
         if self.encoder is None:
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
-            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block)
+            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block,
+                                         update_s=params.preprocess.update_ms / 1000.0)
             self.decoders = {}
         self._follow_decoder_demand(demand)
         columns = {c: t for c, t in demand.columns.items() if c in self.encoder.classes}  # what this set serves

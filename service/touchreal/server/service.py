@@ -58,7 +58,7 @@ class Service:
         self.store = ParamsStore(settings.state_dir, settings.params)
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
-        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s)
+        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None)
         self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -123,11 +123,14 @@ class Service:
             rt, self.runtime = self.runtime, None
             await asyncio.to_thread(rt.stop)
 
+    def hop_ms(self) -> float:
+        """The source's hop (ms): ``hop_ms``, at most the update interval."""
+        return min(self.settings.hop_ms, self.store.active.preprocess.update_ms)
+
     async def _open_runtime(self) -> str | None:
         """Open the configured source and start the runtime on it; returns why it could not open (None: it did)."""
-        update_s = self.store.active.preprocess.update_ms / 1000.0
         try:
-            source = await asyncio.to_thread(open_source, self.config, self.settings, update_s)
+            source = await asyncio.to_thread(open_source, self.config, self.settings, self.hop_ms() / 1000.0)
         except (ValueError, OSError) as exc:
             self.source_error = str(exc)
             log.error("cannot open source %s: %s", self.config.source, exc)
@@ -267,6 +270,7 @@ class Service:
             "units": {"time": "us", "force": "N", "pvdf": "V", "channels": dict(zip(P.CHANNELS, P.CHANNEL_UNITS))},
             "clock": None if self.clock is None else {k: v for k, v in self.clock.to_json().items() if k != "type"},
             "update_us": int(round(params.preprocess.update_ms * 1000)),
+            "hop_us": int(round(self.hop_ms() * 1000)),
             "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
             "latency_us": self.latency_us(),
             "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},

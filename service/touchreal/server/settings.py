@@ -54,9 +54,12 @@ class ServeSettings(BaseSettings):
                               "gateways forward as demand")
     retain_s: float = Field(default=0.0, ge=0.0, le=3600.0, description="with --publish: keep the last S seconds of "
                             "frames in an in-memory JetStream stream touchreal_<ID> for late joiners")
-    queue_frames: int = Field(default=128, ge=2, le=100000, description="frames queued per client before dropping")
+    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
+                              "(512: 2.6 s of 5 ms hops)")
     slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full this long is closed")
     max_clients: int = Field(default=1000, ge=1, description="WebSocket clients at once (more: close 1013)")
+    max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
+                                    "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
     max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
                                 "larger ones get 413 without being read")
     allowed_hosts: CommaList = Field(default_factory=lambda: ["127.0.0.1", "localhost"], description="Host header "
@@ -71,11 +74,17 @@ class ServeSettings(BaseSettings):
     header_timeout_s: float = Field(default=10.0, gt=0, le=300, description="a connection that has not sent "
                                     "complete request headers this long after connecting (or after its last "
                                     "response) is closed")
+    send_buffer_bytes: int = Field(default=65536, ge=0, le=1 << 26, description="kernel send buffer of each "
+                                   "connection (SO_SNDBUF; 0 = the kernel's autotuning, which lets a slow reader "
+                                   "fall seconds behind in buffers the server cannot age)")
     keep_alive_s: int = Field(default=5, ge=1, le=300, description="an idle HTTP keep-alive connection is closed after this")
     max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20, description="largest request head "
                                   "(request line + headers, bytes; h11's max incomplete event size)")
     limit_concurrency: int = Field(default=1200, ge=10, description="open connections (HTTP + WebSocket) before new "
                                    "requests get 503; keep it above max_clients")
+    hop_ms: float = Field(default=5.0, ge=1.0, le=1000.0, description="hop (ms): the source hands over samples and "
+                          "the SingleTact-only and short-window classes go out this often (at most update_ms); "
+                          "long windows keep update_ms (docs/architecture.md, Latency)")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
     ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "

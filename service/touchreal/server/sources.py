@@ -51,17 +51,18 @@ def confine_source(spec: str, data_roots: Sequence[Path], serial_urls: bool) -> 
             raise SourceRefused("serial: takes a device path under /dev (or a link to one)")
 
 
-def open_source(config: RuntimeConfig, settings: ServeSettings, update_s: float) -> LiveSource:
-    """Open the source a config names (raises ValueError/OSError with a clear message)."""
+def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float) -> LiveSource:
+    """Open the source a config names, handing over samples every ``hop_s`` (raises ValueError/OSError
+    with a clear message)."""
     kind, arg = parse_source(config.source)
     if kind == "sim":
-        return SimLiveSource(config.taxels, update_s, seed=settings.seed, t0_s=settings.sim_t0_s)
+        return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s)
     if kind == "replay":
         folder, _, ids = arg.partition(":")
         if not Path(folder).is_dir():
             raise ValueError(f"replay dataset folder not found: {folder}")
         trial_ids = [t for t in ids.split(",") if t] or None
-        return ReplayLiveSource(Dataset.open(folder), trial_ids, update_s, config.speed, config.loop)
+        return ReplayLiveSource(Dataset.open(folder), trial_ids, hop_s, config.speed, config.loop)
     from ..sensing.serial_source import SerialSource
 
-    return SerialSource(arg, n_taxels=config.taxels, update_s=update_s, allow_urls=settings.serial_urls)
+    return SerialSource(arg, n_taxels=config.taxels, update_s=hop_s, allow_urls=settings.serial_urls)

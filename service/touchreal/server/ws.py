@@ -135,7 +135,10 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
                 if not sub.queue:
                     await ws.send_text(sub.after_frames.popleft())
                     continue
-                data, _ = sub.render(sub.queue.popleft())
+                item = sub.next_frame()
+                if item is None:  # every queued frame was stale (then what follows the frames goes out)
+                    continue
+                data, _ = sub.render(item)
                 if isinstance(data, str):
                     await ws.send_text(data)
                 else:
