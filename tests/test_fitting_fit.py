@@ -213,6 +213,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert q.classes[c].delay_ms - q.alignment.lag_ms == pytest.approx(p.classes[c].delay_ms - p.alignment.lag_ms, abs=1e-9)
     assert min(cp.delay_ms for cp in q.classes.values()) == 0.0  # the smallest alignment with every delay >= 0
     assert json.loads(out.read_text())["provenance"]["fitted_classes"] == ["RA"]
+    assert q.window_ms("RA") == 16.0 and q.window_ms("PC") == 128.0  # the default: the shipped windows (fast path)
     assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 1.0
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3"]) == 0

@@ -111,7 +111,7 @@ def test_recording_a_replay_gives_touchreal_encode_spikes_in_a_valid_mcap(tmp_pa
     assert att["hello.json"]["session"] == svc.session
     assert att["params/rev-1.json"] == {"rev": 1, "sha256": active["sha256"], "params": active["params"],
                                         "source": "GET /v1/params"}
-    assert meta["touchreal.recording.end"]["stop_reason"] == "seconds"
+    assert meta["touchreal.recording.end"]["stop_reason"] == "ended"  # the replay finished (its `ended` message) within the 3 s
 
 
 def test_record_refuses_a_bad_subscription_before_connecting(tmp_path, capsys):

@@ -348,7 +348,11 @@ def test_taxel_blocks_give_the_same_spikes_and_idle_blocks_only_acquire():
     total, per_block = running
     assert len(many.blocks) == 3 and total["blocks"] == 1  # taxels 0 and 1 only: blocks 1 and 2 idle
     assert per_block[2] == {"singletact": False, "pvdf_filter": False, "pvdf_windows": ()}
-    _assert_trains_equal(_trains(whole, 5), _trains(blocked, 5))
+    w, b = _trains(whole, 5), _trains(blocked, 5)
+    # taxel 4's block restarts at chunk 200 from the primed raw history (like its channels in the next
+    # test, close to the running block's, not bit-identical): the same spike counts there; exact elsewhere
+    _assert_trains_equal(w, b, [k for k in w if k[1] != 4])
+    assert all(w[c, 4].size == b[c, 4].size for c in CLASSES) and w["PC", 4].size > 0
     assert len(whole) > 0
     assert many.stats == one.stats and one.stats["pvdf"]["non_finite"] == 3
 

@@ -98,7 +98,7 @@ class AnnouncingHub(Hub):
 
 class Gateway:
     """What ``/v1/stream`` (server/ws.py) needs from a service (``hub``, ``settings``, ``metrics``,
-    ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
+    ``ended``, ``hello()``, ``latency_us()``), backed by NATS instead of a pipeline."""
 
     def __init__(self, settings: GatewaySettings, auth: NatsAuth | None = None):
         self.settings = settings
@@ -121,6 +121,7 @@ class Gateway:
         self.upstream_decoded: dict[str, UpstreamTracker] = {}  #: per decoder subject
         self.upstream_hello: dict[str, Any] | None = None
         self.clock: ClockPoint | None = None  #: the publisher's clock model, as last told
+        self.ended: dict[str, Any] | None = None  #: what ws.py says after hello once a stream has ended (not relayed yet)
         self.last_frame_mono: float | None = None
         self.bad_frames = 0
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -177,6 +178,8 @@ class Gateway:
             self._take_clock(hello["clock"])
         self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)),
                            {d["name"]: d["classes"] for d in self._decoders()})
+        # clients connected before (to the placeholder, or to the previous session) learn the new one
+        self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
 
     def _decoders(self) -> list[dict[str, Any]]:
         """The publisher's decoders this gateway offers: those that have a subject (token names)."""

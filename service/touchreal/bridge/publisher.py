@@ -9,7 +9,7 @@ is unreachable it keeps up to ``pending_bytes`` and reconnects on its own; a pub
 counted and dropped, the next frame's ``seq`` jump shows the loss downstream). If the loop ever lets
 the queue overflow, the hub drops frames for the publisher alone, again visible as a ``seq`` jump.
 
-It also answers ``hello`` requests with the service's current hello and announces a new one when
+It also answers ``hello`` requests with the service's current hello (once its source is open) and announces a new one when
 the parameter revision, taxels, classes or decoders change, and publishes the service's ``clock``
 messages (its clock model) as the service tells them to its own clients.
 
@@ -224,7 +224,10 @@ class NatsPublisher:
             log.debug("clock publish failed: %r", exc)
 
     async def _on_hello_request(self, msg) -> None:
-        if msg.reply:
+        # our own announcements arrive here too: they have no reply subject. Until the service's source
+        # is open its hello has no taxels: a gateway that took it would keep an empty demand, so it
+        # gets no answer and asks again
+        if msg.reply and self.service.runtime is not None:
             await self.nc.publish(msg.reply, self._hello_bytes())
 
     async def _on_decoders_request(self, msg) -> None:

@@ -28,9 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="PARAMS.json",
                    help="parameter file to write; with several datasets a folder, receiving DATASET_DIR-name.json each")
     p.add_argument("--classes", default=",".join(CLASSES), help="comma-separated classes to fit (default: all)")
-    p.add_argument("--window-ms", type=parse_windows, default=(DEFAULT_WINDOW_MS, {}), metavar="W|CLS=W,...",
-                   help="causal PVDF window (ms) of every class (default 128), or per class, e.g. SA1=16,RA=16,PC=128 "
-                   "(classes not named take a bare number given in the list, else 128)")
+    p.add_argument("--window-ms", type=parse_windows, default=None, metavar="W|CLS=W,...",
+                   help="causal PVDF window (ms) of every class, e.g. 128, or per class, e.g. SA1=16,RA=16,PC=128 "
+                   "(classes not named take a bare number given in the list, else 128); default: the windows of the "
+                   "shipped parameters (SA1=16,RA=16,PC=128, the fast path)")
     p.add_argument("--no-pvdf-classes", default="", metavar="CLS,...",
                    help="classes fitted on the SingleTact channels alone (PVDF and dPVDF weights held at 0)")
     p.add_argument("--no-holdout", action="store_true",
@@ -92,9 +93,10 @@ def run(args: argparse.Namespace) -> int:
     from .fit import FitConfig
 
     classes = _classes(args.classes)
-    window, class_windows = args.window_ms
-    kw = {"classes": classes, "window_ms": window, "class_window_ms": class_windows, "seed": args.seed, "progress": not args.quiet,
+    kw = {"classes": classes, "seed": args.seed, "progress": not args.quiet,
           "holdout": not args.no_holdout, "no_pvdf_classes": _classes(args.no_pvdf_classes)}
+    if args.window_ms is not None:
+        kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)

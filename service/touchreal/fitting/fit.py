@@ -47,7 +47,7 @@ import numpy as np
 
 from ..analysis.turning_points import turning_points, window_edges
 from ..encoding.encoder import encode_population, lowpass_channels
-from ..params import ClassParams, EncoderParams, PreprocessParams, ReferenceAlignment
+from ..params import ClassParams, EncoderParams, PreprocessParams, ReferenceAlignment, default_params
 from ..preprocess.gate import calibrate
 from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset, Trial
@@ -89,11 +89,19 @@ def split_repeats(entries: Sequence[dict[str, Any]], seed: int) -> tuple[list[di
 # ------------------------------------------------------------------------------ configuration
 
 
+def shipped_windows_ms() -> dict[str, float]:
+    """Per class, the causal PVDF window (ms) it runs at in the shipped defaults (SA1 and RA on the
+    16 ms fast path, PC on 128 ms): the windows a fit uses unless told otherwise."""
+    p = default_params()
+    return {c: p.window_ms(c) for c in CLASSES if c in p.classes}
+
+
 @dataclass
 class FitConfig:
     classes: tuple[str, ...] = CLASSES
     window_ms: float = 128.0  #: preprocessing window (ms): every class without its own entry in class_window_ms
-    class_window_ms: dict[str, float] = field(default_factory=dict)  #: a class's own causal PVDF window (ms)
+    #: a class's own causal PVDF window (ms); default: the shipped windows (:func:`shipped_windows_ms`)
+    class_window_ms: dict[str, float] = field(default_factory=shipped_windows_ms)
     holdout: bool = True  #: False: every trial trains (no held-out half)
     seed: int = 0
     kernel_ms: float = 10.0  #: kernel tau of the objective's D_kernel (eqs. 2-3)

@@ -34,6 +34,10 @@ from .scene import SceneSource, default_scene, taxel_grid
 
 MAX_CATCH_UP_HOPS = 64  #: a sim that fell behind hands over up to this many hops at once
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
+#: a replayed trial's span on the wire runs this long past its last sample, so that no spike of it (stamped at
+#: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
+#: it also covers the longest look-ahead (a 512 ms window: 512.5 ms). tests/test_replay_boundaries.py checks it
+SEGMENT_GUARD_US = 1_100_000
 
 
 class LiveSource(Protocol):
@@ -176,9 +180,12 @@ class SimLiveSource:
 class ReplayLiveSource:
     """Recorded trials played back to back, each a segment on its own clock, in real time x ``speed``.
 
-    Segment i's samples go on the wire at ``offset_us`` = the previous segments' durations, each
-    rounded up to :data:`SEGMENT_GRID_US`, so the stream's clock keeps increasing and every grid the
-    stream is cut on (10 ms decoder bins, 32 ms steps) falls on the same instants of a trial. ``loop`` replays the list forever.
+    Segment i's samples go on the wire at ``offset_us`` = the sum of the previous segments' spans, a
+    span being the trial's duration + :data:`SEGMENT_GUARD_US` rounded up to :data:`SEGMENT_GRID_US`:
+    the stream's clock keeps increasing, every spike of a trial is stamped inside its own span, and
+    every grid the stream is cut on (10 ms decoder bins, 32 ms steps) falls on the same instants of a
+    trial (docs/stream-protocol.md). ``loop`` replays the list forever; otherwise the source ends
+    after the last trial, and ``status()`` then gives ``end_us``, where the next span would begin.
     A replay waits for demand (``waits_for_demand``): it starts, and resumes, only while somebody
     subscribes, so nobody misses the beginning of a trial.
     """
@@ -222,7 +229,7 @@ class ReplayLiveSource:
         trial: Trial = self.dataset.load(entry)
         self.segment, self.trial_id = i, entry["id"]
         self.offset_us = self._next_offset_us
-        span = trial.duration_s * 1e6 + 1000.0
+        span = trial.duration_s * 1e6 + SEGMENT_GUARD_US
         self._next_offset_us += int(math.ceil(span / SEGMENT_GRID_US)) * SEGMENT_GRID_US
         self._player = ReplaySource(trial)
         return True
@@ -252,7 +259,10 @@ class ReplayLiveSource:
 
     def status(self) -> dict[str, int | float | str]:
         state = "ended" if self._ended else ("closed" if self._pace._closed.is_set() else "streaming")
-        return {"state": state, "kind": "replay", "trial": self.trial_id, "segment": self.segment}
+        out: dict[str, int | float | str] = {"state": state, "kind": "replay", "trial": self.trial_id, "segment": self.segment}
+        if self._ended:
+            out["end_us"] = self._next_offset_us
+        return out
 
     def close(self) -> None:
         self._pace.close()

@@ -79,6 +79,7 @@ class Subscriber:
         self.kicked = asyncio.Event()
         self.control: deque[str] = deque()  #: JSON messages (hello, clock, subscribed, time, error): never dropped
         self.control_chars = 0  #: characters queued in ``control``
+        self.after_frames: deque[str] = deque()  #: JSON messages that follow every frame queued before them (ended)
         #: False for a subscriber no client reads control messages from (a NATS publisher's lane)
         self.takes_control = True
         self.wakeup = asyncio.Event()
@@ -95,6 +96,11 @@ class Subscriber:
             return
         self.control.append(text)
         self.control_chars += len(text)
+        self.wakeup.set()
+
+    def say_after_frames(self, text: str) -> None:
+        """Queue a message that goes out once the frames queued now have been sent (never dropped)."""
+        self.after_frames.append(text)
         self.wakeup.set()
 
     def pop_control(self) -> str:

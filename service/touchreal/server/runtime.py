@@ -82,6 +82,7 @@ class Runtime:
         make_decoder: Callable[[str, tuple[int, ...]], object] | None = None,
         taxel_block: int | None = None,
         fallback: Callable[[int, int | None, Exception], bool] | None = None,
+        on_end: Callable[[], None] | None = None,
     ):
         self.source = source
         self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
@@ -91,10 +92,12 @@ class Runtime:
         #: other parameters and return True to keep streaming (False: the runtime fails)
         self._fallback = fallback
         self.good_rev: int | None = None  #: the last revision that completed an update
+        self._on_end = on_end  #: called on this thread once the source has ended and its last spikes are published
         self.decoders: dict[str, object] = {}  #: name -> StreamingDecoder for the demanded taxels
         self.encoder: StreamEncoder | None = None
         self.enc_rev = 0
         self.enc_segment = source.segment
+        self.enc_offset_us = source.offset_us  #: wire offset of the segment the encoder runs on
         self.active: dict[str, tuple[int, ...]] | None = None
         self.active_channels: tuple[int, ...] = ()
         self.update_no = 0
@@ -160,14 +163,10 @@ class Runtime:
     def step(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None = None) -> Update | None:
         """Process one chunk read at ``acq_us`` (wall clock, us); ``clock``: the source's clock model
         after it (default: the chunk's newest sample acquired at ``acq_us``). Returns the published update."""
+        if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
+            self._flush_segment(acq_us)
         self._follow_clock(chunk, acq_us, clock)
         flags = self._pending_flags | self._source_flags()
-        tail = None
-        if self.source.segment != self.enc_segment:  # a new replayed trial: flush, restart from rest
-            tail = self._finish_encoder()
-            self.decoders = {}
-            self.enc_segment = self.source.segment
-            flags |= FLAG_RESTARTED
         demand = self._demand()
         rev, params = self._params()
         if self.encoder is not None and rev != self.enc_rev:
@@ -186,8 +185,6 @@ class Runtime:
         if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
             self.encoder.process(chunk)
             flags |= self._count_sanitizer()
-            if tail is not None:
-                self._emit(tail, flags, acq_us, 0.0, None)
             self.state = "idle"
             return None
         # two phases: the hop's fast classes go out before a slow source (PC's 128 ms window) runs its frame
@@ -197,15 +194,23 @@ class Runtime:
         flags |= self._count_sanitizer()
         self._pending_flags = 0
         self.state = "running"
-        if tail is not None:
-            self._emit(tail, flags, acq_us, 0.0, None)
-            flags &= ~FLAG_RESTARTED
         upd = self._emit(ev, flags, acq_us, compute, ch if demand.channel_taxels else None)
         if self.encoder.slow_due():
             t0 = time.perf_counter()
             ch, ev = self.encoder.process_slow()
             upd = self._emit(ev, 0, acq_us, time.perf_counter() - t0, ch if demand.channel_taxels else None)
         return upd
+
+    def _flush_segment(self, acq_us: int) -> None:
+        """The source began its next segment (a replayed trial): the encoder's last spikes go out
+        stamped on the segment they belong to, with the decoders that read it; the next frame, the
+        new segment's first, is flagged restarted."""
+        tail = self._finish_encoder()
+        if tail is not None:
+            self._emit(tail, 0, acq_us, 0.0, None)
+        self.decoders = {}
+        self.enc_segment, self.enc_offset_us = self.source.segment, self.source.offset_us
+        self._pending_flags |= FLAG_RESTARTED
 
     def _follow_clock(self, chunk: RawChunk, acq_us: int, clock: ClockPoint | None) -> None:
         if clock is None:  # a source without a clock model: its newest sample arrived when the chunk was read
@@ -222,7 +227,7 @@ class Runtime:
         if self.encoder is None:
             return None
         ev = self.encoder.finish()
-        out = (ev, self.source.offset_us, dict(self.encoder.final_s), self._delays())
+        out = (ev, self.enc_offset_us, dict(self.encoder.final_s), self._delays())
         self.encoder = None
         return out
 
@@ -233,6 +238,8 @@ class Runtime:
         if tail is not None:
             self._emit(tail, 0, wall_us(), 0.0, None)
         self.state = "ended"
+        if self._on_end is not None:
+            self._on_end()
 
     def _delays(self) -> dict[str, float]:
         p = self.encoder.params if self.encoder is not None else self._params()[1]

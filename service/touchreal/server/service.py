@@ -74,6 +74,7 @@ class Service:
         self._posted = 0
         self._delivered = 0
         self.source_error: str | None = None
+        self.ended: dict[str, Any] | None = None  #: the ``ended`` message once the source has ended (a finished replay)
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -134,10 +135,10 @@ class Service:
             self.source_error = str(exc)
             log.error("cannot open source %s: %s", self.config.source, exc)
             return self.source_error
-        self.source_error = None
+        self.source_error, self.ended = None, None
         self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
-                               self.settings.taxel_block or None, self._fall_back)
+                               self.settings.taxel_block or None, self._fall_back, self._post_end)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again
@@ -156,6 +157,25 @@ class Service:
             return
         self._posted += 1
         self.loop.call_soon_threadsafe(self._deliver, upd)
+
+    def _post_end(self) -> None:
+        """Called on the acquisition thread after the source's last update was posted."""
+        self.loop.call_soon_threadsafe(self._deliver_end)
+
+    def _deliver_end(self) -> None:
+        """Tell every client, after the frames queued for it, that the stream has ended."""
+        if self.runtime is None:
+            return
+        st = self.runtime.source.status()
+        if st.get("kind") == "replay":
+            self.ended = {"type": "ended", "reason": "replay_finished", "trials": int(st.get("segment", -1)) + 1,
+                          "end_us": int(st.get("end_us", 0))}
+        else:
+            self.ended = {"type": "ended", "reason": "source_ended"}
+        text = json.dumps(self.ended, separators=(",", ":"))
+        for sub in self.hub.subscribers.values():
+            if sub.takes_control:
+                sub.say_after_frames(text)
 
     def _deliver(self, upd: Update) -> None:
         self._delivered += 1
@@ -316,6 +336,7 @@ class Service:
             "faults": dict(rt.counters) if rt else {},
             "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256,
                        "fallback": self.store.fallback_reason},
+            "ended": self.ended,
             **{name: section() for name, section in self.status_sections.items()},
         }
 

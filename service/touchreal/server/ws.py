@@ -47,6 +47,8 @@ async def stream(ws: WebSocket) -> None:
     clock = service.clock_message()
     if clock is not None:
         sub.say(clock)
+    if service.ended is not None:
+        sub.say(_dumps(service.ended))
     sender = asyncio.create_task(_send_loop(ws, sub))
     kicked = asyncio.create_task(sub.kicked.wait())
     close: tuple[int, str] | None = None
@@ -126,13 +128,16 @@ async def _send_loop(ws: WebSocket, sub: Subscriber) -> None:
         while True:
             await sub.wakeup.wait()
             sub.wakeup.clear()
-            while sub.control or sub.queue:
+            while sub.control or sub.queue or sub.after_frames:
                 if sub.control:
                     await ws.send_text(sub.pop_control())
                     continue
+                if not sub.queue:
+                    await ws.send_text(sub.after_frames.popleft())
+                    continue
                 item = sub.next_frame()
-                if item is None:  # every queued frame was stale
-                    break
+                if item is None:  # every queued frame was stale (then what follows the frames goes out)
+                    continue
                 data, _ = sub.render(item)
                 if isinstance(data, str):
                     await ws.send_text(data)

@@ -7,7 +7,7 @@ definition. Nothing here touches a socket; docs/stream-protocol.md is the normat
   header (:data:`HEADER`) followed by a payload of kind spikes, channels or decoded outputs.
   All integers little-endian; times are integer microseconds, ``*_us`` on the sensor clock except
   ``emit_us`` / ``sent_us`` (server wall clock, Unix epoch).
-* JSON messages (WebSocket text messages): ``hello``, ``subscribe``, ``subscribed``, ``time``,
+* JSON messages (WebSocket text messages): ``hello``, ``subscribe``, ``subscribed``, ``time``, ``ended``,
   ``error``, and the JSON encoding of the three frame kinds.
 
 Per-connection fields (``seq``, ``dropped``, ``sent_us``) sit at fixed offsets of the header so a

@@ -91,6 +91,7 @@ class AsyncStream:
         self.request_timeout_s = request_timeout_s
         self.hello: dict[str, Any] = {}
         self.subscribed: dict[str, Any] | None = None  #: the server's last ``subscribed`` reply
+        self.ended: dict[str, Any] | None = None  #: the server's ``ended`` message (its replay has finished)
         self.stats = StreamStats()
         self.latency = LatencyEstimator()
         self.clock = ClockMap()  #: the server's clock model (``clock`` messages) plus the ``time`` offset
@@ -272,6 +273,8 @@ class AsyncStream:
             self._on_hello(m)
         elif kind == "clock":
             self.clock.update(m)
+        elif kind == "ended":
+            self.ended = m
         elif kind in ("subscribed", "time", "error"):
             if kind == "subscribed":
                 self.subscribed = m
