@@ -193,10 +193,10 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
                 hc_cmd = json.loads(hc[hc.index("CMD") + 3:].strip())
                 hc_run = subprocess.run([venv / "bin" / hc_cmd[0], *hc_cmd[1:]], env=env, timeout=30)
                 with tr.stream() as s:
-                    frames = []
+                    frames = []  # frames come every 5 ms hop: read until spikes came (the scene's first touch)
                     for f in s.spikes():
                         frames.append(f)
-                        if len(frames) >= 30:
+                        if sum(x.t_us.size for x in frames) >= 10 or len(frames) >= 2000:
                             break
                     session = s.hello["session"]
                 assert tr.health()["session"] == session
@@ -205,7 +205,7 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
             out = proc.communicate(timeout=30)[0]
         assert hc_run.returncode == 0
         assert page.status_code == 200 and '<canvas id="raster"' in page.text
-        assert len(frames) == 30 and sum(f.t_us.size for f in frames) > 0
+        assert sum(f.t_us.size for f in frames) >= 10
         assert f"dashboard http://127.0.0.1:{port}/" in out
     finally:
         shutil.rmtree(venv, ignore_errors=True)

@@ -198,7 +198,8 @@ def test_dropped_frames_are_counted_by_reason_and_stay_after_the_client_left(tmp
 def test_a_client_that_stops_reading_is_closed_by_the_keepalive_with_1011(tmp_path):
     """At normal rates a stalled client's queue does not fill before the keepalive notices: the
     server's WebSocket layer closes it with 1011 "keepalive ping timeout" after at most
-    ping_interval_s + ping_timeout_s (20 s + 20 s by default; shortened here). Others are unaffected."""
+    ping_interval_s + ping_timeout_s (20 s + 20 s by default; shortened here), before the
+    slow-consumer rule (slow_timeout_s without taking a frame). Others are unaffected."""
     with running_server(tmp_path, ping_interval_s=0.5, ping_timeout_s=1.0) as (addr, svc):
         host, port = addr.split(":")
 
@@ -221,7 +222,9 @@ def test_a_client_that_stops_reading_is_closed_by_the_keepalive_with_1011(tmp_pa
         hello, frames, gone, rcvd = run(go())
         slow = svc.metrics.kicked._value.get()
     assert hello["limits"]["ping_interval_s"] == 0.5 and hello["limits"]["ping_timeout_s"] == 1.0
-    assert gone and rcvd is not None and (rcvd.code, rcvd.reason) == (1011, "keepalive ping timeout")
+    # the close frame (1011) reaches it only if its buffers have room: behind a full send buffer
+    # (send_buffer_bytes) the stalled reader sees the connection drop without it (1006)
+    assert gone and (rcvd is None or (rcvd.code, rcvd.reason) == (1011, "keepalive ping timeout"))
     assert slow == 0  # not the slow-consumer close: its queue never stayed full
     spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
     seqs = [f.header.seq for f in spikes]

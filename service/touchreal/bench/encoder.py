@@ -137,7 +137,7 @@ def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: 
                 step = update_s if h is None else h / 1000.0
                 se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
                 se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
-                warm = int(np.ceil(0.3 / step))  # past the stream start (hum estimate, first frames)
+                warm = min(int(np.ceil(0.3 / step)), len(chunks) // 2)  # past the stream start (hum estimate, first frames)
                 for c in chunks[:warm]:
                     se.process(c)
                 t = time.thread_time()  # CPU time of this thread: a shared machine's load does not count

@@ -115,8 +115,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     ds = Dataset.open(args.dataset)
     params = _params(args.params)
     models = _load_models(args.models, args.tasks)
-    for task in sorted({m.meta["task"] for m in models}):
+    tasks = sorted({m.meta["task"] for m in models})
+    for task in tasks:  # a task with no trials at all is the clearer error: before any split is looked at
         require_trials(ds, protocol_of(task), f"evaluating the {task} decoders")
+    for task in tasks:
         if not split_entries(ds, params, protocol_of(task), args.split)[0]:
             raise RecordingError(f"{ds.root}: no {protocol_of(task)} trials in the {args.split} split, nothing to "
                                  f"evaluate the {task} decoders on (a test-only dataset: --split all)")
