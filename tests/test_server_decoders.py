@@ -4,6 +4,7 @@ and a client running the downloaded model on the streamed spikes gets the servic
 from __future__ import annotations
 
 import asyncio
+import json
 
 import httpx
 import numpy as np
@@ -26,6 +27,11 @@ def test_decoder_endpoints_list_describe_and_serve_onnx(tmp_path):
             assert http.get("/v1/decoders/nope").status_code == 404
             assert http.get("/v1/decoders/nope/model.onnx").status_code == 404
             blob = http.get("/v1/decoders/force/model.onnx").content
+    # no path of the serving machine, nor of the machine that trained a model, goes out
+    for m in listed + [force]:
+        assert "/" not in m["file"] and "/" not in m.get("training", {}).get("dataset_dir", ""), m
+        assert str(tmp_path) not in json.dumps(m)
+    assert b"/tmp/" not in blob
     model = onnx.load_from_string(blob)
     sess = ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
     shape = [d if isinstance(d, int) else 1 for d in sess.get_inputs()[0].shape]

@@ -36,7 +36,8 @@ def train_all(
     for spec in specs:
         train = cache.trials(spec, "train")
         held = cache.trials(spec, "heldout")
-        training = {"dataset": str(ds.manifest.get("name", ds.root.name)), "dataset_dir": str(ds.root),
+        # the folder's name only: the metadata travels with the model to every client (no build-machine paths)
+        training = {"dataset": str(ds.manifest.get("name", ds.root.name)), "dataset_dir": ds.root.name,
                     "protocol": protocol_of(spec.task), "split": "train", "split_seed": cache.split_seed,
                     "heldout_trials": len(held), "seed": seed}
         model, meta, _, _ = train_model(spec, train, params, training, seed)

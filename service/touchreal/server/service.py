@@ -296,7 +296,9 @@ class Service:
         """Installed decoder models (``GET /v1/decoders``, also through a gateway): metadata, and a
         warning where the active parameters differ from the ones a model was trained on."""
         params = self.store.active
-        return [{**m, "warning": None if "error" in m else params_warning(m, params)} for m in self.models.list()]
+        # a model's file is named, not located: no path of this machine goes out
+        return [{**m, "file": Path(m["file"]).name, "warning": None if "error" in m else params_warning(m, params)}
+                for m in self.models.list()]
 
     def decoder_list(self) -> list[dict[str, Any]]:
         """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
