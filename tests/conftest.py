@@ -45,3 +45,26 @@ def conformance(shared: Path):
     if not (root / "manifest.json").is_file():
         pytest.skip(f"TouchSim conformance data not found at {root}")
     return root, json.loads((root / "manifest.json").read_text())["stimuli"]
+
+
+# -- leaving the test process ------------------------------------------------------------------------
+# Servers under test run on daemon threads with native libraries loaded (onnxruntime, liblsl through
+# pylsl, numba/LLVM). Now and then one of their C++ threads is still alive when the interpreter
+# finalises, and the C++ runtime aborts the process ("terminate called without an active exception",
+# exit 134) after every test has passed and been reported. Once pytest has reported everything, the
+# process leaves with pytest's own exit status, without interpreter finalisation.
+_EXIT_STATUS: list[int] = []
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    _EXIT_STATUS.append(int(exitstatus))
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config) -> None:
+    if _EXIT_STATUS:
+        import sys
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(_EXIT_STATUS[-1])
