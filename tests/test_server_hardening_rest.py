@@ -143,7 +143,9 @@ def test_a_pc_only_set_serves_a_bare_subscription_with_what_it_has(tmp_path):
         assert http.put("/v1/params", json=d).status_code == 200
         frames = spikes_frames(addr)
         assert frames and all(rev_of(f) == 2 for f in frames[-2:])
-        assert svc.runtime.state == "running" and svc.runtime.active == {"PC": (0,)}
+        # the client has left (on the next 5 ms hop the pipeline idles): what counts is that it never failed
+        assert svc.runtime.state in ("running", "idle") and svc.runtime.error is None
+        assert {c for f in frames for c in f.cls.tolist()} <= {P.CLASSES.index("PC")}
         assert http.get("/v1/health").json()["status"] == "ok"
 
 

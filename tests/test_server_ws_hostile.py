@@ -98,10 +98,10 @@ def test_classes_and_taxels_not_served_get_an_error_and_the_stream_goes_on(tmp_p
                     refused.append(await _next_control(ws))
                 frames = await collect(ws, 2.0, lambda fs: sum(isinstance(f, P.SpikesFrame) and f.t_us.size > 0
                                                                for f in fs) >= 5)
-                return hello, bare, refused, frames
+                state = svc.runtime.state, svc.runtime.error  # while subscribed (after it, the pipeline idles)
+                return hello, bare, refused, frames, state
 
-        hello, bare, refused, frames = run(go())
-        state = svc.runtime.state, svc.runtime.error
+        hello, bare, refused, frames, state = run(go())
     assert hello["classes"] == ["PC"]
     assert bare["type"] == "subscribed" and bare["classes"] == ["PC"] and bare["taxels"] is None
     assert [m["code"] for m in refused] == ["not_served"] * 3
