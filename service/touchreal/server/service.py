@@ -224,9 +224,9 @@ class Service:
 
     def _describe(self) -> tuple:
         """What the hello describes, for change detection."""
-        p = self.store.active
-        return (self.store.active_rev, p.preprocess.update_ms, tuple(sorted(self.latency_us().items())),
-                tuple(self.config.classes), self.n_taxels, tuple(self.hub.decoder_names))
+        # windows, latencies, delays and the update interval all follow from the active revision: no need
+        # to recompute them on every hop to notice a change
+        return (self.store.active_rev, tuple(self.config.classes), self.n_taxels, tuple(self.hub.decoder_names))
 
     def announce_hello(self) -> None:
         """Send the current hello (then the clock) to every client."""
