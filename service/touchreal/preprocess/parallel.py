@@ -1,0 +1,59 @@
+"""Both cores for the large kernels: a kernel over independent columns runs as column ranges, one on
+the calling thread and the others on a small shared thread pool.
+
+The kernels are numba functions compiled with ``nogil=True`` (and numpy's FFT, which releases the
+GIL), so the ranges run truly in parallel. Small calls (a few taxels, the 5 ms hop of one taxel
+block) stay on the calling thread: a hand-off costs some 10-50 us, more than their work.
+
+Threads: ``TOUCHREAL_THREADS`` if set (1 turns the pool off), else the CPUs this process may run
+on (``os.sched_getaffinity``), at most :data:`MAX_THREADS`; a 1-CPU container runs everything on
+the calling thread. Results do not depend on the thread count (ranges write disjoint columns).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
+
+MAX_THREADS = 4  #: upper bound of the default thread count
+THREADS_ENV = "TOUCHREAL_THREADS"
+
+
+@lru_cache(maxsize=1)
+def thread_count() -> int:
+    """Threads the large kernels use (>= 1): ``TOUCHREAL_THREADS``, else the usable CPUs (<= 4)."""
+    text = os.environ.get(THREADS_ENV, "").strip()
+    if text:
+        try:
+            return max(1, int(text))
+        except ValueError:
+            raise ValueError(f"{THREADS_ENV} must be a whole number, got {text!r}") from None
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_THREADS))
+
+
+@lru_cache(maxsize=1)
+def _pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=thread_count() - 1, thread_name_prefix="touchreal-kernel")
+
+
+def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work: int = 200_000) -> None:
+    """Run ``kernel(a, b)`` over ranges covering ``0 .. n`` (columns), in parallel when the whole
+    call's ``work`` (e.g. columns x samples) gives each thread at least ``min_work`` of it. The
+    calling thread runs the first range; exceptions of any range are raised here."""
+    parts = min(thread_count(), n, work // max(min_work, 1))
+    if parts <= 1:
+        kernel(0, n)
+        return
+    bounds = [n * i // parts for i in range(parts + 1)]
+    futures = [_pool().submit(kernel, bounds[i], bounds[i + 1]) for i in range(1, parts)]
+    try:
+        kernel(bounds[0], bounds[1])
+    finally:
+        for f in futures:
+            f.result()
