@@ -214,9 +214,10 @@ class InputStage:
         self.fresh[rows] = False
 
     def prepare(self, channels: np.ndarray) -> np.ndarray:
-        """The channels as the kernels take them ((T, X, 4) contiguous float64, shape checked), with
+        """The channels as the kernel takes them ((T, X, 4) float64 in any memory layout: the kernel
+        copies taxel tiles, so the preprocessing's layout is not copied first; shape checked), with
         fresh columns started at their first sample."""
-        x = np.ascontiguousarray(channels, dtype=np.float64)
+        x = np.asarray(channels, dtype=np.float64)
         if x.ndim != 3 or x.shape[2] != N_CHANNELS or x.shape[1] < self._n_taxels:
             raise ValueError(f"channels must be (T, >= {self._n_taxels} taxels, {N_CHANNELS}), got {x.shape}")
         if x.shape[0] and self.fresh.any():

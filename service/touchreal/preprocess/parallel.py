@@ -13,12 +13,14 @@ the calling thread. Results do not depend on the thread count (ranges write disj
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 
 MAX_THREADS = 4  #: upper bound of the default thread count
 THREADS_ENV = "TOUCHREAL_THREADS"
+WORK_SCALE = 1.0  #: multiplies every ``min_work`` (0: split every call that has more than one item; tests)
 
 
 @lru_cache(maxsize=1)
@@ -37,23 +39,35 @@ def thread_count() -> int:
     return max(1, min(cpus, MAX_THREADS))
 
 
+_inside = threading.local()  #: set while a thread runs a range: nested calls run serially (no pool deadlock)
+
+
 @lru_cache(maxsize=1)
 def _pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=thread_count() - 1, thread_name_prefix="touchreal-kernel")
 
 
 def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work: int = 200_000) -> None:
-    """Run ``kernel(a, b)`` over ranges covering ``0 .. n`` (columns), in parallel when the whole
-    call's ``work`` (e.g. columns x samples) gives each thread at least ``min_work`` of it. The
-    calling thread runs the first range; exceptions of any range are raised here."""
-    parts = min(thread_count(), n, work // max(min_work, 1))
-    if parts <= 1:
+    """Run ``kernel(a, b)`` over ranges covering ``0 .. n`` (columns, taxels, taxel blocks), in
+    parallel when the whole call's ``work`` (e.g. columns x samples) gives each thread at least
+    ``min_work`` of it. The calling thread runs the first range; exceptions of any range are raised
+    here. A call made inside a range (a block's kernel while blocks run in parallel) runs serially."""
+    parts = min(thread_count(), n, int(work // max(min_work * WORK_SCALE, 1)))
+    if parts <= 1 or getattr(_inside, "active", False):
         kernel(0, n)
         return
     bounds = [n * i // parts for i in range(parts + 1)]
-    futures = [_pool().submit(kernel, bounds[i], bounds[i + 1]) for i in range(1, parts)]
+    futures = [_pool().submit(_range, kernel, bounds[i], bounds[i + 1]) for i in range(1, parts)]
     try:
-        kernel(bounds[0], bounds[1])
+        _range(kernel, bounds[0], bounds[1])
     finally:
         for f in futures:
             f.result()
+
+
+def _range(kernel: Callable[[int, int], object], a: int, b: int) -> None:
+    _inside.active = True
+    try:
+        kernel(a, b)
+    finally:
+        _inside.active = False

@@ -15,6 +15,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
+from .parallel import split_run
+
 
 def frame_length(window_ms: float, fs_hz: float) -> int:
     """Frame length (samples) for a window: rounded to a multiple of 4, at least 8."""
@@ -63,23 +65,29 @@ class StftGate:
         if n_frames <= 0:
             self._buf = buf
             return np.zeros((0, self.n_taxels), self.dtype)
-        frames = sliding_window_view(buf, self.n, axis=1)[:, :: self.hop][:, :n_frames] * self.window  # (taxels, F, N)
-        spec = np.fft.rfft(frames, axis=-1)
-        if self.thresholds is not None:
-            np.multiply(spec, self.attenuation, out=spec, where=np.abs(spec) < self.thresholds)
-        y = np.fft.irfft(spec, n=self.n, axis=-1).astype(self.dtype, copy=False)  # (taxels, F, N)
-        # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
         total = (n_frames - 1) * self.hop + self.n
-        acc = np.zeros((self.n_taxels, total), self.dtype)
-        acc[:, : self._acc.shape[1]] += self._acc
-        for f in range(n_frames):  # at most a few frames per update; each add is vectorised
-            acc[:, f * self.hop : f * self.hop + self.n] += y[:, f]
         done = n_frames * self.hop
-        out = acc[:, :done] / self.norm
-        if self._skip:
-            drop = min(self._skip, out.shape[1])
-            out, self._skip = out[:, drop:], self._skip - drop
-        self._acc = acc[:, done:]
+        drop = min(self._skip, done)  # outputs of the virtual zeros
+        out = np.empty((self.n_taxels, done - drop), self.dtype)
+        tail = np.empty((self.n_taxels, total - done), self.dtype)
+
+        def rows(a: int, b: int) -> None:  # taxels a ... b - 1 (numpy's FFT and ufuncs release the GIL)
+            frames = sliding_window_view(buf[a:b], self.n, axis=1)[:, :: self.hop][:, :n_frames] * self.window  # (taxels, F, N)
+            spec = np.fft.rfft(frames, axis=-1)
+            if self.thresholds is not None:
+                np.multiply(spec, self.attenuation, out=spec, where=np.abs(spec) < self.thresholds)
+            y = np.fft.irfft(spec, n=self.n, axis=-1).astype(self.dtype, copy=False)
+            # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
+            acc = np.zeros((b - a, total), self.dtype)
+            acc[:, : self._acc.shape[1]] += self._acc[a:b]
+            for f in range(n_frames):  # at most a few frames per update; each add is vectorised
+                acc[:, f * self.hop : f * self.hop + self.n] += y[:, f]
+            np.divide(acc[:, drop:done], self.norm, out=out[a:b])
+            tail[a:b] = acc[:, done:]
+
+        split_run(rows, self.n_taxels, self.n_taxels * n_frames * self.n, min_work=100_000)
+        self._skip -= drop
+        self._acc = tail
         self._buf = buf[:, done:]
         self.frames += n_frames
         return out.T
