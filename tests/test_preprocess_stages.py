@@ -260,17 +260,20 @@ def test_thread_count_follows_the_environment_and_split_run_covers_every_item(mo
     try:
         for text, want in (("1", 1), ("3", 3), ("0", 1)):
             monkeypatch.setenv(parallel.THREADS_ENV, text)
-            parallel.thread_count.cache_clear()
+            parallel.default_thread_count.cache_clear()
             assert parallel.thread_count() == want
         monkeypatch.setenv(parallel.THREADS_ENV, "two")
-        parallel.thread_count.cache_clear()
+        parallel.default_thread_count.cache_clear()
         with pytest.raises(ValueError, match="TOUCHREAL_THREADS"):
             parallel.thread_count()
         monkeypatch.delenv(parallel.THREADS_ENV)
-        parallel.thread_count.cache_clear()
+        parallel.default_thread_count.cache_clear()
         assert 1 <= parallel.thread_count() <= parallel.MAX_THREADS
+        parallel.set_thread_count(3)
+        assert parallel.thread_count() == 3
     finally:
-        parallel.thread_count.cache_clear()
+        parallel.set_thread_count(None)
+        parallel.default_thread_count.cache_clear()
     monkeypatch.setattr(parallel, "thread_count", lambda: 2)
     seen, threads = [], set()
 

@@ -23,9 +23,24 @@ THREADS_ENV = "TOUCHREAL_THREADS"
 WORK_SCALE = 1.0  #: multiplies every ``min_work`` (0: split every call that has more than one item; tests)
 
 
-@lru_cache(maxsize=1)
+_override: list[int] = []  #: set_thread_count's value, if any
+
+
+def set_thread_count(n: int | None) -> None:
+    """Use ``n`` threads from now on (None: back to the default); for benchmarks comparing 1 and 2."""
+    if n is not None and n < 1:
+        raise ValueError("thread count must be >= 1")
+    _override[:] = [] if n is None else [int(n)]
+
+
 def thread_count() -> int:
-    """Threads the large kernels use (>= 1): ``TOUCHREAL_THREADS``, else the usable CPUs (<= 4)."""
+    """Threads the large kernels use (>= 1): :func:`set_thread_count`'s, else :func:`default_thread_count`."""
+    return _override[0] if _override else default_thread_count()
+
+
+@lru_cache(maxsize=1)
+def default_thread_count() -> int:
+    """``TOUCHREAL_THREADS`` (read once), else the usable CPUs, at most :data:`MAX_THREADS`."""
     text = os.environ.get(THREADS_ENV, "").strip()
     if text:
         try:
@@ -42,9 +57,9 @@ def thread_count() -> int:
 _inside = threading.local()  #: set while a thread runs a range: nested calls run serially (no pool deadlock)
 
 
-@lru_cache(maxsize=1)
-def _pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=thread_count() - 1, thread_name_prefix="touchreal-kernel")
+@lru_cache(maxsize=None)
+def _pool(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="touchreal-kernel")
 
 
 def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work: int = 200_000) -> None:
@@ -57,7 +72,7 @@ def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work:
         kernel(0, n)
         return
     bounds = [n * i // parts for i in range(parts + 1)]
-    futures = [_pool().submit(_range, kernel, bounds[i], bounds[i + 1]) for i in range(1, parts)]
+    futures = [_pool(parts - 1).submit(_range, kernel, bounds[i], bounds[i + 1]) for i in range(1, parts)]
     try:
         _range(kernel, bounds[0], bounds[1])
     finally:
