@@ -23,6 +23,7 @@ from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
 from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
+_BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per call from which taxel blocks run on both cores (~0.5 ms of work)
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
 
 
@@ -228,10 +229,10 @@ class StreamEncoder:
             for block in blocks[a:b]:
                 block.pre.consume(*new)
 
-        # size of this call for split_run over blocks (taxels x new PVDF samples x 16): blocks run on
-        # both cores from a few hundred taxels per 32 ms on (each block's kernels then run serially)
-        self._work = 16 * self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
-        split_run(consume, len(blocks), self._work)
+        # size of this call for split_run over blocks (taxels x new PVDF samples): blocks run on both
+        # cores from ~100 taxels per 5 ms hop on (each block's kernels then run serially)
+        self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
+        split_run(consume, len(blocks), self._work, _BLOCK_MIN_WORK)
 
     def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
         results: list[tuple[Channels | None, list[SpikeEvents]]] = [(None, [])] * len(self.blocks)
@@ -241,7 +242,7 @@ class StreamEncoder:
             for i in range(a, b):
                 results[i] = self.blocks[i].encode(slow, phase)
 
-        split_run(encode, len(self.blocks), self._work)
+        split_run(encode, len(self.blocks), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
         for block, (ch, evs) in zip(self.blocks, results):
             if ch is not None:

@@ -8,8 +8,8 @@ preprocessing, and float64 on one thread with the threads' speed-up.
 
 Part 1b compares the compute per second of sensor time of the service's hop (5 ms chunks: the
 SingleTact-only and short-window sources every hop, the 128 ms window on the 32 ms update) with
-32 ms updates (every source every update), at 1 and 256 taxels, in the service's blocks of 64
-taxels, as CPU time of the process, all threads (the best of three runs of each, interleaved): the
+32 ms updates (every source every update), at 1 taxel and the ``--taxels`` counts up to 1024, in the
+service's blocks of 64 taxels and in one block, as CPU time of the process, all threads (the best of three runs of each, interleaved): the
 cost of the short hop is per-call overhead.
 
 Part 1c is the service's own budget without the network: the simulated e-skin chunked as ``touchreal
@@ -144,32 +144,33 @@ def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:
 
 
 def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: tuple[float, ...] = (5.0, 10.0)) -> None:
-    """Compute per second of sensor time on the service's hop against the ``update_ms`` update."""
+    """Compute per second of sensor time on the service's hop against the ``update_ms`` update, in
+    the service's taxel blocks of 64 and (above 64 taxels) in one block (``--taxel-block 0``)."""
     update_s = params.preprocess.update_ms / 1000.0
     print(f"\n== compute per second of sensor time: hop against the {params.preprocess.update_ms:g} ms update "
-          f"({windows_label(params)}; taxel blocks of 64; process CPU time, all threads, best of 3)")
-    print(f"{'taxels':>6} {'chunks':>14} {'ms per s':>9} {'x update':>9} {'us per call':>11}")
+          f"({windows_label(params)}; process CPU time, all threads, best of 3)")
+    print(f"{'taxels':>6} {'block':>5} {'chunks':>14} {'ms per s':>9} {'x update':>9} {'us per call':>11}")
     for n in taxels:
-        block = 64 if n > 64 else None
         runs = {None: _scene_chunks(n, seconds, update_s)} | {h: _scene_chunks(n, seconds, h / 1000.0) for h in hops_ms}
-        best: dict[float | None, float] = {}
-        for _ in range(3):  # interleaved, so a shared machine's load hits every variant alike
-            for h, chunks in runs.items():
+        for block in ([64, None] if n > 64 else [None]):
+            best: dict[float | None, float] = {}
+            for _ in range(3):  # interleaved, so a shared machine's load hits every variant alike
+                for h, chunks in runs.items():
+                    step = update_s if h is None else h / 1000.0
+                    se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
+                    se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
+                    warm = min(int(np.ceil(0.3 / step)), len(chunks) // 2)  # past the stream start (hum estimate, first frames)
+                    for c in chunks[:warm]:
+                        se.process(c)
+                    t = time.process_time()  # CPU time of the process (every thread): a shared machine's load does not count
+                    for c in chunks[warm:]:
+                        se.process(c)
+                    per_s = (time.process_time() - t) / ((len(chunks) - warm) * step)
+                    best[h] = min(best.get(h, np.inf), per_s)
+            for h, per_s in best.items():
                 step = update_s if h is None else h / 1000.0
-                se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
-                se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
-                warm = min(int(np.ceil(0.3 / step)), len(chunks) // 2)  # past the stream start (hum estimate, first frames)
-                for c in chunks[:warm]:
-                    se.process(c)
-                t = time.process_time()  # CPU time of the process (every thread): a shared machine's load does not count
-                for c in chunks[warm:]:
-                    se.process(c)
-                per_s = (time.process_time() - t) / ((len(chunks) - warm) * step)
-                best[h] = min(best.get(h, np.inf), per_s)
-        for h, per_s in best.items():
-            step = update_s if h is None else h / 1000.0
-            label = f"{params.preprocess.update_ms:g} ms update" if h is None else f"{h:g} ms hop"
-            print(f"{n:6d} {label:>14} {per_s * 1000:9.2f} {per_s / best[None]:9.2f} {per_s * step * 1e6:11.1f}")
+                label = f"{params.preprocess.update_ms:g} ms update" if h is None else f"{h:g} ms hop"
+                print(f"{n:6d} {block or n:5d} {label:>14} {per_s * 1000:9.2f} {per_s / best[None]:9.2f} {per_s * step * 1e6:11.1f}")
 
 
 def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop_ms: float = 5.0) -> None:
