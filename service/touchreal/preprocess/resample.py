@@ -81,11 +81,13 @@ def _pchip_eval(x, y, t, out, a, b):  # pragma: no cover - compiled
     for j in range(1, m - 1):
         h0, h1 = x[j] - x[j - 1], x[j + 1] - x[j]
         w1, w2 = 2 * h1 + h0, h1 + 2 * h0
-        for c in range(w):  # branch-free, so the compiler vectorises it (the discarded value may be inf)
+        for c in range(w):
             m0 = (y[j, a + c] - y[j - 1, a + c]) / h0
             m1 = (y[j + 1, a + c] - y[j, a + c]) / h1
-            same_sign = (m0 != 0.0) & (m1 != 0.0) & ((m0 > 0.0) == (m1 > 0.0))
-            d[j, c] = 1.0 / ((w1 / m0 + w2 / m1) / (w1 + w2)) if same_sign else 0.0
+            if m0 == 0.0 or m1 == 0.0 or (m0 > 0.0) != (m1 > 0.0):
+                d[j, c] = 0.0
+            else:
+                d[j, c] = 1.0 / ((w1 / m0 + w2 / m1) / (w1 + w2))
     c2 = np.empty(w)
     c3 = np.empty(w)
     n_t = t.shape[0]
