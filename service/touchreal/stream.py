@@ -223,26 +223,32 @@ class StreamEncoder:
 
     def _feed(self, chunk: RawChunk) -> None:
         new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
+        # size of this call for split_run over blocks (taxels x new PVDF samples): blocks run on both
+        # cores from ~200 taxels per 5 ms hop on (each block's kernels then run serially)
+        self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
         blocks = self.blocks
+        if len(blocks) == 1:
+            blocks[0].pre.consume(*new)
+            return
 
         def consume(a: int, b: int) -> None:
             for block in blocks[a:b]:
                 block.pre.consume(*new)
 
-        # size of this call for split_run over blocks (taxels x new PVDF samples): blocks run on both
-        # cores from ~100 taxels per 5 ms hop on (each block's kernels then run serially)
-        self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
         split_run(consume, len(blocks), self._work, _BLOCK_MIN_WORK)
 
     def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
-        results: list[tuple[Channels | None, list[SpikeEvents]]] = [(None, [])] * len(self.blocks)
         slow, phase = (frozenset(), None) if final else (self.slow, phase)
+        if len(self.blocks) == 1:
+            results = [self.blocks[0].encode(slow, phase)]
+        else:
+            results = [(None, [])] * len(self.blocks)
 
-        def encode(a: int, b: int) -> None:
-            for i in range(a, b):
-                results[i] = self.blocks[i].encode(slow, phase)
+            def encode(a: int, b: int) -> None:
+                for i in range(a, b):
+                    results[i] = self.blocks[i].encode(slow, phase)
 
-        split_run(encode, len(self.blocks), self._work, _BLOCK_MIN_WORK)
+            split_run(encode, len(self.blocks), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
         for block, (ch, evs) in zip(self.blocks, results):
             if ch is not None:

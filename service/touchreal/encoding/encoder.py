@@ -253,7 +253,9 @@ class InputStage:
         counts = np.zeros(n, np.int64)
         if n_t and n:
             self._run(x, lif, spikes, counts, np.empty((n, 0)))
-        if counts.max(initial=0) > cap:
+        if not counts.any():  # most short calls: no spike
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if counts.max() > cap:
             raise RuntimeError("spike buffer overrun: a column spiked more often than its refractory period allows")
         k = spikes[np.arange(cap)[None, :] < counts[:, None]]
         col = np.repeat(np.arange(n), counts)
@@ -399,6 +401,8 @@ class Encoder:
         if data.shape[0] == 0 or not self.columns:
             return SpikeEvents.concatenate([])
         k, n = self.inputs.spikes(data, self.lif)
+        if not k.size:
+            return SpikeEvents.concatenate([])
         t = (k0 + k + 1) / OUT_FS_HZ + self._delay_n[n]
         order = np.argsort(t, kind="stable")
         return SpikeEvents(t[order], self._taxel_n[n][order], self._cls_n[n][order])

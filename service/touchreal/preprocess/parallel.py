@@ -67,6 +67,9 @@ def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work:
     parallel when the whole call's ``work`` (e.g. columns x samples) gives each thread at least
     ``min_work`` of it. The calling thread runs the first range; exceptions of any range are raised
     here. A call made inside a range (a block's kernel while blocks run in parallel) runs serially."""
+    if n < 2 or work < 2 * min_work * WORK_SCALE:  # the common small call: no further checks
+        kernel(0, n)
+        return
     parts = min(thread_count(), n, int(work // max(min_work * WORK_SCALE, 1)))
     if parts <= 1 or getattr(_inside, "active", False):
         kernel(0, n)
