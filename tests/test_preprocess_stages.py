@@ -295,3 +295,32 @@ def test_thread_count_follows_the_environment_and_split_run_covers_every_item(mo
 
     with pytest.raises(RuntimeError, match="range failed"):
         parallel.split_run(failing, 4, 10**9)
+
+
+def test_a_forked_child_gets_a_pool_of_its_own(monkeypatch):
+    """After a fork the parent's pool threads are gone; the child's split calls still run (no hang)."""
+    import multiprocessing
+
+    from touchreal.preprocess import parallel
+
+    monkeypatch.setattr(parallel, "thread_count", lambda: 2)
+    seen = []
+    parallel.split_run(lambda a, b: seen.append((a, b)), 4, 10**9)  # the parent's pool exists now
+    assert len(seen) == 2
+
+    def child(conn):
+        got = []
+        parallel.split_run(lambda a, b: got.append((a, b)), 4, 10**9)
+        conn.send(sorted(got))
+
+    ctx = multiprocessing.get_context("fork")
+    parent, end = ctx.Pipe()
+    proc = ctx.Process(target=child, args=(end,))
+    proc.start()
+    try:
+        assert parent.poll(30), "the forked child hung in split_run"
+        assert parent.recv() == [(0, 2), (2, 4)]
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()

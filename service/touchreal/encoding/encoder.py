@@ -225,15 +225,20 @@ class InputStage:
         return x
 
     def _run(self, x: np.ndarray, lif: LifPopulation | None, spikes: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:
-        """The fused kernel over every column, those of a large block on both cores (``spikes`` (N, cap),
-        ``counts`` (N,), ``out`` (N, T) or (N, 0): the kernel does no bounds checks)."""
+        """The fused kernel over every column (``spikes`` (N, cap), ``counts`` (N,), ``out`` (N, T) or
+        (N, 0): the kernel does no bounds checks). The encoder's large blocks (``lif`` given) run on
+        both cores; the currents alone (:func:`encode_population`, whose callers run their own
+        processes) stay on the calling thread."""
         n = self.src.size
         if lif is None:  # currents only: the kernel never touches the neuron arrays
             lif = LifPopulation(np.ones(n), np.zeros((n, 1)))
+            work = 0
+        else:
+            work = n * x.shape[0]
         st = lif.state
         split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead,
                                                self.ring, self.head, lif.tau, lif.ih, st.v, st.counter, spikes, counts, out, a, b),
-                  n, n * x.shape[0])
+                  n, work)
 
     def process(self, channels: np.ndarray) -> np.ndarray:
         x = self.prepare(channels)

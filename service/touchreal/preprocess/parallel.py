@@ -62,6 +62,10 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="touchreal-kernel")
 
 
+# a forked child has none of the parent's pool threads: it builds its own pool on first use
+os.register_at_fork(after_in_child=_pool.cache_clear)
+
+
 def split_run(kernel: Callable[[int, int], object], n: int, work: int, min_work: int = 200_000) -> None:
     """Run ``kernel(a, b)`` over ranges covering ``0 .. n`` (columns, taxels, taxel blocks), in
     parallel when the whole call's ``work`` (e.g. columns x samples) gives each thread at least
