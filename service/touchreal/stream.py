@@ -23,7 +23,7 @@ from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
 from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
-_BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per call from which taxel blocks run on both cores (~0.5 ms of work)
+_BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per block range from which taxel blocks run on both cores (~0.3 ms of work)
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
 
 
