@@ -128,6 +128,7 @@ class StreamEncoder:
             raise ValueError("update_s must be > 0")
         self.params = params
         self.n_taxels = n_taxels
+        self.dtype = np.dtype(dtype)  #: of the channels and of the preprocessing's arithmetic
         self.classes = tuple(c for c in CLASSES if c in wanted)
         self.source: dict[str, Source] = {c: class_source(params, c) for c in self.classes}
         groups: dict[Source, list[str]] = {}
@@ -267,7 +268,7 @@ class StreamEncoder:
             return shown[0][1]
         spans = [(ch.k0, ch.k0 + ch.n_samples) for _, ch in shown if ch.n_samples]
         if not spans:
-            return Channels(0, np.zeros((0, self.n_taxels, 4)))
+            return Channels(0, np.zeros((0, self.n_taxels, 4), self.dtype))
         k0, k1 = min(a for a, _ in spans), max(b for _, b in spans)
         data = np.full((k1 - k0, self.n_taxels, 4), np.nan, dtype=shown[0][1].data.dtype)
         for taxels, ch in shown:

@@ -214,10 +214,12 @@ class InputStage:
         self.fresh[rows] = False
 
     def prepare(self, channels: np.ndarray) -> np.ndarray:
-        """The channels as the kernel takes them ((T, X, 4) float64 in any memory layout: the kernel
-        copies taxel tiles, so the preprocessing's layout is not copied first; shape checked), with
-        fresh columns started at their first sample."""
-        x = np.asarray(channels, dtype=np.float64)
+        """The channels as the kernel takes them ((T, X, 4) float64 or float32, in any memory layout:
+        the kernel copies taxel tiles, converting to float64, so neither the preprocessing's layout
+        nor its dtype is copied first; shape checked), with fresh columns started at their first sample."""
+        x = np.asarray(channels)
+        if x.dtype not in (np.float64, np.float32):
+            x = x.astype(np.float64)
         if x.ndim != 3 or x.shape[2] != N_CHANNELS or x.shape[1] < self._n_taxels:
             raise ValueError(f"channels must be (T, >= {self._n_taxels} taxels, {N_CHANNELS}), got {x.shape}")
         if x.shape[0] and self.fresh.any():

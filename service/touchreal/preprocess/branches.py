@@ -29,10 +29,10 @@ _ST_LP_ORDER = 2
 
 
 class History:
-    """The last ``size`` samples of a regular grid (n, n_taxels), by grid slot (a ring buffer)."""
+    """The last ``size`` samples of a regular grid (n, n_taxels), by grid slot (a ring buffer of ``dtype``)."""
 
-    def __init__(self, size: int, n_taxels: int):
-        self.buf = np.zeros((size, n_taxels))
+    def __init__(self, size: int, n_taxels: int, dtype: type = np.float64):
+        self.buf = np.zeros((size, n_taxels), dtype)
         self.end = 0  # slot after the newest sample
         self.count = 0
 
@@ -104,7 +104,7 @@ class SingleTactBranch:
     def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot_time: Callable):
         self.lp = butter_lowpass(params.st_lowpass_hz, ST_FS_HZ, _ST_LP_ORDER, n_taxels, dtype)
         self.ab = AlphaBeta(params.st_alpha, params.st_beta, ST_FS_HZ, n_taxels)
-        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
+        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels, dtype)
         self.slot_time = slot_time
         self.out = Grid(n_taxels)
 
@@ -181,7 +181,7 @@ class PvdfWindowBranch:
         self.in_slot = -(-slot // gate.hop) * gate.hop  # first input slot: the next frame boundary
         self.out_slot = self.in_slot  # slot of the next gate output sample
         self.prev: np.ndarray | None = None  # last gate output (for the derivative)
-        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels)
+        self.rs = CausalPchip(OUT_FS_HZ, 2 * n_taxels, dtype)
         self.slot_time = slot_time
         self.out = Grid(n_taxels)
 
@@ -195,7 +195,7 @@ class PvdfWindowBranch:
         self._emit(self.gate.process(y))
 
     def finish(self, until_s: float) -> None:
-        self._emit(self.gate.process(np.zeros((self.gate.n, self.n_taxels))))
+        self._emit(self.gate.process(np.zeros((self.gate.n, self.n_taxels), self.gate.dtype)))
         self.out.add(self.rs.finish(until_s))
 
     def _emit(self, y: np.ndarray) -> None:

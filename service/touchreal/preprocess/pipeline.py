@@ -48,7 +48,8 @@ ST_LOOKAHEAD_KNOTS = 2  #: PCHIP needs the knot after the next one: up to 2 knot
 class Channels:
     """A block of encoder input: sample k of ``data`` is at ``t0_s + k / fs_hz`` (s).
 
-    ``data`` is (T, n_taxels, 4) float64 with channels ST [N], dST [N/s], PVDF [V], dPVDF [V/s].
+    ``data`` is (T, n_taxels, 4), float64 or float32 (the preprocessor's dtype), with channels
+    ST [N], dST [N/s], PVDF [V], dPVDF [V/s].
     """
 
     k0: int  # absolute 5 kHz grid index of the first sample
@@ -159,7 +160,7 @@ class Preprocessor:
         taxels: range | None = None,
     ):
         self.params = params = params or PreprocessParams()
-        self.dtype = np.dtype(dtype)  # arithmetic of the filters and the STFT gate
+        self.dtype = np.dtype(dtype)  # arithmetic of the filters, the STFT gate and PCHIP; dtype of the channels
         sources = [params.window_ms] if sources is None else list(sources)
         if max_window_ms is None:
             max_window_ms = max((s for s in sources if s is not None), default=params.window_ms)
@@ -172,7 +173,7 @@ class Preprocessor:
         self.taxels = taxels
         self.n_taxels = len(taxels)
         self._cols = slice(taxels.start, taxels.stop)
-        self.pv_filtered = History(acquisition.n_pv, self.n_taxels)  # the running PVDF filter's output (window restarts)
+        self.pv_filtered = History(acquisition.n_pv, self.n_taxels, self.dtype)  # the running PVDF filter's output (window restarts)
         self.st: SingleTactBranch | None = None
         self.pv_filter: PvdfFilter | None = None
         self.pv_windows: dict[float, PvdfWindowBranch] = {}
@@ -266,7 +267,7 @@ class Preprocessor:
         if until is None:
             return
         if self.pv_filter is not None:
-            self._pv_windows(*self.pv_filter.process(np.zeros((0, self.n_taxels)), final=True))
+            self._pv_windows(*self.pv_filter.process(np.zeros((0, self.n_taxels), self.dtype), final=True))
         for branch in self.pv_windows.values():
             self._catch_up(branch)
             branch.finish(until)
@@ -292,7 +293,7 @@ class Preprocessor:
             raise KeyError(f"source {source} is not active")
         k_first = self.acq.first_index()
         if k_first is None or self.st is None:
-            return Channels(self.cursor[source] or 0, np.zeros((0, self.n_taxels, 4)))
+            return Channels(self.cursor[source] or 0, np.zeros((0, self.n_taxels, 4), self.dtype))
         start = max(k_first, self.cursor[source] if self.cursor[source] is not None else k_first)
         if source is not None:
             self._catch_up(self.pv_windows[source])
@@ -302,8 +303,8 @@ class Preprocessor:
         start = max([start] + [g.k0 for g in grids if g.k0 is not None])
         if end is None or end <= start:
             self.cursor[source] = start
-            return Channels(start, np.zeros((0, self.n_taxels, 4)))
-        pv = np.zeros((end - start, self.n_taxels, 2)) if source is None else grids[1].read(start, end)
+            return Channels(start, np.zeros((0, self.n_taxels, 4), self.dtype))
+        pv = np.zeros((end - start, self.n_taxels, 2), self.dtype) if source is None else grids[1].read(start, end)
         out = Channels(start, np.concatenate((grids[0].read(start, end), pv), axis=2))
         self.cursor[source] = end
         self._trim()

@@ -12,6 +12,7 @@ preceded by N - H virtual zeros so the output starts at input sample 0.
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft
 from numpy.lib.stride_tricks import as_strided
 from scipy import signal
 
@@ -28,6 +29,8 @@ class StftGate:
 
     ``thresholds`` (n_bins,) are magnitude thresholds on the rfft of a Hann-windowed frame (V);
     ``None`` keeps every bin (the stage is then an exact delay-free identity on the clock).
+    All arithmetic is in ``dtype``: float64, or float32 with the spectrum in complex64 (scipy.fft
+    keeps single precision; the thresholds are rounded to float32).
     """
 
     def __init__(
@@ -39,8 +42,8 @@ class StftGate:
         self.n_taxels = n_taxels
         self.dtype = np.dtype(dtype)
         self.window = signal.get_window("hann", n, fftbins=True).astype(self.dtype)
-        self.norm = self.window.sum() / self.hop  # constant overlap-add gain (2.0 for Hann at N/4)
-        self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64)
+        self.norm = self.window.sum() / self.dtype.type(self.hop)  # constant overlap-add gain (2.0 for Hann at N/4)
+        self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64).astype(self.dtype)
         if self.thresholds is not None and self.thresholds.shape != (n // 2 + 1,):
             raise ValueError(f"thresholds must have {n // 2 + 1} bins")
         self.attenuation = float(attenuation)
@@ -71,14 +74,14 @@ class StftGate:
         out = np.empty((self.n_taxels, done - drop), self.dtype)
         tail = np.empty((self.n_taxels, total - done), self.dtype)
 
-        def rows(a: int, b: int) -> None:  # taxels a ... b - 1 (numpy's FFT and ufuncs release the GIL)
+        def rows(a: int, b: int) -> None:  # taxels a ... b - 1 (scipy's FFT and numpy's ufuncs release the GIL)
             rows = buf[a:b]  # frames as a strided view (sliding_window_view's checks cost ~20 us a call)
             frames = as_strided(rows, (b - a, n_frames, self.n), (rows.strides[0], self.hop * rows.strides[1], rows.strides[1]),
                                 writeable=False) * self.window  # (taxels, F, N)
-            spec = np.fft.rfft(frames, axis=-1)
+            spec = scipy.fft.rfft(frames, axis=-1, overwrite_x=True)
             if self.thresholds is not None:
                 np.multiply(spec, self.attenuation, out=spec, where=np.abs(spec) < self.thresholds)
-            y = np.fft.irfft(spec, n=self.n, axis=-1).astype(self.dtype, copy=False)
+            y = scipy.fft.irfft(spec, n=self.n, axis=-1, overwrite_x=True)
             # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
             acc = np.zeros((b - a, total), self.dtype)
             acc[:, : self._acc.shape[1]] += self._acc[a:b]
