@@ -1,6 +1,7 @@
 """Numerical stability under hostile input: nothing non-finite, bounded state, flat memory."""
 
 import numpy as np
+import pytest
 
 from touchreal.params import default_params
 from touchreal.sensing.raw import RawChunk
@@ -61,9 +62,10 @@ def test_gaps_and_duplicates_are_repaired_and_counted():
     assert se.state_report()[0]
 
 
-def test_long_stream_state_bounded_and_memory_flat():
-    """Ten minutes of a saturating press/vibration loop: state and buffers stay the same size."""
-    se = StreamEncoder(default_params(), n_taxels=1)
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_long_stream_state_bounded_and_memory_flat(dtype):
+    """Ten minutes of a saturating press/vibration loop: state and buffers stay the same size (both dtypes)."""
+    se = StreamEncoder(default_params(), n_taxels=1, dtype=dtype)
     st = lambda t, r, n: (10 * (np.sin(2 * np.pi * 0.5 * t) > 0) + r.normal(0, 0.02, t.size))[:, None]
     pv = lambda t, r, n: (1.6 * np.sin(2 * np.pi * 300 * t) * (np.sin(2 * np.pi * 0.25 * t) > 0) + r.normal(0, 0.01, t.size))[:, None]
     sizes, peaks = [], []

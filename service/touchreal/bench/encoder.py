@@ -331,6 +331,7 @@ def sweep(params: EncoderParams, n_trials: int) -> None:
     ref, _ = encode_all(one_window(128.0), np.float64)
     rows = [(f"all {w}", one_window(float(w)), dtype) for w in WINDOWS_MS for dtype in ((np.float64, np.float32) if w == 128 else (np.float64,))]
     rows += [(windows_label(p), p, np.float64) for p in [params] + [with_class_windows(params, w) for w in CLASS_WINDOWS_MS]]
+    rows += [(windows_label(params), params, np.float32)]  # the served windows in float32: its cost in accuracy
     print(f"{'windows (ms)':>28} {'dtype':>7} {'ms/update':>9} " + " ".join(f"{c + ' cnt%':>9} {c + ' VR':>7}" for c in CLASSES))
     for label, p, dtype in rows:
         got, ms = encode_all(p, dtype)
