@@ -74,27 +74,30 @@ class CausalPchip:
 
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # x / 0 gives inf (discarded), no exception
 def _pchip_eval(h, y, idx, s, one, out, a, b):  # pragma: no cover - compiled
     """Columns a ... b - 1: slopes at the interior knots (weighted harmonic mean, 0 at extrema),
-    then per interval the cubic's coefficients once and Horner at the interval's points. ``h``:
+    then per interval the cubic's coefficients once (secants computed once) and Horner at the interval's points. ``h``:
     knot intervals, ``s``: each point's offset from its interval's knot ``idx``; all arithmetic is
     in the dtype of ``y``, the dtype of ``one`` (constants are built from it, so float32 never widens)."""
     m = y.shape[0]
     w = b - a
     two = one + one
     three = two + one
+    zero = one - one
+    delta = np.empty((m - 1, w), y.dtype)  # secant slope of every interval
+    for j in range(m - 1):
+        hj = h[j]
+        for c in range(w):
+            delta[j, c] = (y[j + 1, a + c] - y[j, a + c]) / hj
     d = np.zeros((m, w), y.dtype)
     for j in range(1, m - 1):
         h0, h1 = h[j - 1], h[j]
         w1, w2 = two * h1 + h0, h1 + two * h0
-        for c in range(w):
-            m0 = (y[j, a + c] - y[j - 1, a + c]) / h0
-            m1 = (y[j + 1, a + c] - y[j, a + c]) / h1
-            if m0 == 0.0 or m1 == 0.0 or (m0 > 0.0) != (m1 > 0.0):
-                d[j, c] = 0.0
-            else:
-                d[j, c] = one / ((w1 / m0 + w2 / m1) / (w1 + w2))
+        for c in range(w):  # branch-free, so that it vectorises: the mean is discarded where it is not used
+            m0, m1 = delta[j - 1, c], delta[j, c]
+            mean = one / ((w1 / m0 + w2 / m1) / (w1 + w2))
+            d[j, c] = mean if (m0 > zero and m1 > zero) or (m0 < zero and m1 < zero) else zero
     c2 = np.empty(w, y.dtype)
     c3 = np.empty(w, y.dtype)
     n_t = s.shape[0]
@@ -103,7 +106,7 @@ def _pchip_eval(h, y, idx, s, one, out, a, b):  # pragma: no cover - compiled
         i = idx[k]
         hi = h[i]
         for c in range(w):
-            slope = (y[i + 1, a + c] - y[i, a + c]) / hi
+            slope = delta[i, c]
             c2[c] = (three * slope - two * d[i, c] - d[i + 1, c]) / hi
             c3[c] = (d[i, c] + d[i + 1, c] - two * slope) / (hi * hi)
         while k < n_t and idx[k] == i:
