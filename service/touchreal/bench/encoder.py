@@ -331,18 +331,27 @@ def sweep(params: EncoderParams, n_trials: int) -> None:
     ref, _ = encode_all(one_window(128.0), np.float64)
     rows = [(f"all {w}", one_window(float(w)), dtype) for w in WINDOWS_MS for dtype in ((np.float64, np.float32) if w == 128 else (np.float64,))]
     rows += [(windows_label(p), p, np.float64) for p in [params] + [with_class_windows(params, w) for w in CLASS_WINDOWS_MS]]
-    rows += [(windows_label(params), params, np.float32)]  # the served windows in float32: its cost in accuracy
+    rows += [(windows_label(params), params, np.float32)]  # the served windows in float32
     print(f"{'windows (ms)':>28} {'dtype':>7} {'ms/update':>9} " + " ".join(f"{c + ' cnt%':>9} {c + ' VR':>7}" for c in CLASSES))
+    served: dict[str, list[dict[str, np.ndarray]]] = {}
     for label, p, dtype in rows:
         got, ms = encode_all(p, dtype)
-        cols = []
-        for c in CLASSES:
-            n_ref = np.array([len(r[c]) for r in ref], float)
-            n_got = np.array([len(g[c]) for g in got], float)
-            cnt = 100 * np.abs(n_got - n_ref).sum() / max(n_ref.sum(), 1.0)
-            vr = np.mean([vr_distance(g[c], r[c], 0.01) for g, r in zip(got, ref)])
-            cols.append(f"{cnt:9.2f} {vr:7.3f}")
-        print(f"{label:>28} {np.dtype(dtype).name:>7} {ms:9.3f} " + " ".join(cols))
+        if p is params:
+            served[np.dtype(dtype).name] = got
+        print(f"{label:>28} {np.dtype(dtype).name:>7} {ms:9.3f} " + _errors(got, ref))
+    print(f"{'float32 against float64':>28} {'':>7} {'':>9} " + _errors(served["float32"], served["float64"]) + "  (served windows)")
+
+
+def _errors(got: list[dict[str, np.ndarray]], ref: list[dict[str, np.ndarray]]) -> str:
+    """Per class: |count difference| in % of the reference's spikes and mean VR distance (tau 10 ms)."""
+    cols = []
+    for c in CLASSES:
+        n_ref = np.array([len(r[c]) for r in ref], float)
+        n_got = np.array([len(g[c]) for g in got], float)
+        cnt = 100 * np.abs(n_got - n_ref).sum() / max(n_ref.sum(), 1.0)
+        vr = np.mean([vr_distance(g[c], r[c], 0.01) for g, r in zip(got, ref)])
+        cols.append(f"{cnt:9.2f} {vr:7.3f}")
+    return " ".join(cols)
 
 
 def soak(params: EncoderParams, hours: float) -> None:
