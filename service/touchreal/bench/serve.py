@@ -31,10 +31,12 @@ import asyncio
 import contextlib
 import json
 import multiprocessing as mp
+import os
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +52,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subscribers", default=None, help="subscriber counts for the fan-out part (default 1,10,100; "
                    "with --nats the --nats-subscribers counts, so both paths are measured side by side)")
     p.add_argument("--soak-seconds", type=float, default=60.0, help="length of the largest fan-out run (s)")
-    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin (parts 2 and 3)")
+    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin (part 3, and 2b with --nats)")
+    p.add_argument("--fanout-taxels", default="1,256", help="taxel counts for the fan-out of spikes (part 2)")
+    p.add_argument("--all-streams-subscribers", default="10,25,50,100",
+                   help="subscriber counts for part 2d: every stream (spikes, channels, decoded) at the largest "
+                   "--fanout-taxels; the largest count served within 10 ms p99 is reported")
     p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
@@ -125,8 +131,78 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
     return rows, {c: np.concatenate(v) if v else np.zeros(0) for c, v in lat.items()}, clock.offset_us
 
 
+class _LightClient(asyncio.Protocol):
+    """A fan-out subscriber with as little client-side work per frame as the measurement allows, so
+    that on a small machine the clients leave the CPU to the server: plain asyncio (no uvloop), the
+    WebSocket protocol of ``websockets``' sans-I/O ``ClientProtocol`` straight on a transport (no task
+    or queue per message), and per binary frame only its header read. Rows as :func:`_one_client`'s,
+    with the frame's size in bytes appended; the receipt time is that of the read that completed it."""
+
+    def __init__(self, addr: str, sub: dict, done: asyncio.Future):
+        from websockets.client import ClientProtocol
+        from websockets.uri import parse_uri
+
+        self.ws = ClientProtocol(parse_uri(f"ws://{addr}/v1/stream"), max_size=None)
+        self.sub, self.done = sub, done
+        self.rows: list[tuple[int, ...]] = []
+        self.transport: asyncio.Transport | None = None
+        self.subscribed = False
+
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        self.transport = transport
+        self.ws.send_request(self.ws.connect())
+        self._flush()
+
+    def _flush(self) -> None:
+        out = self.ws.data_to_send()
+        if out and self.transport is not None:
+            self.transport.write(b"".join(out))
+
+    def data_received(self, data: bytes) -> None:
+        from touchreal_client import protocol as P
+        from websockets.frames import Opcode
+
+        recv = time.time_ns() // 1000
+        self.ws.receive_data(data)
+        for ev in self.ws.events_received():
+            if getattr(ev, "opcode", None) is Opcode.BINARY:
+                h = P.decode_header(ev.data)
+                n = P.SPIKES_HEAD.unpack_from(ev.data, P.HEADER_LEN)[0] if h.kind == P.KIND_SPIKES else 0
+                self.rows.append((h.update, h.emit_us, h.sent_us, recv, n, h.seq, h.dropped, len(ev.data)))
+            elif getattr(ev, "opcode", None) is Opcode.TEXT and not self.subscribed:  # the hello
+                self.subscribed = True
+                self.ws.send_text(json.dumps({"type": "subscribe", **self.sub}).encode())
+        self._flush()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.done.done():
+            self.done.set_result(None)
+
+
+async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[np.ndarray]:
+    """``n`` :class:`_LightClient` subscribers for ``seconds``; their rows."""
+    loop = asyncio.get_running_loop()
+    host, port = addr.rsplit(":", 1)
+    clients = []
+    for _ in range(n):
+        done = loop.create_future()
+        _, c = await loop.create_connection(lambda: _LightClient(addr, sub, done), host, int(port))
+        clients.append(c)
+    await asyncio.sleep(seconds)
+    rows = [np.array(c.rows, dtype=np.int64).reshape(-1, 8) for c in clients]
+    for c in clients:  # a closing handshake, so the server stops sending before the socket goes
+        c.ws.send_close(1000)
+        c._flush()
+    await asyncio.wait([c.done for c in clients], timeout=10.0)
+    for c in clients:
+        c.transport.abort()
+    return rows
+
+
 def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False) -> None:
     async def main():
+        if not spikes:
+            return await _light_clients(addr, n, seconds, sub)
         return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes) for _ in range(n)))
 
     out.put(asyncio.run(main()))
@@ -170,16 +246,22 @@ def run(args: argparse.Namespace) -> int:
         with _service(args, n) as (svc, log):
             addr = log["addr"]
             _part1(addr, args, svc, log, n)
-    with _service(args, args.taxels) as (svc, log), contextlib.ExitStack() as stack:
-        addr, nats_url = log["addr"], log.get("nats")
-        direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
-        _part2([addr], args, direct_counts, f"2. Fan-out, direct (receipt minus emission), all classes and "
-               f"{args.taxels} taxel(s)")
-        if nats_url:
-            gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
+    direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
+    fan_taxels = [int(x) for x in args.fanout_taxels.split(",") if x]
+    for n in fan_taxels:
+        with _service(args, n) as (_, log):
+            _part2([log["addr"]], args, direct_counts, f"2. Fan-out of spikes, direct (receipt minus emission), all "
+                   f"classes and {n} taxel(s)", cpu=time.process_time)
+    with _service(args, fan_taxels[-1]) as (_, log):
+        _part2([log["addr"]], args, args.all_streams_subscribers, f"2d. Every stream (spikes, channels, decoded), "
+               f"{fan_taxels[-1]} taxel(s) (receipt minus emission)", {"streams": ["spikes", "channels", "decoded"]},
+               cpu=time.process_time, within_ms=10.0)
+    if args.nats:
+        with _service(args, args.taxels) as (_, log), contextlib.ExitStack() as stack:
+            gateways = [stack.enter_context(_gateway_process(log["nats"])) for _ in range(2)]
             _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
                    "the publisher's emission), all classes and taxels")
-            _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
+            _decoded([("direct", log["addr"]), ("NATS + gateway", gateways[0])], args)
     _part3(params, args.taxels)
     return 0
 
@@ -198,6 +280,8 @@ def _run_remote(args: argparse.Namespace) -> int:
     for c in CLASSES:
         print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes")
     _part2([addr], args, args.subscribers or "1,10,100", "2. Fan-out (receipt minus emission), what the service streams")
+    _part2([addr], args, args.all_streams_subscribers, "2d. Every stream (spikes, channels, decoded; receipt minus "
+           "emission)", {"streams": ["spikes", "channels", "decoded"]}, within_ms=10.0)
     return 0
 
 
@@ -280,20 +364,36 @@ def _gateway_process(nats_url: str):
         proc.wait(15)
 
 
-def _part2(addrs: list[str], args, subscribers: str, title: str) -> None:
+def _part2(addrs: list[str], args, subscribers: str, title: str, sub: dict | None = None,
+           cpu: Callable[[], float] | None = None, within_ms: float | None = None) -> None:
+    """One row per subscriber count: frames and bytes per second, receipt minus emission, drops; with
+    ``cpu`` (the server's process time, when it runs in this process) its CPU per second and per frame
+    sent; with ``within_ms`` the largest count whose p99 stayed within it."""
     counts = [int(x) for x in subscribers.split(",") if x]
     print(f"\n{title}")
-    print("   subscribers  seconds  events/s/client  frames/s/client  p50 ms  p99 ms  max ms  dropped")
+    print("   subscribers  seconds  frames/s/client  kB/s/client  MB/s total  p50 ms  p99 ms  max ms  server CPU  "
+          "dropped")
+    served = None
     for n in counts:
         seconds = args.soak_seconds if n == counts[-1] else args.seconds
-        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)))
+        cpu0 = cpu() if cpu else 0.0
+        t0 = time.monotonic()
+        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub)
+        cpu_s = (cpu() - cpu0) / (time.monotonic() - t0) if cpu else float("nan")
         fan = np.concatenate([(r[:, 3] - r[:, 1]) / 1000 for r in res if r.size])
-        ev = np.mean([r[:, 4].sum() / seconds for r in res])
-        fr = np.mean([r.shape[0] / seconds for r in res])
+        frames = sum(r.shape[0] for r in res)
+        per_client = np.mean([r[:, 7].sum() / seconds for r in res]) / 1e3
         dropped = sum(int(r[-1, 6]) for r in res if r.size)
         gaps = sum(int(np.sum(np.diff(r[:, 5]) != 1)) for r in res if r.shape[0] > 1)
-        print(f"   {n:11d}  {seconds:7.0f}  {ev:15.1f}  {fr:15.1f}  {np.percentile(fan, 50):6.2f}  "
-              f"{np.percentile(fan, 99):6.2f}  {fan.max():6.1f}  {dropped} (seq gaps {gaps})")
+        p99 = np.percentile(fan, 99)
+        load = f"{cpu_s * 1000:4.0f} ms/s, {cpu_s * seconds / max(frames, 1) * 1e6:4.1f} us/frame" if cpu else "n/a"
+        print(f"   {n:11d}  {seconds:7.0f}  {frames / n / seconds:15.1f}  {per_client:11.1f}  {per_client * n / 1e3:10.2f}  "
+              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {load}  {dropped} (seq gaps {gaps})")
+        if within_ms is not None and p99 <= within_ms:
+            served = n
+    if within_ms is not None:
+        print(f"   served within {within_ms:g} ms p99: {served or 'none'} of the counts tried "
+              f"(load average {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
 
 
 def _decoded(paths: list[tuple[str, str]], args, decoder: str = "force") -> None:
