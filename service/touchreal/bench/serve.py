@@ -200,17 +200,21 @@ async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[n
 
 
 def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False) -> None:
+    """Runs ``n`` clients; puts their results and this process's CPU time (s) per second of the run."""
     async def main():
         if not spikes:
             return await _light_clients(addr, n, seconds, sub)
         return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes) for _ in range(n)))
 
-    out.put(asyncio.run(main()))
+    cpu0, t0 = time.process_time(), time.monotonic()
+    results = asyncio.run(main())
+    out.put((results, (time.process_time() - cpu0) / (time.monotonic() - t0)))
 
 
 def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None,
-                 spikes: bool = False) -> list:
-    """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``."""
+                 spikes: bool = False, cpu: list[float] | None = None) -> list:
+    """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``.
+    ``cpu`` (if given) receives each process's CPU time per second (s/s)."""
     addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -219,7 +223,12 @@ def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int,
              for i, k in enumerate(counts)]
     for p in procs:
         p.start()
-    results = [arr for _ in procs for arr in q.get(timeout=seconds + 120)]
+    results = []
+    for _ in procs:
+        rows, cpu_s = q.get(timeout=seconds + 120)
+        results += rows
+        if cpu is not None:
+            cpu.append(cpu_s)
     for p in procs:
         p.join(30)
     return results
@@ -372,13 +381,14 @@ def _part2(addrs: list[str], args, subscribers: str, title: str, sub: dict | Non
     counts = [int(x) for x in subscribers.split(",") if x]
     print(f"\n{title}")
     print("   subscribers  seconds  frames/s/client  kB/s/client  MB/s total  p50 ms  p99 ms  max ms  server CPU  "
-          "dropped")
+          "clients' CPU  dropped")
     served = None
     for n in counts:
         seconds = args.soak_seconds if n == counts[-1] else args.seconds
         cpu0 = cpu() if cpu else 0.0
         t0 = time.monotonic()
-        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub)
+        client_cpu: list[float] = []
+        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub, cpu=client_cpu)
         cpu_s = (cpu() - cpu0) / (time.monotonic() - t0) if cpu else float("nan")
         fan = np.concatenate([(r[:, 3] - r[:, 1]) / 1000 for r in res if r.size])
         frames = sum(r.shape[0] for r in res)
@@ -388,7 +398,8 @@ def _part2(addrs: list[str], args, subscribers: str, title: str, sub: dict | Non
         p99 = np.percentile(fan, 99)
         load = f"{cpu_s * 1000:4.0f} ms/s, {cpu_s * seconds / max(frames, 1) * 1e6:4.1f} us/frame" if cpu else "n/a"
         print(f"   {n:11d}  {seconds:7.0f}  {frames / n / seconds:15.1f}  {per_client:11.1f}  {per_client * n / 1e3:10.2f}  "
-              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {load}  {dropped} (seq gaps {gaps})")
+              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {load}  {sum(client_cpu) * 1000:4.0f} ms/s  "
+              f"{dropped} (seq gaps {gaps})")
         if within_ms is not None and p99 <= within_ms:
             served = n
     if within_ms is not None:
