@@ -197,6 +197,7 @@ class SimHopsProcess:
             raise self._ended() from None
 
     def _ended(self) -> RuntimeError:
+        self._proc.join(1.0)
         return RuntimeError(f"the simulated e-skin's process ended (exit code {self._proc.exitcode})")
 
     def prefetch(self) -> None:
@@ -266,12 +267,15 @@ class SimLiveSource:
 
     def next_chunk(self) -> RawChunk | None:
         try:
-            self.hops.prefetch()
-            newest_s = self.next_newest_s()
+            return self._next_chunk()
         except RuntimeError:
-            if self._pace._closed.is_set():  # closed while waiting for the simulation
+            if self._pace._closed.is_set():  # closed meanwhile: the simulation's process was ended on purpose
                 return None
             raise
+
+    def _next_chunk(self) -> RawChunk | None:
+        self.hops.prefetch()
+        newest_s = self.next_newest_s()
         if not self._pace.wait_until(newest_s - self._zero_s):
             return None
         self._chunks += 1
