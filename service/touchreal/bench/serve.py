@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="subscriber counts for part 2d: every stream (spikes, channels, decoded) at the largest "
                    "--fanout-taxels; the largest count served within 10 ms p99 is reported")
     p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
+    p.add_argument("--settle-s", type=float, default=1.0, help="part 1: spikes caused this long after subscribing "
+                   "or later are the steady state; those caused before (the start rebuilds every subscribed branch "
+                   "from the raw history, a burst of compute with many taxels) are reported apart (max)")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
     p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
@@ -87,15 +90,17 @@ async def _sync_clock(ws, clock, exchanges: int = 5) -> None:
     clock.set_offset(best[0], best[1] / 2)
 
 
-async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False):
+async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False, settle_s: float = 0.0):
     """Rows (update, emit_us, sent_us, recv_us, n_events, seq, dropped) per spikes frame; with ``spikes``
-    also per class the latency of every spike as received (us, clock model) and the clock offset used."""
+    also per class the latency of every spike as received (us, clock model) whose cause was acquired
+    ``settle_s`` or more after subscribing, the clock offset used, and per class the latencies of the
+    spikes caused before."""
     import websockets
     from touchreal_client import protocol as P
     from touchreal_client.clock import ClockMap
     from touchreal_client.stats import spike_latency_us
 
-    rows, lat = [], {c: [] for c in CLASSES}
+    rows, lat, early = [], {c: [] for c in CLASSES}, {c: [] for c in CLASSES}
     clock = ClockMap()
     async with websockets.connect(f"ws://{addr}/v1/stream", compression=None, max_size=None) as ws:
         hello = json.loads(await ws.recv())
@@ -103,6 +108,7 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
         if spikes:
             await _sync_clock(ws, clock)
         await ws.send(json.dumps({"type": "subscribe", **sub}))
+        settled_us = time.time_ns() // 1000 + int(settle_s * 1e6)  # causes acquired from then on: steady state
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             try:
@@ -117,8 +123,10 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
                 if spikes and n:
                     f = P.decode_frame(msg)
                     v = spike_latency_us(f, recv, clock, hello["delay_us"])
+                    steady = recv - v >= settled_us
                     for i, c in enumerate(CLASSES):
-                        lat[c].append(v[f.cls == i])
+                        lat[c].append(v[(f.cls == i) & steady])
+                        early[c].append(v[(f.cls == i) & ~steady])
             elif spikes:
                 m = json.loads(msg)
                 if m["type"] == "clock":
@@ -128,7 +136,8 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
     rows = np.array(rows, dtype=np.int64).reshape(-1, 7)
     if not spikes:
         return rows
-    return rows, {c: np.concatenate(v) if v else np.zeros(0) for c, v in lat.items()}, clock.offset_us
+    joined = [{c: np.concatenate(v) if v else np.zeros(0) for c, v in d.items()} for d in (lat, early)]
+    return rows, joined[0], clock.offset_us, joined[1]
 
 
 class _LightClient(asyncio.Protocol):
@@ -199,12 +208,13 @@ async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[n
     return rows
 
 
-def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False) -> None:
+def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False,
+                    settle_s: float = 0.0) -> None:
     """Runs ``n`` clients; puts their results and this process's CPU time (s) per second of the run."""
     async def main():
         if not spikes:
             return await _light_clients(addr, n, seconds, sub)
-        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes) for _ in range(n)))
+        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes, settle_s) for _ in range(n)))
 
     cpu0, t0 = time.process_time(), time.monotonic()
     results = asyncio.run(main())
@@ -212,14 +222,14 @@ def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue,
 
 
 def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None,
-                 spikes: bool = False, cpu: list[float] | None = None) -> list:
+                 spikes: bool = False, cpu: list[float] | None = None, settle_s: float = 0.0) -> list:
     """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``.
     ``cpu`` (if given) receives each process's CPU time per second (s/s)."""
     addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     counts = [len(part) for part in np.array_split(np.arange(n), max(min(processes, n), min(len(addrs), n)))]
-    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q, spikes))
+    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q, spikes, settle_s))
              for i, k in enumerate(counts)]
     for p in procs:
         p.start()
@@ -284,10 +294,11 @@ def _run_remote(args: argparse.Namespace) -> int:
     print(f"TouchReal service benchmark against {args.url} (session {status.get('session')}, source "
           f"{status.get('source', {}).get('spec')}); server-side figures are not available from here")
     print(f"\n1. Latency of each spike as a client holds it (clock model), 1 subscriber, {args.seconds:g} s; ms p50 / p95 / max")
-    ((_, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
-    print(f"   client clock offset {offset:+.0f} us")
+    ((_, lat, offset, early),) = _run_clients(addr, 1, args.seconds, 1, spikes=True, settle_s=args.settle_s)
+    print(f"   client clock offset {offset:+.0f} us; spikes caused from {args.settle_s:g} s after subscribing "
+          "(caused before: max)")
     for c in CLASSES:
-        print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes")
+        print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes   ({_max_ms(early[c])})")
     _part2([addr], args, args.subscribers or "1,10,100", "2. Fan-out (receipt minus emission), what the service streams")
     _part2([addr], args, args.all_streams_subscribers, "2d. Every stream (spikes, channels, decoded; receipt minus "
            "emission)", {"streams": ["spikes", "channels", "decoded"]}, within_ms=10.0)
@@ -329,20 +340,26 @@ def _service(args, n_taxels: int):
 
 def _part1(addr: str, args, svc, log: dict, n_taxels: int) -> None:
     log["updates"].clear()
-    ((rows, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
-    ups = log["updates"][3:]
+    ((rows, lat, offset, early),) = _run_clients(addr, 1, args.seconds, 1, spikes=True, settle_s=args.settle_s)
+    ups = [u for u in log["updates"] if u[2] >= log["updates"][0][2] + args.settle_s * 1e6]
     ms = np.array([u[1] for u in ups]) * 1000
     in_hand = np.array([(acq - clock.wall_us) / 1000 for _, _, acq, clock in ups if clock is not None])
     stated = svc.latency_us()
-    print(f"\n   {n_taxels} taxel(s): compute per update mean {ms.mean():.2f}, p95 {np.percentile(ms, 95):.2f} ms; "
-          f"client clock offset {offset:+.0f} us; chunk in hand after its stated acquisition: min "
-          f"{in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")
-    print("   class  look-ahead   -> leaves the encoder (server)    -> held by the client           spikes")
+    print(f"\n   {n_taxels} taxel(s), caused from {args.settle_s:g} s after subscribing: compute per update mean {ms.mean():.2f}, "
+          f"p95 {np.percentile(ms, 95):.2f} ms; client clock offset {offset:+.0f} us; chunk in hand after its stated "
+          f"acquisition: min {in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")
+    print("   class  look-ahead   -> leaves the encoder (server)    -> held by the client           spikes   "
+          "(before: max)")
     for c in CLASSES:
         server = [u[0][c] * 1000 for u in ups if c in u[0]]
         srv = np.concatenate(server) if server else np.zeros(0)
         got = lat[c] / 1000
-        print(f"   {c:>4}   {stated.get(c, 0) / 1000:7.1f}   {_stats_ms(srv):>28}   {_stats_ms(got):>28}   {got.size:6d}")
+        print(f"   {c:>4}   {stated.get(c, 0) / 1000:7.1f}   {_stats_ms(srv):>28}   {_stats_ms(got):>28}   {got.size:6d}   "
+              f"({_max_ms(early[c])})")
+
+
+def _max_ms(lat_us: np.ndarray) -> str:
+    return f"{lat_us.max() / 1000:.1f} ms" if lat_us.size else "none"
 
 
 @contextlib.contextmanager
