@@ -150,13 +150,15 @@ class SimHops:
 
 
 def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int) -> None:
-    """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s), then (newest sample's
-    instant (s), hop) pairs, never more than ``ahead`` beyond those the parent has taken (it sends
+    """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
+    simulated, then (newest sample's instant (s), hop) pairs, never more than ``ahead`` beyond those the parent has taken (it sends
     how many it took, an int). Ends when the parent's end of ``conn`` closes."""
     hops = SimHops(n_taxels, update_s, seed, t0_s)
+    first = (hops.next_newest_s(), hops.read_hop())  # simulated before the source counts as open
     try:
         conn.send(hops.zero_s)
-        credit = ahead
+        conn.send(first)
+        credit = ahead - 1
         while True:
             for _ in range(credit):
                 conn.send((hops.next_newest_s(), hops.read_hop()))
@@ -166,10 +168,11 @@ def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, 
 
 
 def _processes() -> BaseContext:
-    """Fork server with this module loaded: a simulation process starts in milliseconds after the first
-    (which pays the imports, about 1 s); forking the service itself (threads, sockets) would be unsafe."""
+    """Fork server with the skin's code loaded and its kernels warm (:mod:`.sim_warm`): a simulation process
+    starts in milliseconds after the first (which pays the imports, about 1 s); forking the service itself
+    (threads, sockets) would be unsafe."""
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload([__name__])
+    ctx.set_forkserver_preload([f"{__package__}.sim_warm"])
     return ctx
 
 
