@@ -1,7 +1,7 @@
 """Both cores for the large kernels: a kernel over independent columns runs as column ranges, one on
 the calling thread and the others on a small shared thread pool.
 
-The kernels are numba functions compiled with ``nogil=True`` (and numpy's FFT, which releases the
+The kernels are numba functions compiled with ``nogil=True`` (and scipy's FFT, which releases the
 GIL), so the ranges run truly in parallel. Small calls (a few taxels, the 5 ms hop of one taxel
 block) stay on the calling thread: a hand-off costs some 10-50 us, more than their work.
 
