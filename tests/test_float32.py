@@ -50,7 +50,7 @@ def _stripped(name: str) -> str:
 
 @pytest.fixture(scope="module")
 def both() -> dict:
-    chunks = _scene(16, 4.0)
+    chunks = _scene(16, 6.0)
     return {dt: _encode(chunks, 16, dt) for dt in (np.float64, np.float32)}
 
 
