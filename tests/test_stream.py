@@ -481,10 +481,10 @@ def _many_taxel_chunks(n_taxels: int, update_s: float = 0.032):
     return out
 
 
-@pytest.mark.parametrize("taxel_block", [None, 7])
-def test_both_cores_give_the_spikes_and_channels_of_one(monkeypatch, taxel_block):
+@pytest.mark.parametrize(("taxel_block", "dtype"), [(None, np.float64), (7, np.float64), (7, np.float32)])
+def test_both_cores_give_the_spikes_and_channels_of_one(monkeypatch, taxel_block, dtype):
     """Kernels split over threads (columns, taxels) and taxel blocks run in parallel give bit for bit
-    the spikes and channels of one thread."""
+    the spikes and channels of one thread (in either dtype)."""
     from touchreal.preprocess import parallel
 
     params = default_params()
@@ -493,7 +493,7 @@ def test_both_cores_give_the_spikes_and_channels_of_one(monkeypatch, taxel_block
     def run(threads):
         monkeypatch.setattr(parallel, "thread_count", lambda: threads)
         monkeypatch.setattr(parallel, "WORK_SCALE", 0.0)
-        se = StreamEncoder(params, 20, taxel_block=taxel_block)
+        se = StreamEncoder(params, 20, taxel_block=taxel_block, dtype=dtype)
         se.set_active({c: range(20) for c in se.classes}, channels=range(20))
         outs = [se.process_channels(c) for c in chunks]
         events = SpikeEvents.concatenate([ev for _, ev in outs] + [se.finish()])
