@@ -108,7 +108,7 @@ class StreamEncoder:
 
     ``dtype`` np.float32 computes the preprocessing in single precision (PCHIP, the STFT gate in
     complex64, the channels; the PVDF notch cascade, the alpha-beta tracker and the encoder's
-    low-pass and membrane stay float64): 21 % (1024 taxels) to 40 % (4096) less CPU than float64,
+    low-pass and membrane stay float64): 20-40 % less CPU than float64 (1024-4096 taxels),
     the channels within 1e-5 of their range and the spikes within the bound of docs/benchmarks.md
     (Encoder). float64 is the reference.
 
