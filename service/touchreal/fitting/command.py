@@ -11,7 +11,9 @@ from ..settings import CLASSES, DEFAULT_WINDOW_MS
 
 if TYPE_CHECKING:
     from ..params import EncoderParams
-    from .fit import ExecutorFactory, FitConfig, FitResult
+    from .config import FitConfig
+    from .executor import ExecutorFactory
+    from .fit import FitResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,7 +92,7 @@ def _classes(text: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams
-    from .fit import FitConfig
+    from .config import FitConfig
 
     classes = _classes(args.classes)
     kw = {"classes": classes, "seed": args.seed, "progress": not args.quiet,
