@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import threading
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Protocol
@@ -83,8 +84,10 @@ def _init_worker(state: FitState | None) -> None:
 
 
 class LocalExecutor:
-    """Evaluates candidate batches in-process or split across ``workers`` forked processes (the
-    state is inherited, not copied; numba kernels are compiled before forking)."""
+    """Evaluates candidate batches in-process or on ``workers`` forked processes (the state is
+    inherited, not copied; numba kernels are compiled before forking). A batch is split across the
+    workers while fewer batches than workers are in flight; otherwise it is one task, so that its
+    per-trial set-up (input stage, LIF, spike sorting: about 0.1 ms a trial) is paid once."""
 
     def __init__(self, state: FitState, workers: int):
         _STATE["state"] = state
@@ -92,6 +95,8 @@ class LocalExecutor:
         self.state = state
         self.workers = workers
         self.pool: ProcessPoolExecutor | None = None
+        self._in_flight = 0
+        self._lock = threading.Lock()
         if workers > 1:
             methods = mp.get_all_start_methods()
             if "fork" in methods:
@@ -108,11 +113,18 @@ class LocalExecutor:
         xs = np.asarray(xs, np.float64)
         if self.pool is None or len(xs) < 2:
             return losses(self.state, cls, xs)
-        chunks = [c for c in np.array_split(xs, self.workers) if len(c)]
-        res = []
-        for part in self.pool.map(_local_losses, [cls] * len(chunks), chunks):
-            res += part
-        return res
+        with self._lock:
+            n_chunks = 1 if self._in_flight >= self.workers else self.workers
+            self._in_flight += 1
+        try:
+            chunks = [c for c in np.array_split(xs, n_chunks) if len(c)]
+            res = []
+            for part in self.pool.map(_local_losses, [cls] * len(chunks), chunks):
+                res += part
+            return res
+        finally:
+            with self._lock:
+                self._in_flight -= 1
 
     def close(self) -> None:
         if self.pool is not None:
