@@ -41,10 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
-    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; default 1)")
-    p.add_argument("--stall-generations", type=int, default=None, metavar="N",
-                   help="stop a CMA-ES run when its best loss improved by less than --stall-tol over N generations (0: never)")
-    p.add_argument("--stall-tol", type=float, default=None, help="loss improvement that counts as progress (see --stall-generations)")
+    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; side by side with the first run; default 0)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
@@ -103,7 +100,6 @@ def run(args: argparse.Namespace) -> int:
     if args.window_ms is not None:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
-                       ("stall_generations", "stall_generations"), ("stall_tol", "stall_tol"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:

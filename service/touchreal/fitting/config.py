@@ -32,10 +32,7 @@ class FitConfig:
     kernel_ms: float = 10.0  #: kernel tau of the objective's D_kernel (eqs. 2-3)
     popsize: int = 12
     max_generations: int = 250  #: generations of the first CMA-ES run
-    restarts: int = 1  #: IPOP restarts (population x2, generations /2 each)
-    #: a CMA-ES run stops when its best loss improved by less than ``stall_tol`` over this many generations (0: never)
-    stall_generations: int = 0
-    stall_tol: float = 1e-3  #: absolute loss improvement that counts as progress (see ``stall_generations``)
+    restarts: int = 0  #: IPOP restarts (population x2, generations /2 each), side by side with the first run
     workers: int | None = None  #: None = all cores
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
@@ -61,8 +58,6 @@ class FitConfig:
             raise ValueError("window_ms must be in [4, 512]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
-        if self.stall_generations < 0 or not np.isfinite(self.stall_tol) or self.stall_tol < 0:
-            raise ValueError("stall_generations and stall_tol must be >= 0")
         if self.kernel_ms <= 0:
             raise ValueError("kernel_ms must be > 0")
         if not np.isfinite(self.count_weight) or self.count_weight < 0:

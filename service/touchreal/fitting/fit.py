@@ -227,8 +227,7 @@ def fit_dataset(
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
-        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts,
-                      "stall_generations": cfg.stall_generations, "stall_tol": cfg.stall_tol},
+        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts},
         "fit_seconds": round(seconds, 1),
         "fitted_classes": list(fits),
         "loss": {
