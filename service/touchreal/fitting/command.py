@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
-    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; side by side with the first run; default 0)")
+    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts beside the first run (same start, own seed, population x2, generations /2; default 0)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
