@@ -215,3 +215,37 @@ def test_set_columns_keeps_continuing_columns_and_starts_new_ones_from_rest():
     assert got.train("PC", 2).max() < 0.5 + p.classes["PC"].delay_ms / 1000 + 1e-9  # PC on taxel 2 stopped at sample 2500
     with pytest.raises(ValueError, match="out of range"):
         enc.set_columns({"PC": [3]})
+
+
+def test_fused_kernel_equals_input_stage_then_lif_across_tiles_layouts_and_threads(monkeypatch):
+    """The encoder's fused kernel (input stage + LIF, taxel tiles, both cores) gives exactly the spikes
+    of the separate input current fed to :class:`LifPopulation`, for columns spread over several
+    tiles in any order, channels in a transposed memory layout, and ranges split over threads."""
+    from touchreal.preprocess import parallel
+
+    p = default_params()
+    classes = dict(p.classes)
+    classes["SA1"] = classes["SA1"].model_copy(update={"negative_lead_ms": 3.0, "lowpass_hz": 80.0})
+    cps = [classes[c] for c in CLASSES]
+    n_x = 37  # three tiles, the last one partial
+    taxels = np.random.default_rng(3).permutation(np.repeat(np.arange(n_x), 3))  # unsorted: tiles reloaded
+    cols = [cps[i % 3] for i in range(taxels.size)]
+    ch = _channels(t=2500, taxels=n_x, seed=4) * np.random.default_rng(5).uniform(0.3, 3.0, (1, n_x, 4))
+    transposed = np.ascontiguousarray(ch.transpose(0, 2, 1)).transpose(0, 2, 1)  # (T, X, 4) view of (T, 4, X)
+    ref_in = InputStage(cols, taxels)
+    tau = np.array([c.tau_samples for c in cols])
+    ih = np.array([c.ih for c in cols]) @ np.array([[1.0] * 190, [0.5] * 190])
+    ref_lif = LifPopulation(tau, ih)
+    want = [ref_lif.step(ref_in.process(ch[a:b])) for a, b in ((0, 900), (900, 2500))]
+    assert sum(k.size for k, _ in want) > 500
+    for threads, data in ((1, ch), (2, transposed)):
+        monkeypatch.setattr(parallel, "thread_count", lambda threads=threads: threads)
+        monkeypatch.setattr(parallel, "WORK_SCALE", 0.0)  # every call with more than one column splits
+        fused_in, fused_lif = InputStage(cols, taxels), LifPopulation(tau, ih)
+        for (a, b), (k, n) in zip(((0, 900), (900, 2500)), want):
+            got_k, got_n = fused_in.spikes(data[a:b], fused_lif)
+            np.testing.assert_array_equal(got_k, k)
+            np.testing.assert_array_equal(got_n, n)
+        np.testing.assert_array_equal(fused_lif.state.v, ref_lif.state.v)
+        np.testing.assert_array_equal(fused_in.zi, ref_in.zi)
+        np.testing.assert_array_equal(fused_in.ring, ref_in.ring)

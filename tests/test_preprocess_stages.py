@@ -250,3 +250,77 @@ def test_history_ring_keeps_the_newest_samples_by_slot():
     h.clear()
     h.push(20, x[:1])  # after clear any slot starts the history again
     assert h.first == 20
+
+
+def test_thread_count_follows_the_environment_and_split_run_covers_every_item(monkeypatch):
+    import threading
+
+    from touchreal.preprocess import parallel
+
+    try:
+        for text, want in (("1", 1), ("3", 3), ("0", 1)):
+            monkeypatch.setenv(parallel.THREADS_ENV, text)
+            parallel.default_thread_count.cache_clear()
+            assert parallel.thread_count() == want
+        monkeypatch.setenv(parallel.THREADS_ENV, "two")
+        parallel.default_thread_count.cache_clear()
+        with pytest.raises(ValueError, match="TOUCHREAL_THREADS"):
+            parallel.thread_count()
+        monkeypatch.delenv(parallel.THREADS_ENV)
+        parallel.default_thread_count.cache_clear()
+        assert 1 <= parallel.thread_count() <= parallel.MAX_THREADS
+        parallel.set_thread_count(3)
+        assert parallel.thread_count() == 3
+    finally:
+        parallel.set_thread_count(None)
+        parallel.default_thread_count.cache_clear()
+    monkeypatch.setattr(parallel, "thread_count", lambda: 2)
+    seen, threads = [], set()
+
+    def kernel(a, b):
+        threads.add(threading.get_ident())
+        inner = []
+        parallel.split_run(lambda c, d: inner.append((c, d)), 10, 10**9)  # nested: serial, no deadlock
+        seen.append((a, b, inner))
+
+    parallel.split_run(kernel, 9, 10**9)
+    assert sorted((a, b) for a, b, _ in seen) == [(0, 4), (4, 9)] and len(threads) == 2
+    assert all(inner == [(0, 10)] for _, _, inner in seen)
+    parallel.split_run(kernel, 9, 10)  # too little work: one range on the calling thread
+    assert seen[-1][:2] == (0, 9)
+
+    def failing(a, b):
+        if a > 0:
+            raise RuntimeError("range failed")
+
+    with pytest.raises(RuntimeError, match="range failed"):
+        parallel.split_run(failing, 4, 10**9)
+
+
+def test_a_forked_child_gets_a_pool_of_its_own(monkeypatch):
+    """After a fork the parent's pool threads are gone; the child's split calls still run (no hang)."""
+    import multiprocessing
+
+    from touchreal.preprocess import parallel
+
+    monkeypatch.setattr(parallel, "thread_count", lambda: 2)
+    seen = []
+    parallel.split_run(lambda a, b: seen.append((a, b)), 4, 10**9)  # the parent's pool exists now
+    assert len(seen) == 2
+
+    def child(conn):
+        got = []
+        parallel.split_run(lambda a, b: got.append((a, b)), 4, 10**9)
+        conn.send(sorted(got))
+
+    ctx = multiprocessing.get_context("fork")
+    parent, end = ctx.Pipe()
+    proc = ctx.Process(target=child, args=(end,))
+    proc.start()
+    try:
+        assert parent.poll(30), "the forked child hung in split_run"
+        assert parent.recv() == [(0, 2), (2, 4)]
+    finally:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()

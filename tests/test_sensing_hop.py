@@ -40,3 +40,38 @@ def test_a_consumer_that_fell_behind_gets_the_due_hops_in_one_chunk():
     assert src.clock().sensor_us == round(late.pvdf_t[-1] * 1e6)
     assert src.next_chunk().pvdf_t.size < late.pvdf_t.size  # catching up
     src.close()
+
+
+def test_the_sim_in_a_process_of_its_own_gives_the_same_hops_paced_the_same_way():
+    here = SimLiveSource(3, 0.005, seed=2)
+    there = SimLiveSource(3, 0.005, seed=2, own_process=True)
+    for _ in range(120):  # unpaced: more than the process simulates ahead
+        assert there.next_newest_s() == here.next_newest_s()
+        a, b = here.read_hop(), there.read_hop()
+        for f in ("st_t", "st", "pvdf_t", "pvdf"):
+            assert np.array_equal(getattr(a, f), getattr(b, f))
+    t0 = time.monotonic()
+    chunks = [there.next_chunk() for _ in range(20)]  # (a late call gets the due hops in one chunk)
+    paced = np.concatenate([c.pvdf for c in chunks])
+    hops = []
+    while sum(h.shape[0] for h in hops) < paced.shape[0]:
+        hops.append(here.read_hop().pvdf)
+    assert np.array_equal(paced, np.concatenate(hops))
+    # released at the instant of the newest sample, as in this thread
+    assert time.monotonic() - t0 >= chunks[-1].pvdf_t[-1] - chunks[0].pvdf_t[-1]
+    assert there.clock().sensor_us == round(chunks[-1].pvdf_t[-1] * 1e6)
+    proc = there.hops._proc
+    there.close()
+    assert there.next_chunk() is None
+    assert not proc.is_alive() and proc.exitcode is not None
+
+
+def test_a_sim_process_that_dies_fails_the_source_with_a_reason():
+    src = SimLiveSource(1, 0.005, seed=1, own_process=True)
+    assert src.next_chunk() is not None
+    src.hops._proc.kill()
+    deadline = time.monotonic() + 10.0
+    with pytest.raises(RuntimeError, match="simulated e-skin's process ended"):
+        while time.monotonic() < deadline:  # the hops already simulated are still handed over
+            src.next_chunk()
+    src.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 
 import httpx
 import schemathesis
@@ -126,3 +127,16 @@ def test_openapi_fuzz_finds_no_server_error(tmp_path):
 
             check()
         assert svc.runtime is not None and svc.runtime.state != "failed"
+
+
+def test_the_simulated_skins_process_lives_as_long_as_its_source(tmp_path):
+    with running_server(tmp_path) as (addr, svc):
+        first = svc.runtime.source.hops._proc
+        assert first.is_alive() and first.pid != os.getpid()
+        with httpx.Client(base_url=f"http://{addr}") as http:
+            assert http.patch("/v1/config", json={"taxels": 4}).json()["restarted"] == ["source"]
+        second = svc.runtime.source.hops._proc
+        assert not first.is_alive() and first.exitcode is not None  # the reopened source ended the old one
+        assert second.is_alive() and svc.runtime.source.n_taxels == 4
+    second.join(10.0)
+    assert not second.is_alive()  # and the service's stop ends its own

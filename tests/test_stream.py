@@ -466,3 +466,41 @@ def test_two_phases_send_the_fast_classes_before_a_slow_frame_and_give_the_same_
     apart.append(two.finish())
     assert slow_hops >= 30  # about one PC frame per 32 ms over 1.2 s
     _assert_trains_equal(_trains(SpikeEvents.concatenate(together)), _trains(SpikeEvents.concatenate(apart)))
+
+
+def _many_taxel_chunks(n_taxels: int, update_s: float = 0.032):
+    """Synthetic presses and vibration bursts of different depths and frequencies on every taxel."""
+    trials = [synthetic_trial(seed=x, freq_hz=80.0 + 13 * x, depth_n=0.5 + 0.2 * x) for x in range(n_taxels)]
+    stack = lambda f: np.stack([getattr(tr, f).astype(np.float64) for tr in trials], axis=1)
+    st, pv, st_t, pv_t = stack("st"), stack("pvdf"), trials[0].st_t, trials[0].pvdf_t
+    edges = np.arange(0.0, trials[0].duration_s + update_s, update_s)
+    out = []
+    for a, b in zip(edges, edges[1:]):
+        i, j = (st_t >= a) & (st_t < b), (pv_t >= a) & (pv_t < b)
+        out.append(RawChunk(st_t[i], st[i], pv_t[j], pv[j]))
+    return out
+
+
+@pytest.mark.parametrize("taxel_block", [None, 7])
+def test_both_cores_give_the_spikes_and_channels_of_one(monkeypatch, taxel_block):
+    """Kernels split over threads (columns, taxels) and taxel blocks run in parallel give bit for bit
+    the spikes and channels of one thread."""
+    from touchreal.preprocess import parallel
+
+    params = default_params()
+    chunks = _many_taxel_chunks(20)
+
+    def run(threads):
+        monkeypatch.setattr(parallel, "thread_count", lambda: threads)
+        monkeypatch.setattr(parallel, "WORK_SCALE", 0.0)
+        se = StreamEncoder(params, 20, taxel_block=taxel_block)
+        se.set_active({c: range(20) for c in se.classes}, channels=range(20))
+        outs = [se.process_channels(c) for c in chunks]
+        events = SpikeEvents.concatenate([ev for _, ev in outs] + [se.finish()])
+        return events, np.concatenate([ch.data for ch, _ in outs if ch.n_samples])
+
+    (ev1, ch1), (ev2, ch2) = run(1), run(2)
+    assert len(ev1) > 200
+    for f in ("t_s", "taxel", "cls"):
+        np.testing.assert_array_equal(getattr(ev2, f), getattr(ev1, f))
+    np.testing.assert_array_equal(ch2, ch1)

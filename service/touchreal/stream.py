@@ -15,6 +15,7 @@ import numpy as np
 
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
+from .preprocess.parallel import split_run
 from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .preprocess.stft_gate import frame_length
 from .recording import Trial
@@ -22,6 +23,7 @@ from .sensing.raw import RawChunk
 from .sensing.replay import ReplaySource
 from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
+_BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per block range from which taxel blocks run on both cores (~0.3 ms of work)
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
 
 
@@ -141,6 +143,7 @@ class StreamEncoder:
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
+        self._work = 0  #: size of the last chunk for split_run (see _feed)
         self.slow: frozenset[Source] = frozenset(
             s for s in windows if update_s is not None and frame_length(s, PVDF_FS_HZ) / 4 / PVDF_FS_HZ >= update_s - 1e-9)
 
@@ -220,13 +223,34 @@ class StreamEncoder:
 
     def _feed(self, chunk: RawChunk) -> None:
         new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
-        for block in self.blocks:
-            block.pre.consume(*new)
+        # size of this call for split_run over blocks (taxels x new PVDF samples): blocks run on both
+        # cores from ~200 taxels per 5 ms hop on (each block's kernels then run serially)
+        self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
+        blocks = self.blocks
+        if len(blocks) == 1:
+            blocks[0].pre.consume(*new)
+            return
+
+        def consume(a: int, b: int) -> None:
+            for block in blocks[a:b]:
+                block.pre.consume(*new)
+
+        split_run(consume, len(blocks), self._work, _BLOCK_MIN_WORK)
 
     def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
+        slow, phase = (frozenset(), None) if final else (self.slow, phase)
+        if len(self.blocks) == 1:
+            results = [self.blocks[0].encode(slow, phase)]
+        else:
+            results = [(None, [])] * len(self.blocks)
+
+            def encode(a: int, b: int) -> None:
+                for i in range(a, b):
+                    results[i] = self.blocks[i].encode(slow, phase)
+
+            split_run(encode, len(self.blocks), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
-        for block in self.blocks:
-            ch, evs = block.encode(frozenset() if final else self.slow, None if final else phase)
+        for block, (ch, evs) in zip(self.blocks, results):
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs

@@ -1,15 +1,16 @@
 """Encoder benchmark: compute time per update, per-class latency, and run time against error per window.
 
 Part 1 drives the full online chain (preprocessing + LIF, all three classes) with the simulated
-e-skin's live scene for 1, 16 and 256 taxels in 32 ms updates and reports the compute time per
-update (mean, p95, p99, max) and the real-time factor (update interval / mean compute time), in
-float64 and in float32 preprocessing.
+e-skin's live scene for 1, 16 and 256 taxels (``--taxels``, up to 4096) in 32 ms updates and reports
+the compute time per update (mean, p95, p99, max), the process CPU time per update (all threads)
+and the real-time factor (update interval / mean compute time), in float64 and in float32
+preprocessing, and float64 on one thread with the threads' speed-up.
 
 Part 1b compares the compute per second of sensor time of the service's hop (5 ms chunks: the
 SingleTact-only and short-window sources every hop, the 128 ms window on the 32 ms update) with
-32 ms updates (every source every update), at 1 and 256 taxels, in the service's blocks of 64
-taxels, as CPU time of the thread (the best of three runs of each, interleaved): the cost of the
-short hop is per-call overhead.
+32 ms updates (every source every update), at 1 taxel and the ``--taxels`` counts up to 1024, in the
+service's blocks of 64 taxels and in one block, as CPU time of the process, all threads (the best of three runs of each, interleaved): the
+cost of the short hop is per-call overhead.
 
 Part 1c is the service's own budget without the network: the simulated e-skin chunked as ``touchreal
 serve`` chunks it (hops ending right after the SingleTact samples), and per class the spike's
@@ -42,6 +43,7 @@ import numpy as np
 
 from ..analysis.spiketrains import vr_distance
 from ..params import EncoderParams, default_params
+from ..preprocess import parallel
 from ..recording import Dataset
 from ..sensing.raw import RawChunk
 from ..sensing.replay import ReplaySource
@@ -49,6 +51,7 @@ from ..settings import CLASSES, shared_dir
 from ..stream import StreamEncoder, encode_chunks
 
 WINDOWS_MS = (16, 32, 64, 128, 256, 512)
+HOP_MAX_TAXELS = 1024  #: largest ``--taxels`` count the hop, served-latency and demand parts run (time)
 #: per-class window sets (ms) of the latency and sweep parts, besides the parameter file's own
 CLASS_WINDOWS_MS: tuple[dict[str, float], ...] = (
     {"SA1": 16.0, "RA": 16.0, "PC": 128.0},
@@ -88,7 +91,8 @@ def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0)
 def _time_updates(
     params: EncoderParams, chunks: list[RawChunk], n_taxels: int, dtype: type, active: dict[str, list[int]] | None = None,
     taxel_block: int | None = None,
-) -> np.ndarray:
+) -> tuple[np.ndarray, float]:
+    """Wall time of every update after warm-up (s) and the process CPU time per update (s, all threads)."""
     se = StreamEncoder(params, n_taxels, dtype=dtype, taxel_block=taxel_block)
     if active is not None:
         se.set_active(active)
@@ -96,11 +100,12 @@ def _time_updates(
     for c in chunks[:warm]:  # until the first output: JIT dispatch and caches outside the measurement
         se.process(c)
     times = np.empty(len(chunks) - warm)
+    cpu = time.process_time()
     for i, c in enumerate(chunks[warm:]):
         t = time.perf_counter()
         se.process(c)
         times[i] = time.perf_counter() - t
-    return times
+    return times, (time.process_time() - cpu) / max(times.size, 1)
 
 
 def warmup_updates(se: StreamEncoder, params: EncoderParams) -> int:
@@ -109,46 +114,63 @@ def warmup_updates(se: StreamEncoder, params: EncoderParams) -> int:
 
 
 def timing(params: EncoderParams, taxels: list[int], seconds: float) -> None:
+    """Compute per update with the default threads (float64 and float32 preprocessing) and, where
+    they are more than one, float64 on one thread: wall time per update, process CPU time per update
+    (all threads), and the speed-up of the threads (one thread's wall mean / theirs)."""
     update_s = params.preprocess.update_ms / 1000.0
-    print(f"== compute time per {params.preprocess.update_ms:g} ms update (window {params.preprocess.window_ms:g} ms, 3 classes)")
-    print(f"{'taxels':>6} {'dtype':>7} {'mean ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'max ms':>8} {'real-time x':>11}")
+    threads = parallel.thread_count()
+    print(f"== compute time per {params.preprocess.update_ms:g} ms update ({windows_label(params)}, 3 classes, one taxel block; "
+          f"wall time, and process CPU time over all threads; {threads} threads by default, TOUCHREAL_THREADS)")
+    print(f"{'taxels':>6} {'dtype':>7} {'threads':>7} {'mean ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'max ms':>8} {'cpu ms':>7} "
+          f"{'real-time x':>11} {'speed-up':>8}")
     for n in taxels:
         chunks = _scene_chunks(n, seconds, update_s)
-        for dtype in (np.float64, np.float32):
-            ms = _time_updates(params, chunks, n, dtype) * 1000
+        runs = [(np.float64, threads), (np.float32, threads)] + ([(np.float64, 1)] if threads > 1 else [])
+        means = {}
+        for dtype, k in runs:
+            parallel.set_thread_count(k)
+            try:
+                times, cpu = _time_updates(params, chunks, n, dtype)
+            finally:
+                parallel.set_thread_count(None)
+            ms = times * 1000
+            means[(np.dtype(dtype).name, k)] = ms.mean()
+            gain = means.get(("float64", 1), np.nan) / means[("float64", threads)] if k == 1 else np.nan
             print(
-                f"{n:6d} {np.dtype(dtype).name:>7} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f} "
-                f"{np.percentile(ms, 99):8.3f} {ms.max():8.3f} {update_s * 1000 / ms.mean():11.1f}"
+                f"{n:6d} {np.dtype(dtype).name:>7} {k:7d} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f} "
+                f"{np.percentile(ms, 99):8.3f} {ms.max():8.3f} {cpu * 1000:7.3f} {update_s * 1000 / ms.mean():11.2f} "
+                + (f"{gain:8.2f}" if k == 1 else f"{'':>8}")
             )
 
 
 def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: tuple[float, ...] = (5.0, 10.0)) -> None:
-    """Compute per second of sensor time on the service's hop against the ``update_ms`` update."""
+    """Compute per second of sensor time on the service's hop against the ``update_ms`` update, in
+    the service's taxel blocks of 64 and (above 64 taxels) in one block (``--taxel-block 0``)."""
     update_s = params.preprocess.update_ms / 1000.0
     print(f"\n== compute per second of sensor time: hop against the {params.preprocess.update_ms:g} ms update "
-          f"({windows_label(params)}; taxel blocks of 64; thread CPU time, best of 3)")
-    print(f"{'taxels':>6} {'chunks':>14} {'ms per s':>9} {'x update':>9} {'us per call':>11}")
+          f"({windows_label(params)}; process CPU time, all threads, best of 3)")
+    print(f"{'taxels':>6} {'block':>5} {'chunks':>14} {'ms per s':>9} {'x update':>9} {'us per call':>11}")
     for n in taxels:
-        block = 64 if n > 64 else None
         runs = {None: _scene_chunks(n, seconds, update_s)} | {h: _scene_chunks(n, seconds, h / 1000.0) for h in hops_ms}
-        best: dict[float | None, float] = {}
-        for _ in range(3):  # interleaved, so a shared machine's load hits every variant alike
-            for h, chunks in runs.items():
+        for block in ([64, None] if n > 64 else [None]):
+            best: dict[float | None, float] = {}
+            for _ in range(3):  # interleaved, so a shared machine's load hits every variant alike
+                for h, chunks in runs.items():
+                    step = update_s if h is None else h / 1000.0
+                    se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
+                    se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
+                    warm = min(int(np.ceil(0.3 / step)), len(chunks) // 2)  # past the stream start (hum estimate, first frames)
+                    for c in chunks[:warm]:
+                        se.process(c)
+                    t = time.process_time()  # CPU time of the process (every thread): a shared machine's load does not count
+                    for c in chunks[warm:]:
+                        se.process(c)
+                    per_s = (time.process_time() - t) / ((len(chunks) - warm) * step)
+                    best[h] = min(best.get(h, np.inf), per_s)
+            for h, per_s in best.items():
                 step = update_s if h is None else h / 1000.0
-                se = StreamEncoder(params, n, taxel_block=block, update_s=None if h is None else update_s)
-                se.set_active({c: range(n) for c in se.classes})  # spikes of every column, no channels
-                warm = min(int(np.ceil(0.3 / step)), len(chunks) // 2)  # past the stream start (hum estimate, first frames)
-                for c in chunks[:warm]:
-                    se.process(c)
-                t = time.thread_time()  # CPU time of this thread: a shared machine's load does not count
-                for c in chunks[warm:]:
-                    se.process(c)
-                per_s = (time.thread_time() - t) / ((len(chunks) - warm) * step)
-                best[h] = min(best.get(h, np.inf), per_s)
-        for h, per_s in best.items():
-            step = update_s if h is None else h / 1000.0
-            label = f"{params.preprocess.update_ms:g} ms update" if h is None else f"{h:g} ms hop"
-            print(f"{n:6d} {label:>14} {per_s * 1000:9.2f} {per_s / best[None]:9.2f} {per_s * step * 1e6:11.1f}")
+                label = f"{params.preprocess.update_ms:g} ms update" if h is None else f"{h:g} ms hop"
+                print(f"{n:6d} {block or n:5d} {label:>14} {per_s * 1000:9.2f} {per_s / best[None]:9.2f} {per_s * step * 1e6:11.1f}")
 
 
 def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop_ms: float = 5.0) -> None:
@@ -254,7 +276,7 @@ def demand(params: EncoderParams, n_taxels: int, seconds: float) -> None:
     print(f"{'active columns':<28} {'taxel block':>11} {'mean ms':>8} {'p95 ms':>8}")
     for name, active in cases.items():
         for block in (None, 16):
-            ms = _time_updates(params, chunks, n_taxels, np.float64, active, block) * 1000
+            ms = _time_updates(params, chunks, n_taxels, np.float64, active, block)[0] * 1000
             print(f"{name:<28} {block or n_taxels:>11} {ms.mean():8.3f} {np.percentile(ms, 95):8.3f}")
 
 
@@ -347,9 +369,10 @@ def soak(params: EncoderParams, hours: float) -> None:
 def run(args: argparse.Namespace) -> int:
     params = EncoderParams.load(args.params) if args.params else default_params()
     timing(params, args.taxels, args.seconds)
-    hop_cost(params, [1, max(args.taxels)], min(args.seconds, 10.0))
-    served_latency(params, [1, max(args.taxels)], min(args.seconds, 10.0))
-    demand(params, max(args.taxels), args.seconds)
+    hop_taxels = sorted({1} | {n for n in args.taxels if n <= HOP_MAX_TAXELS})  # the hop parts run in blocks of 64
+    hop_cost(params, hop_taxels, min(args.seconds, 10.0))
+    served_latency(params, [1, max(hop_taxels)], min(args.seconds, 10.0))
+    demand(params, max(hop_taxels), args.seconds)
     latency(params, args.latency_seconds)
     if not args.skip_sweep:
         sweep(params, args.trials)

@@ -31,10 +31,12 @@ import asyncio
 import contextlib
 import json
 import multiprocessing as mp
+import os
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +52,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subscribers", default=None, help="subscriber counts for the fan-out part (default 1,10,100; "
                    "with --nats the --nats-subscribers counts, so both paths are measured side by side)")
     p.add_argument("--soak-seconds", type=float, default=60.0, help="length of the largest fan-out run (s)")
-    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin (parts 2 and 3)")
+    p.add_argument("--taxels", type=int, default=1, help="taxels of the simulated e-skin (part 3, and 2b with --nats)")
+    p.add_argument("--fanout-taxels", default="1,256", help="taxel counts for the fan-out of spikes (part 2)")
+    p.add_argument("--all-streams-subscribers", default="10,25,50,100",
+                   help="subscriber counts for part 2d: every stream (spikes, channels, decoded) at the largest "
+                   "--fanout-taxels; the largest count served within 10 ms p99 is reported")
     p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
+    p.add_argument("--settle-s", type=float, default=1.0, help="part 1: spikes caused this long after subscribing "
+                   "or later are the steady state; those caused before (the start rebuilds every subscribed branch "
+                   "from the raw history, a burst of compute with many taxels) are reported apart (max)")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
     p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
@@ -81,15 +90,17 @@ async def _sync_clock(ws, clock, exchanges: int = 5) -> None:
     clock.set_offset(best[0], best[1] / 2)
 
 
-async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False):
+async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False, settle_s: float = 0.0):
     """Rows (update, emit_us, sent_us, recv_us, n_events, seq, dropped) per spikes frame; with ``spikes``
-    also per class the latency of every spike as received (us, clock model) and the clock offset used."""
+    also per class the latency of every spike as received (us, clock model) whose cause was acquired
+    ``settle_s`` or more after subscribing, the clock offset used, and per class the latencies of the
+    spikes caused before."""
     import websockets
     from touchreal_client import protocol as P
     from touchreal_client.clock import ClockMap
     from touchreal_client.stats import spike_latency_us
 
-    rows, lat = [], {c: [] for c in CLASSES}
+    rows, lat, early = [], {c: [] for c in CLASSES}, {c: [] for c in CLASSES}
     clock = ClockMap()
     async with websockets.connect(f"ws://{addr}/v1/stream", compression=None, max_size=None) as ws:
         hello = json.loads(await ws.recv())
@@ -97,6 +108,7 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
         if spikes:
             await _sync_clock(ws, clock)
         await ws.send(json.dumps({"type": "subscribe", **sub}))
+        settled_us = time.time_ns() // 1000 + int(settle_s * 1e6)  # causes acquired from then on: steady state
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             try:
@@ -111,8 +123,10 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
                 if spikes and n:
                     f = P.decode_frame(msg)
                     v = spike_latency_us(f, recv, clock, hello["delay_us"])
+                    steady = recv - v >= settled_us
                     for i, c in enumerate(CLASSES):
-                        lat[c].append(v[f.cls == i])
+                        lat[c].append(v[(f.cls == i) & steady])
+                        early[c].append(v[(f.cls == i) & ~steady])
             elif spikes:
                 m = json.loads(msg)
                 if m["type"] == "clock":
@@ -122,28 +136,109 @@ async def _one_client(addr: str, seconds: float, sub: dict, spikes: bool = False
     rows = np.array(rows, dtype=np.int64).reshape(-1, 7)
     if not spikes:
         return rows
-    return rows, {c: np.concatenate(v) if v else np.zeros(0) for c, v in lat.items()}, clock.offset_us
+    joined = [{c: np.concatenate(v) if v else np.zeros(0) for c, v in d.items()} for d in (lat, early)]
+    return rows, joined[0], clock.offset_us, joined[1]
 
 
-def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False) -> None:
+class _LightClient(asyncio.Protocol):
+    """A fan-out subscriber with as little client-side work per frame as the measurement allows, so
+    that on a small machine the clients leave the CPU to the server: plain asyncio (no uvloop), the
+    WebSocket protocol of ``websockets``' sans-I/O ``ClientProtocol`` straight on a transport (no task
+    or queue per message), and per binary frame only its header read. Rows as :func:`_one_client`'s,
+    with the frame's size in bytes appended; the receipt time is that of the read that completed it."""
+
+    def __init__(self, addr: str, sub: dict, done: asyncio.Future):
+        from websockets.client import ClientProtocol
+        from websockets.uri import parse_uri
+
+        self.ws = ClientProtocol(parse_uri(f"ws://{addr}/v1/stream"), max_size=None)
+        self.sub, self.done = sub, done
+        self.rows: list[tuple[int, ...]] = []
+        self.transport: asyncio.Transport | None = None
+        self.subscribed = False
+
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        self.transport = transport
+        self.ws.send_request(self.ws.connect())
+        self._flush()
+
+    def _flush(self) -> None:
+        out = self.ws.data_to_send()
+        if out and self.transport is not None:
+            self.transport.write(b"".join(out))
+
+    def data_received(self, data: bytes) -> None:
+        from touchreal_client import protocol as P
+        from websockets.frames import Opcode
+
+        recv = time.time_ns() // 1000
+        self.ws.receive_data(data)
+        for ev in self.ws.events_received():
+            if getattr(ev, "opcode", None) is Opcode.BINARY:
+                h = P.decode_header(ev.data)
+                n = P.SPIKES_HEAD.unpack_from(ev.data, P.HEADER_LEN)[0] if h.kind == P.KIND_SPIKES else 0
+                self.rows.append((h.update, h.emit_us, h.sent_us, recv, n, h.seq, h.dropped, len(ev.data)))
+            elif getattr(ev, "opcode", None) is Opcode.TEXT and not self.subscribed:  # the hello
+                self.subscribed = True
+                self.ws.send_text(json.dumps({"type": "subscribe", **self.sub}).encode())
+        self._flush()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.done.done():
+            self.done.set_result(None)
+
+
+async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[np.ndarray]:
+    """``n`` :class:`_LightClient` subscribers for ``seconds``; their rows."""
+    loop = asyncio.get_running_loop()
+    host, port = addr.rsplit(":", 1)
+    clients = []
+    for _ in range(n):
+        done = loop.create_future()
+        _, c = await loop.create_connection(lambda: _LightClient(addr, sub, done), host, int(port))
+        clients.append(c)
+    await asyncio.sleep(seconds)
+    rows = [np.array(c.rows, dtype=np.int64).reshape(-1, 8) for c in clients]
+    for c in clients:  # a closing handshake, so the server stops sending before the socket goes
+        c.ws.send_close(1000)
+        c._flush()
+    await asyncio.wait([c.done for c in clients], timeout=10.0)
+    for c in clients:
+        c.transport.abort()
+    return rows
+
+
+def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False,
+                    settle_s: float = 0.0) -> None:
+    """Runs ``n`` clients; puts their results and this process's CPU time (s) per second of the run."""
     async def main():
-        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes) for _ in range(n)))
+        if not spikes:
+            return await _light_clients(addr, n, seconds, sub)
+        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes, settle_s) for _ in range(n)))
 
-    out.put(asyncio.run(main()))
+    cpu0, t0 = time.process_time(), time.monotonic()
+    results = asyncio.run(main())
+    out.put((results, (time.process_time() - cpu0) / (time.monotonic() - t0)))
 
 
 def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None,
-                 spikes: bool = False) -> list:
-    """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``."""
+                 spikes: bool = False, cpu: list[float] | None = None, settle_s: float = 0.0) -> list:
+    """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``.
+    ``cpu`` (if given) receives each process's CPU time per second (s/s)."""
     addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     counts = [len(part) for part in np.array_split(np.arange(n), max(min(processes, n), min(len(addrs), n)))]
-    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q, spikes))
+    procs = [ctx.Process(target=_client_process, args=(addrs[i % len(addrs)], k, seconds, sub or {}, q, spikes, settle_s))
              for i, k in enumerate(counts)]
     for p in procs:
         p.start()
-    results = [arr for _ in procs for arr in q.get(timeout=seconds + 120)]
+    results = []
+    for _ in procs:
+        rows, cpu_s = q.get(timeout=seconds + 120)
+        results += rows
+        if cpu is not None:
+            cpu.append(cpu_s)
     for p in procs:
         p.join(30)
     return results
@@ -170,16 +265,22 @@ def run(args: argparse.Namespace) -> int:
         with _service(args, n) as (svc, log):
             addr = log["addr"]
             _part1(addr, args, svc, log, n)
-    with _service(args, args.taxels) as (svc, log), contextlib.ExitStack() as stack:
-        addr, nats_url = log["addr"], log.get("nats")
-        direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
-        _part2([addr], args, direct_counts, f"2. Fan-out, direct (receipt minus emission), all classes and "
-               f"{args.taxels} taxel(s)")
-        if nats_url:
-            gateways = [stack.enter_context(_gateway_process(nats_url)) for _ in range(2)]
+    direct_counts = args.subscribers or (args.nats_subscribers if args.nats else "1,10,100")
+    fan_taxels = [int(x) for x in args.fanout_taxels.split(",") if x]
+    for n in fan_taxels:
+        with _service(args, n) as (_, log):
+            _part2([log["addr"]], args, direct_counts, f"2. Fan-out of spikes, direct (receipt minus emission), all "
+                   f"classes and {n} taxel(s)", cpu=time.process_time)
+    with _service(args, fan_taxels[-1]) as (_, log):
+        _part2([log["addr"]], args, args.all_streams_subscribers, f"2d. Every stream (spikes, channels, decoded), "
+               f"{fan_taxels[-1]} taxel(s) (receipt minus emission)", {"streams": ["spikes", "channels", "decoded"]},
+               cpu=time.process_time, within_ms=10.0)
+    if args.nats:
+        with _service(args, args.taxels) as (_, log), contextlib.ExitStack() as stack:
+            gateways = [stack.enter_context(_gateway_process(log["nats"])) for _ in range(2)]
             _part2(gateways, args, args.nats_subscribers, "2b. Fan-out through NATS and 2 gateways (receipt minus "
                    "the publisher's emission), all classes and taxels")
-            _decoded([("direct", addr), ("NATS + gateway", gateways[0])], args)
+            _decoded([("direct", log["addr"]), ("NATS + gateway", gateways[0])], args)
     _part3(params, args.taxels)
     return 0
 
@@ -193,11 +294,14 @@ def _run_remote(args: argparse.Namespace) -> int:
     print(f"TouchReal service benchmark against {args.url} (session {status.get('session')}, source "
           f"{status.get('source', {}).get('spec')}); server-side figures are not available from here")
     print(f"\n1. Latency of each spike as a client holds it (clock model), 1 subscriber, {args.seconds:g} s; ms p50 / p95 / max")
-    ((_, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
-    print(f"   client clock offset {offset:+.0f} us")
+    ((_, lat, offset, early),) = _run_clients(addr, 1, args.seconds, 1, spikes=True, settle_s=args.settle_s)
+    print(f"   client clock offset {offset:+.0f} us; spikes caused from {args.settle_s:g} s after subscribing "
+          "(caused before: max)")
     for c in CLASSES:
-        print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes")
+        print(f"   {c:>4}   {_stats_ms(lat[c] / 1000):>28}   {lat[c].size:6d} spikes   ({_max_ms(early[c])})")
     _part2([addr], args, args.subscribers or "1,10,100", "2. Fan-out (receipt minus emission), what the service streams")
+    _part2([addr], args, args.all_streams_subscribers, "2d. Every stream (spikes, channels, decoded; receipt minus "
+           "emission)", {"streams": ["spikes", "channels", "decoded"]}, within_ms=10.0)
     return 0
 
 
@@ -236,20 +340,26 @@ def _service(args, n_taxels: int):
 
 def _part1(addr: str, args, svc, log: dict, n_taxels: int) -> None:
     log["updates"].clear()
-    ((rows, lat, offset),) = _run_clients(addr, 1, args.seconds, 1, spikes=True)
-    ups = log["updates"][3:]
+    ((rows, lat, offset, early),) = _run_clients(addr, 1, args.seconds, 1, spikes=True, settle_s=args.settle_s)
+    ups = [u for u in log["updates"] if u[2] >= log["updates"][0][2] + args.settle_s * 1e6]
     ms = np.array([u[1] for u in ups]) * 1000
     in_hand = np.array([(acq - clock.wall_us) / 1000 for _, _, acq, clock in ups if clock is not None])
     stated = svc.latency_us()
-    print(f"\n   {n_taxels} taxel(s): compute per update mean {ms.mean():.2f}, p95 {np.percentile(ms, 95):.2f} ms; "
-          f"client clock offset {offset:+.0f} us; chunk in hand after its stated acquisition: min "
-          f"{in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")
-    print("   class  look-ahead   -> leaves the encoder (server)    -> held by the client           spikes")
+    print(f"\n   {n_taxels} taxel(s), caused from {args.settle_s:g} s after subscribing: compute per update mean {ms.mean():.2f}, "
+          f"p95 {np.percentile(ms, 95):.2f} ms; client clock offset {offset:+.0f} us; chunk in hand after its stated "
+          f"acquisition: min {in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")
+    print("   class  look-ahead   -> leaves the encoder (server)    -> held by the client           spikes   "
+          "(before: max)")
     for c in CLASSES:
         server = [u[0][c] * 1000 for u in ups if c in u[0]]
         srv = np.concatenate(server) if server else np.zeros(0)
         got = lat[c] / 1000
-        print(f"   {c:>4}   {stated.get(c, 0) / 1000:7.1f}   {_stats_ms(srv):>28}   {_stats_ms(got):>28}   {got.size:6d}")
+        print(f"   {c:>4}   {stated.get(c, 0) / 1000:7.1f}   {_stats_ms(srv):>28}   {_stats_ms(got):>28}   {got.size:6d}   "
+              f"({_max_ms(early[c])})")
+
+
+def _max_ms(lat_us: np.ndarray) -> str:
+    return f"{lat_us.max() / 1000:.1f} ms" if lat_us.size else "none"
 
 
 @contextlib.contextmanager
@@ -280,20 +390,38 @@ def _gateway_process(nats_url: str):
         proc.wait(15)
 
 
-def _part2(addrs: list[str], args, subscribers: str, title: str) -> None:
+def _part2(addrs: list[str], args, subscribers: str, title: str, sub: dict | None = None,
+           cpu: Callable[[], float] | None = None, within_ms: float | None = None) -> None:
+    """One row per subscriber count: frames and bytes per second, receipt minus emission, drops; with
+    ``cpu`` (the server's process time, when it runs in this process) its CPU per second and per frame
+    sent; with ``within_ms`` the largest count whose p99 stayed within it."""
     counts = [int(x) for x in subscribers.split(",") if x]
     print(f"\n{title}")
-    print("   subscribers  seconds  events/s/client  frames/s/client  p50 ms  p99 ms  max ms  dropped")
+    print("   subscribers  seconds  frames/s/client  kB/s/client  MB/s total  p50 ms  p99 ms  max ms  server CPU  "
+          "clients' CPU  dropped")
+    served = None
     for n in counts:
         seconds = args.soak_seconds if n == counts[-1] else args.seconds
-        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)))
+        cpu0 = cpu() if cpu else 0.0
+        t0 = time.monotonic()
+        client_cpu: list[float] = []
+        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub, cpu=client_cpu)
+        cpu_s = (cpu() - cpu0) / (time.monotonic() - t0) if cpu else float("nan")
         fan = np.concatenate([(r[:, 3] - r[:, 1]) / 1000 for r in res if r.size])
-        ev = np.mean([r[:, 4].sum() / seconds for r in res])
-        fr = np.mean([r.shape[0] / seconds for r in res])
+        frames = sum(r.shape[0] for r in res)
+        per_client = np.mean([r[:, 7].sum() / seconds for r in res]) / 1e3
         dropped = sum(int(r[-1, 6]) for r in res if r.size)
         gaps = sum(int(np.sum(np.diff(r[:, 5]) != 1)) for r in res if r.shape[0] > 1)
-        print(f"   {n:11d}  {seconds:7.0f}  {ev:15.1f}  {fr:15.1f}  {np.percentile(fan, 50):6.2f}  "
-              f"{np.percentile(fan, 99):6.2f}  {fan.max():6.1f}  {dropped} (seq gaps {gaps})")
+        p99 = np.percentile(fan, 99)
+        load = f"{cpu_s * 1000:4.0f} ms/s, {cpu_s * seconds / max(frames, 1) * 1e6:4.1f} us/frame" if cpu else "n/a"
+        print(f"   {n:11d}  {seconds:7.0f}  {frames / n / seconds:15.1f}  {per_client:11.1f}  {per_client * n / 1e3:10.2f}  "
+              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {load}  {sum(client_cpu) * 1000:4.0f} ms/s  "
+              f"{dropped} (seq gaps {gaps})")
+        if within_ms is not None and p99 <= within_ms:
+            served = n
+    if within_ms is not None:
+        print(f"   served within {within_ms:g} ms p99: {served or 'none'} of the counts tried "
+              f"(load average {', '.join(f'{x:.1f}' for x in os.getloadavg())})")
 
 
 def _decoded(paths: list[tuple[str, str]], args, decoder: str = "force") -> None:

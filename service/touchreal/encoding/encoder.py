@@ -27,8 +27,9 @@ from scipy import signal
 
 from ..params import ClassParams, EncoderParams
 from ..preprocess.filters import SosFilter, sos_step
+from ..preprocess.parallel import split_run
 from ..settings import CHANNELS, CLASSES, OUT_FS_HZ, PACKAGE_DATA
-from .lif import LifPopulation
+from .lif import REFRACTORY_SAMPLES, RESET, THRESHOLD, LifPopulation
 
 
 @lru_cache(maxsize=1)
@@ -66,42 +67,63 @@ def rectify(channels: np.ndarray) -> np.ndarray:
     return np.stack((pos, neg), axis=-1).reshape(*channels.shape[:-1], 8)
 
 
+TILE_TAXELS = 16  #: taxels the fused kernel copies at once (contiguous rows of 16 x 4 channels)
+
+
 @numba.njit(cache=True, nogil=True)
-def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out):  # pragma: no cover - compiled
-    """Input current of N columns (column n reads taxel src[n] of the (T, X, 4) channels).
+def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head,
+                    tau, ih, v_mem, counter, spikes, n_spikes, out, a, b):  # pragma: no cover - compiled
+    """Input stage and LIF of columns a ... b - 1 fused: no current array; column n's spikes (grid
+    sample within the block) go to ``spikes[n, :n_spikes[n]]``. With a non-empty ``out`` (N, T)
+    the input current goes there instead and the LIF does not run (:meth:`InputStage.process`).
 
     Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n], stepped by
     :func:`~touchreal.preprocess.filters.sos_step` like every :class:`SosFilter`);
     pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
     positive part passes through ring[n, :L] (so it is taken from sample k - L); then
-    ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``. Writes ``out[n, k]`` (column-major: one column's
-    state stays local while it runs over the block); state (zi, ring, head) is updated in place.
-    """
-    n_t = channels.shape[0]
-    n_ch = N_CHANNELS
-    n_sec = sos.shape[1]
-    z = np.empty((n_sec, 2, n_ch))
-    v = np.empty(n_ch)
-    for n in range(src.shape[0]):  # columns are independent: keep one column's state local
-        x = src[n]
+    ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``; then the LIF (tau, post-spike current ih,
+    state v_mem and counter). State is updated in place.
+
+    The channels of a tile of :data:`TILE_TAXELS` taxels are first copied to a contiguous buffer,
+    so a column runs over its samples without striding across the whole (T, X, 4) array (which
+    cost a TLB miss per sample at thousands of taxels); one column's state stays local while it
+    runs over the block (faster, measured, than advancing a tile's columns side by side)."""
+    n_t, n_x = channels.shape[0], channels.shape[1]
+    nh = ih.shape[1]
+    currents = out.shape[1] > 0
+    tile = np.empty((n_t, TILE_TAXELS, N_CHANNELS))
+    loaded = -1
+    z = np.empty((1, sos.shape[1], 2, N_CHANNELS))
+    v = np.empty(N_CHANNELS)
+    for n in range(a, b):
+        x0 = src[n] - src[n] % TILE_TAXELS
+        if x0 != loaded:
+            width = min(TILE_TAXELS, n_x - x0)
+            for k in range(n_t):
+                for t in range(width):
+                    for j in range(N_CHANNELS):
+                        tile[k, t, j] = channels[k, x0 + t, j]
+            loaded = x0
+        x = src[n] - x0
         lp = has_lp[n]
-        col_sos = sos[n]
-        z[:] = zi[n]
+        z[0] = zi[n]
         n_lead = lead[n]
         h = head[n]
         s_max = i_sat[n]
+        tau_n = tau[n]
+        vm = v_mem[n]
+        c = counter[n]
+        count = 0
         for k in range(n_t):
-            for j in range(n_ch):
-                v[j] = channels[k, x, j]
-            if lp:  # the four channels' low-passes side by side
-                sos_step(col_sos, v, z, N_CHANNELS)
+            for j in range(N_CHANNELS):
+                v[j] = tile[k, x, j]
+            if lp:
+                sos_step(sos, n, v, z, 0, N_CHANNELS)
             pos = 0.0
             neg = 0.0
-            for j in range(n_ch):
-                if v[j] > 0.0:
-                    pos += w[n, 2 * j] * v[j]
-                elif v[j] < 0.0:
-                    neg -= w[n, 2 * j + 1] * v[j]
+            for j in range(N_CHANNELS):  # branch-free (noise flips signs unpredictably); adding 0 keeps the bits
+                pos += w[n, 2 * j] * max(v[j], 0.0)
+                neg -= w[n, 2 * j + 1] * min(v[j], 0.0)
             if n_lead > 0:
                 old = ring[n, h]
                 ring[n, h] = pos
@@ -110,9 +132,24 @@ def _input_stage(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head, out
             acc = pos + neg
             if s_max > 0.0:
                 acc = s_max * acc / (s_max + abs(acc))
-            out[n, k] = acc
-        zi[n] = z
+            if currents:
+                out[n, k] = acc
+                continue
+            vm = vm - vm / tau_n + acc  # the LIF step of touchreal.encoding.lif._lif_run (tested equal)
+            if c < nh:
+                vm += ih[n, c]
+                c += 1
+            if vm > THRESHOLD and c > REFRACTORY_SAMPLES:
+                vm = RESET
+                c = 0
+                if count < spikes.shape[1]:
+                    spikes[n, count] = k
+                count += 1
+        zi[n] = z[0]
         head[n] = h
+        v_mem[n] = vm
+        counter[n] = c
+        n_spikes[n] = count
 
 
 class InputStage:
@@ -176,17 +213,59 @@ class InputStage:
         self.head[rows] = 0
         self.fresh[rows] = False
 
-    def process(self, channels: np.ndarray) -> np.ndarray:
-        x = np.ascontiguousarray(channels, dtype=np.float64)
+    def prepare(self, channels: np.ndarray) -> np.ndarray:
+        """The channels as the kernel takes them ((T, X, 4) float64 in any memory layout: the kernel
+        copies taxel tiles, so the preprocessing's layout is not copied first; shape checked), with
+        fresh columns started at their first sample."""
+        x = np.asarray(channels, dtype=np.float64)
         if x.ndim != 3 or x.shape[2] != N_CHANNELS or x.shape[1] < self._n_taxels:
             raise ValueError(f"channels must be (T, >= {self._n_taxels} taxels, {N_CHANNELS}), got {x.shape}")
-        out = np.empty((self.src.size, x.shape[0]))
-        if x.shape[0] == 0:
-            return out.T
-        if self.fresh.any():
+        if x.shape[0] and self.fresh.any():
             self._start(x[0])
-        _input_stage(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead, self.ring, self.head, out)
+        return x
+
+    def _run(self, x: np.ndarray, lif: LifPopulation | None, spikes: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:
+        """The fused kernel over every column (``spikes`` (N, cap), ``counts`` (N,), ``out`` (N, T) or
+        (N, 0): the kernel does no bounds checks). The encoder's large blocks (``lif`` given) run on
+        both cores; the currents alone (:func:`encode_population`, whose callers run their own
+        processes) stay on the calling thread."""
+        n = self.src.size
+        if lif is None:  # currents only: the kernel never touches the neuron arrays
+            lif = LifPopulation(np.ones(n), np.zeros((n, 1)))
+            work = 0
+        else:
+            work = n * x.shape[0]
+        st = lif.state
+        split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead,
+                                               self.ring, self.head, lif.tau, lif.ih, st.v, st.counter, spikes, counts, out, a, b),
+                  n, work)
+
+    def process(self, channels: np.ndarray) -> np.ndarray:
+        x = self.prepare(channels)
+        out = np.empty((self.src.size, x.shape[0]))
+        if x.shape[0] and self.src.size:
+            self._run(x, None, np.empty((self.src.size, 0), np.int64), np.zeros(self.src.size, np.int64), out)
         return out.T  # (T, N) view; the LIF makes it contiguous
+
+    def spikes(self, channels: np.ndarray, lif: LifPopulation) -> tuple[np.ndarray, np.ndarray]:
+        """Run the channels through this stage into ``lif`` (one neuron per column) in one fused
+        kernel: the spikes as (sample index within the block, column), ordered by sample then
+        column, exactly those of :meth:`process` followed by :meth:`LifPopulation.step`."""
+        x = self.prepare(channels)
+        n, n_t = self.src.size, x.shape[0]
+        cap = n_t // (REFRACTORY_SAMPLES + 1) + 1  # spikes are more than REFRACTORY_SAMPLES apart
+        spikes = np.empty((n, cap), np.int64)
+        counts = np.zeros(n, np.int64)
+        if n_t and n:
+            self._run(x, lif, spikes, counts, np.empty((n, 0)))
+        if not counts.any():  # most short calls: no spike
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if counts.max() > cap:
+            raise RuntimeError("spike buffer overrun: a column spiked more often than its refractory period allows")
+        k = spikes[np.arange(cap)[None, :] < counts[:, None]]
+        col = np.repeat(np.arange(n), counts)
+        order = np.lexsort((col, k))
+        return k[order], col[order]
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}
@@ -326,7 +405,9 @@ class Encoder:
             raise ValueError(f"channels must be (T, {self.n_taxels}, 4), got {data.shape}")
         if data.shape[0] == 0 or not self.columns:
             return SpikeEvents.concatenate([])
-        k, n = self.lif.step(self.currents(data))
+        k, n = self.inputs.spikes(data, self.lif)
+        if not k.size:
+            return SpikeEvents.concatenate([])
         t = (k0 + k + 1) / OUT_FS_HZ + self._delay_n[n]
         order = np.argsort(t, kind="stable")
         return SpikeEvents(t[order], self._taxel_n[n][order], self._cls_n[n][order])

@@ -14,19 +14,19 @@ from scipy import signal
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def sos_step(sos, v, zi, m):  # pragma: no cover - compiled
-    """One sample of ``m`` columns, ``v[:m]``, through the cascade ``sos`` (sections, 6), a0 = 1, in
-    place: transposed direct form II per section (scipy's sosfilt recursion), state
-    ``zi[s, 0|1, j]`` updated in place. Sections outer, columns inner, so the columns' independent
+def sos_step(sos, i, v, zi, g, m):  # pragma: no cover - compiled
+    """One sample of ``m`` columns, ``v[:m]``, through the cascade ``sos[i]`` (sections, 6), a0 = 1,
+    in place: transposed direct form II per section (scipy's sosfilt recursion), state
+    ``zi[g, s, 0|1, j]`` updated in place. Sections outer, columns inner, so the columns' independent
     recursions run side by side (a caller with a constant ``m`` lets the compiler unroll them).
-    Shared by the filter stages and the encoder's fused input kernel."""
-    for s in range(sos.shape[0]):
-        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+    Shared by the filter stages and the encoder's fused input kernel (which steps many cascades)."""
+    for s in range(sos.shape[1]):
+        b0, b1, b2, a1, a2 = sos[i, s, 0], sos[i, s, 1], sos[i, s, 2], sos[i, s, 4], sos[i, s, 5]
         for j in range(m):
             x = v[j]
-            y = b0 * x + zi[s, 0, j]
-            zi[s, 0, j] = b1 * x - a1 * y + zi[s, 1, j]
-            zi[s, 1, j] = b2 * x - a2 * y
+            y = b0 * x + zi[g, s, 0, j]
+            zi[g, s, 0, j] = b1 * x - a1 * y + zi[g, s, 1, j]
+            zi[g, s, 1, j] = b2 * x - a2 * y
             v[j] = y
 
 
@@ -35,10 +35,12 @@ def _sos_run(sos, x, zi, out):  # pragma: no cover - compiled
     """Every sample of every column through the cascade, state in place."""
     m = x.shape[1]
     v = np.empty(m, x.dtype)
+    sos1 = sos.reshape((1,) + sos.shape)
+    zi1 = zi.reshape((1,) + zi.shape)
     for i in range(x.shape[0]):
         for j in range(m):  # element loops: a slice copy per sample costs more than the filter
             v[j] = x[i, j]
-        sos_step(sos, v, zi, m)
+        sos_step(sos1, 0, v, zi1, 0, m)
         for j in range(m):
             out[i, j] = v[j]
 

@@ -18,6 +18,8 @@ import math
 import numba
 import numpy as np
 
+from .parallel import split_run
+
 
 def first_grid_index(t_s: float, fs_hz: float) -> int:
     """The first index k of the grid ``k / fs_hz`` with ``k / fs_hz >= t_s``."""
@@ -70,34 +72,46 @@ class CausalPchip:
 
 
 @numba.njit(cache=True, nogil=True)
-def _pchip_eval(x, y, t, out):  # pragma: no cover - compiled
-    m, n_cols = y.shape
-    d = np.zeros((m, n_cols))  # slopes at interior knots (weighted harmonic mean, 0 at extrema)
+def _pchip_eval(x, y, t, out, a, b):  # pragma: no cover - compiled
+    """Columns a ... b - 1: slopes at the interior knots (weighted harmonic mean, 0 at extrema),
+    then per interval the cubic's coefficients once and Horner at the interval's points."""
+    m = y.shape[0]
+    w = b - a
+    d = np.zeros((m, w))
     for j in range(1, m - 1):
         h0, h1 = x[j] - x[j - 1], x[j + 1] - x[j]
         w1, w2 = 2 * h1 + h0, h1 + 2 * h0
-        for c in range(n_cols):
-            m0 = (y[j, c] - y[j - 1, c]) / h0
-            m1 = (y[j + 1, c] - y[j, c]) / h1
+        for c in range(w):
+            m0 = (y[j, a + c] - y[j - 1, a + c]) / h0
+            m1 = (y[j + 1, a + c] - y[j, a + c]) / h1
             if m0 == 0.0 or m1 == 0.0 or (m0 > 0.0) != (m1 > 0.0):
                 d[j, c] = 0.0
             else:
                 d[j, c] = 1.0 / ((w1 / m0 + w2 / m1) / (w1 + w2))
+    c2 = np.empty(w)
+    c3 = np.empty(w)
+    n_t = t.shape[0]
+    k = 0
     i = 1
-    for k in range(t.shape[0]):
+    while k < n_t:
         while x[i + 1] <= t[k]:
             i += 1
         h = x[i + 1] - x[i]
-        s = t[k] - x[i]
-        for c in range(n_cols):
-            slope = (y[i + 1, c] - y[i, c]) / h
-            c2 = (3 * slope - 2 * d[i, c] - d[i + 1, c]) / h
-            c3 = (d[i, c] + d[i + 1, c] - 2 * slope) / (h * h)
-            out[k, c] = y[i, c] + s * (d[i, c] + s * (c2 + s * c3))
+        for c in range(w):
+            slope = (y[i + 1, a + c] - y[i, a + c]) / h
+            c2[c] = (3 * slope - 2 * d[i, c] - d[i + 1, c]) / h
+            c3[c] = (d[i, c] + d[i + 1, c] - 2 * slope) / (h * h)
+        while k < n_t and t[k] < x[i + 1]:
+            s = t[k] - x[i]
+            for c in range(w):
+                out[k, a + c] = y[i, a + c] + s * (d[i, c] + s * (c2[c] + s * c3[c]))
+            k += 1
 
 
 def pchip_eval(x: np.ndarray, y: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Evaluate the PCHIP interpolant of knots (x, y) at increasing ``t``, all within [x[1], x[-2])."""
+    """Evaluate the PCHIP interpolant of knots (x, y) at increasing ``t``, all within [x[1], x[-2]);
+    the columns of a large call run on both cores (:func:`~touchreal.preprocess.parallel.split_run`)."""
     out = np.empty((t.shape[0], y.shape[1]))
-    _pchip_eval(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64), np.ascontiguousarray(t), out)
+    x, y, t = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64), np.ascontiguousarray(t)
+    split_run(lambda a, b: _pchip_eval(x, y, t, out, a, b), y.shape[1], y.shape[1] * (t.shape[0] + y.shape[0]))
     return out

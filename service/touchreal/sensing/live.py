@@ -16,9 +16,13 @@ encode``'s; only the wire adds the offset).
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from multiprocessing.context import BaseContext
 from typing import Protocol
 
 import numpy as np
@@ -113,33 +117,21 @@ class _Paced:
         return self._start_wall_us + int(round(self._due_s * 1e6))
 
 
-class SimLiveSource:
-    """The simulated e-skin playing :func:`~touchreal.sensing.scene.default_scene` over ``n_taxels``
-    taxels (a grid of 10 mm pitch) in real time, looping forever. With several taxels the script is
-    played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
+class SimHops:
+    """The simulated e-skin cut into hops, unpaced (sans-I/O): :func:`~touchreal.sensing.scene.default_scene`
+    over ``n_taxels`` taxels (a grid of 10 mm pitch), looping forever. With several taxels the script
+    is played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
     feel each touch differently (the skin's spatial response).
 
-    Chunks span ``update_s`` (the hop, rounded to PVDF ticks), on a grid phased so that a chunk's
-    newest sample is a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact
-    period (10 ms); a chunk is released when the pace's clock reaches the instant of its newest
-    sample (the sensor clock runs from its zero at the pace's start), and its clock point says so.
-    A consumer that fell behind gets every hop already due in one chunk (up to
-    :data:`MAX_CATCH_UP_HOPS`): fewer, larger calls until it has caught up."""
-
-    segment = 0
+    Hops span ``update_s`` (rounded to PVDF ticks), on a grid phased so that a hop's newest sample is
+    a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact period (10 ms)."""
 
     def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None):
-        self.positions_mm = taxel_grid(n_taxels)
-        self.n_taxels = n_taxels
-        self.update_s = update_s
-        spots = [(0.0, 0.0)] + ([tuple(self.positions_mm[0]), tuple(self.positions_mm[-1])] if n_taxels > 1 else [])
-        self.scene = SceneSource(default_scene(spots), taxels_xy_mm=self.positions_mm, seed=seed, t0_s=t0_s)
-        self.offset_us = 0
-        self._pace = _Paced(update_s)
+        positions = taxel_grid(n_taxels)
+        spots = [(0.0, 0.0)] + ([tuple(positions[0]), tuple(positions[-1])] if n_taxels > 1 else [])
+        self.scene = SceneSource(default_scene(spots), taxels_xy_mm=positions, seed=seed, t0_s=t0_s)
         self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
-        self._zero_s = self.scene.requested_s  #: the sensor clock's instant at the pace's start
-        self._chunks = 0
-        self._clock: ClockPoint | None = None
+        self.zero_s = self.scene.requested_s  #: the sensor clock's instant (s) at which the stream starts
 
     def _hop_ticks_left(self) -> int:
         """PVDF ticks in the next hop: up to and with the next tick on the SingleTact phase (mod the hop)."""
@@ -150,10 +142,142 @@ class SimLiveSource:
         return self.scene.time_s + (self._hop_ticks_left() - 1) / PVDF_FS_HZ
 
     def read_hop(self) -> RawChunk:
-        """The next hop's samples at once (no pacing: benchmarks and tests)."""
+        """The next hop's samples."""
         return self.scene.advance(self._hop_ticks_left())
 
+    def prefetch(self) -> None:
+        """Nothing to do: a hop is simulated when it is read."""
+
+
+def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int) -> None:
+    """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
+    simulated, then (newest sample's instant (s), hop) pairs, never more than ``ahead`` beyond those the parent has taken (it sends
+    how many it took, an int). Ends when the parent's end of ``conn`` closes."""
+    hops = SimHops(n_taxels, update_s, seed, t0_s)
+    first = (hops.next_newest_s(), hops.read_hop())  # simulated before the source counts as open
+    try:
+        conn.send(hops.zero_s)
+        conn.send(first)
+        credit = ahead - 1
+        while True:
+            for _ in range(credit):
+                conn.send((hops.next_newest_s(), hops.read_hop()))
+            credit = int(conn.recv())
+    except (EOFError, OSError, KeyboardInterrupt):
+        return
+
+
+def _processes() -> BaseContext:
+    """Fork server with the skin's code loaded and its kernels warm (:mod:`.sim_warm`): a simulation process
+    starts in milliseconds after the first (which pays the imports, about 1 s); forking the service itself
+    (threads, sockets) would be unsafe."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload([f"{__package__}.sim_warm"])
+    return ctx
+
+
+class SimHopsProcess:
+    """:class:`SimHops` run in a process of its own, up to ``ahead`` hops before they are taken, so that
+    simulating the skin never competes with the service for its interpreter (the GIL). Only the
+    hops move between the processes (pickled through a pipe); the caller still releases each at the
+    instant of its newest sample. ``close()`` ends the process."""
+
+    def __init__(self, n_taxels: int, update_s: float, seed: int = 0, t0_s: float | None = None, ahead: int = 32):
+        ctx = _processes()
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_simulate_hops, args=(child, n_taxels, update_s, seed, t0_s, ahead),
+                                 name="touchreal-sim", daemon=True)
+        self._proc.start()
+        child.close()
+        self._hops: deque[tuple[float, RawChunk]] = deque()
+        self._taken = 0  #: hops taken since the last credit sent
+        self.zero_s = float(self._receive())
+
+    def _receive(self):
+        try:
+            return self._conn.recv()
+        except (EOFError, OSError):
+            raise self._ended() from None
+
+    def _ended(self) -> RuntimeError:
+        self._proc.join(1.0)
+        return RuntimeError(f"the simulated e-skin's process ended (exit code {self._proc.exitcode})")
+
+    def prefetch(self) -> None:
+        """Hand back the credit of the hops taken and have the next two in hand (waiting if the process is
+        behind): called before a hop's release, so that neither a pipe nor unpickling delays it after."""
+        if self._taken:
+            try:
+                self._conn.send(self._taken)
+            except OSError:
+                raise self._ended() from None
+            self._taken = 0
+        while len(self._hops) < 2 or self._conn.poll():
+            self._hops.append(self._receive())
+
+    def next_newest_s(self) -> float:
+        if not self._hops:
+            self.prefetch()
+        return self._hops[0][0]
+
+    def read_hop(self) -> RawChunk:
+        if not self._hops:
+            self.prefetch()
+        self._taken += 1
+        return self._hops.popleft()[1]
+
+    def close(self) -> None:
+        self._proc.terminate()
+        self._proc.join(5.0)
+
+
+class SimLiveSource:
+    """The simulated e-skin (:class:`SimHops`) in real time: a hop is released when the pace's clock
+    reaches the instant of its newest sample (the sensor clock runs from its zero at the pace's
+    start), and its clock point says so. A consumer that fell behind gets every hop already due in
+    one chunk (up to :data:`MAX_CATCH_UP_HOPS`): fewer, larger calls until it has caught up.
+
+    ``own_process``: simulate in a process of its own (:class:`SimHopsProcess`; the service does),
+    so the acquisition thread only receives hops; otherwise in this thread (``scene`` is then the
+    :class:`~touchreal.sensing.scene.SceneSource`)."""
+
+    segment = 0
+
+    def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None,
+                 own_process: bool = False):
+        self.positions_mm = taxel_grid(n_taxels)
+        self.n_taxels = n_taxels
+        self.update_s = update_s
+        self.hops: SimHops | SimHopsProcess = (SimHopsProcess if own_process else SimHops)(n_taxels, update_s, seed, t0_s)
+        self.offset_us = 0
+        self._pace = _Paced(update_s)
+        self._zero_s = self.hops.zero_s
+        self._chunks = 0
+        self._clock: ClockPoint | None = None
+
+    @property
+    def scene(self) -> SceneSource:
+        """The scene being played (only when simulated in this thread)."""
+        return self.hops.scene
+
+    def next_newest_s(self) -> float:
+        """The instant of the next hop's newest sample (s, sensor clock): the hop is over then."""
+        return self.hops.next_newest_s()
+
+    def read_hop(self) -> RawChunk:
+        """The next hop's samples at once (no pacing: benchmarks and tests)."""
+        return self.hops.read_hop()
+
     def next_chunk(self) -> RawChunk | None:
+        try:
+            return self._next_chunk()
+        except RuntimeError:
+            if self._pace._closed.is_set():  # closed meanwhile: the simulation's process was ended on purpose
+                return None
+            raise
+
+    def _next_chunk(self) -> RawChunk | None:
+        self.hops.prefetch()
         newest_s = self.next_newest_s()
         if not self._pace.wait_until(newest_s - self._zero_s):
             return None
@@ -175,6 +299,8 @@ class SimLiveSource:
 
     def close(self) -> None:
         self._pace.close()
+        if isinstance(self.hops, SimHopsProcess):
+            self.hops.close()
 
 
 class ReplayLiveSource:

@@ -75,9 +75,12 @@ def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning
     websockets' sans-I/O implementation, client messages capped at the protocol's limit,
     permessage-deflate only for clients that offer it, the connection limits of ``limits`` (default: the
     settings' defaults; :mod:`.limits`) and keepalive pings as the app's service's settings say (a client
-    that stops reading is closed with 1011 after at most interval + timeout)."""
+    that stops reading is closed with 1011 after at most interval + timeout). The event loop is uvloop
+    where it is installed (a dependency on POSIX): fanning a frame out to a hundred subscribers is a
+    hundred socket writes, and on asyncio's own loop those dominated the event loop's time
+    (docs/benchmarks.md, fan-out)."""
     s = app.state.service.settings
-    return uvicorn.Config(app, host=host, port=port, ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
+    return uvicorn.Config(app, host=host, port=port, loop="auto", ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
                           ws_per_message_deflate=True, ws_ping_interval=s.ping_interval_s,
                           ws_ping_timeout=s.ping_timeout_s, log_level=log_level, lifespan="on",
                           **uvicorn_limits(limits or ServeSettings.model_construct()))

@@ -56,7 +56,7 @@ def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float) ->
     with a clear message)."""
     kind, arg = parse_source(config.source)
     if kind == "sim":
-        return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s)
+        return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s, own_process=True)
     if kind == "replay":
         folder, _, ids = arg.partition(":")
         if not Path(folder).is_dir():

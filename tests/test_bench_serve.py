@@ -1,0 +1,27 @@
+"""The fan-out benchmark's light subscribers (``touchreal bench serve``, part 2) against the real service."""
+
+import asyncio
+
+import numpy as np
+from touchreal_client import protocol as P
+
+from touchreal.bench.serve import _light_clients
+from touchreal.server.settings import RuntimeConfig
+
+from server_harness import running_server
+
+
+def test_light_subscribers_see_every_frame_in_order_with_its_size(tmp_path):
+    with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
+        spikes = asyncio.run(_light_clients(addr, 3, 1.5, {}))
+        every = asyncio.run(_light_clients(addr, 1, 1.5, {"streams": ["spikes", "channels"]}))
+        served = svc.hub.frames_rendered
+    for rows in spikes + every:
+        assert rows.shape[0] > 20 and rows.shape[1] == 8
+        assert np.all(np.diff(rows[:, 5]) == 1) and rows[-1, 6] == 0  # seq: nothing missing, nothing dropped
+        assert np.all(rows[:, 3] >= rows[:, 2]) and np.all(rows[:, 2] >= rows[:, 1])  # emitted, sent, received
+        assert np.all(rows[:, 7] >= P.HEADER_LEN)
+    # a spikes frame is its header, its count and 12-byte events; channels frames are larger
+    assert np.all(spikes[0][:, 7] == P.HEADER_LEN + P.SPIKES_HEAD.size + spikes[0][:, 4] * P.EVENT_DTYPE.itemsize)
+    assert every[0][:, 7].max() > spikes[0][:, 7].max()
+    assert served > 0
