@@ -41,8 +41,8 @@ from typing import Any, Callable
 import numpy as np
 
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
-from ..preprocess.gate import calibrate
 from ..recording import Dataset
+from .calibration import calibrate_pvdf
 from .config import FitConfig
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import evaluate_loss
@@ -104,9 +104,9 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     loaded = {e["id"]: ds.load(e) for e in train_e}
     base = init.preprocess if init is not None else PreprocessParams()
     segments = baseline_segments(ds, train_e, loaded=loaded)
-    pre = calibrate(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}))
+    pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}))
     timings["calibrate_s"] = time.perf_counter() - t
-    log(f"PVDF calibration on {len(segments)} contact-free baselines: notch harmonics {pre.notch_harmonics}, "
+    log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}, "
         f"gate on {len(pre.gate.freqs_hz) if pre.gate else 0} bins")
 
     t = time.perf_counter()
