@@ -1,8 +1,8 @@
 """Decoders: onnxruntime time per update for 1 and 256 taxels, and run time against accuracy per window.
 
 Per model, one update = one ``session.run`` on a batch of (taxels, n_bins, n_classes) Poisson
-counts (what :class:`~touchreal.decoding.streaming.StreamingDecoder` sends every 32 ms), one
-intra-op thread; ``push`` adds the decoder's binning of one update's spike events (about 40
+counts (what :class:`~touchreal.decoding.streaming.StreamingDecoder` sends every step, a stateful model's
+state fed back), one intra-op thread; ``push`` adds the decoder's binning of one update's spike events (about 40
 spikes/s per taxel and class) to that. Accuracy columns are the held-out metrics recorded in each
 model's metadata by ``touchreal decoders train`` (R^2 for force, accuracy for texture).
 """
@@ -36,11 +36,16 @@ def _times_ms(fn, n: int) -> tuple[float, float, float]:
 
 
 def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
+    """One inference per update (a stateful model's state fed back, as the streaming decoder does)."""
     sess = model.session(threads)
     shape = [n_taxels] + model.meta["input"]["shape"][1:]
     x = rng.poisson(0.4, shape).astype(np.float32)
-    name, out = model.meta["input"]["name"], model.meta["outputs"][0]
-    return _times_ms(lambda: sess.run([out], {name: x}), updates)
+    state = {"s": model.initial_state(n_taxels) if model.stateful else None}
+
+    def one() -> None:
+        state["s"] = model.run(sess, x, state["s"])[1]
+
+    return _times_ms(one, updates)
 
 
 def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
@@ -86,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     print("run time against accuracy across decoding windows (held-out metrics from the metadata)")
     big = max(args.taxels)
     print(f"median onnxruntime ms per update for 1 and {big} taxels")
-    print(f"{'model':<34} {'window ms':>9} {'ort ms (1)':>10} {f'ort ms ({big})':>12} {'metric':>13} {'value':>7}")
+    print(f"{'model':<34} {'window ms':>9} {'ort ms (1)':>10} {f'ort ms ({big})':>12} {'metric':>14} {'value':>7}")
     rows = []
     for m in models:
         meta = m.meta
@@ -94,11 +99,12 @@ def run(args: argparse.Namespace) -> int:
             continue  # the preprocessing-window sweep is not a decoding-window cost
         if meta["task"] == "force" and meta["classes"] != ["SA1", "RA"]:
             continue
-        key, label = ("r2", "R^2") if meta["task"] == "force" else ("acc", f"acc {meta['features']['set']}")
-        rows.append((meta["task"], meta["features"]["set"], meta["window_ms"], m, label, meta["metrics"].get(key)))
+        kind = "stateful" if m.stateful else meta["features"]["set"]
+        key, label = ("r2", f"R^2 {kind}") if meta["task"] == "force" else ("acc", f"acc {kind}")
+        rows.append((meta["task"], kind, meta["window_ms"], m, label, meta["metrics"].get(key)))
     for task, fs, w, m, label, value in sorted(rows, key=lambda r: r[:3]):
         one = _ort_ms(m, 1, max(50, args.updates // 4), args.threads, rng)[2]
         many = _ort_ms(m, big, max(50, args.updates // 4), args.threads, rng)[2]
         v = f"{value:.3f}" if isinstance(value, float) else "-"
-        print(f"{m.name:<34} {w:>9g} {one:>10.3f} {many:>12.3f} {label:>13} {v:>7}")
+        print(f"{m.name:<34} {w:>9g} {one:>10.3f} {many:>12.3f} {label:>14} {v:>7}")
     return 0

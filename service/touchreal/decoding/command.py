@@ -165,7 +165,7 @@ def _with_info(metrics: dict[str, Any], ds, split: str, seed: int | None, params
 
 def _summary(metrics: dict[str, Any]) -> None:
     for k in sorted(metrics):
-        if k.startswith("force.") and not k.startswith("force.window.") and k.rsplit(".", 1)[1] in ("rmse", "r2", "pearson_r", "oscillation"):
+        if k.startswith("force.") and ".window." not in k and k.rsplit(".", 1)[1] in ("rmse", "r2", "pearson_r", "oscillation"):
             print(f"  {k} = {metrics[k]:.4f}")
         elif k.startswith("texture.") and k.rsplit("_", 1)[-1] == "500ms" and "prewindow" not in k:
             print(f"  {k} = {metrics[k]:.3f}")

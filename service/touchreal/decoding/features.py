@@ -12,6 +12,10 @@ constant matrices built here are the single definition both sides use.
   and the mean DFT magnitude of the count sequence per 10 Hz band, (0, 10] ... (40, 50] Hz,
   normalised by the number of bins.
 * ``both``: ``temporal`` then ``rate``.
+
+A spec with a ``state`` filter (:class:`~touchreal.decoding.state.ExpFilter`, force models at
+closed-loop speed) appends the filtered counts carried across steps to ``counts``; its graph has a
+second input ``state`` and a second output ``state_out``.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
+
+from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
 
 FEATURE_SETS = ("counts", "temporal", "rate", "both")
 SMOOTH_SIGMA_MS = 20.0
@@ -36,12 +42,16 @@ class FeatureSpec:
     n_classes: int
     bin_ms: float
     window_ms: float
+    state: ExpFilter | None = None  #: filtered counts carried across steps (``counts`` only)
 
     def __post_init__(self) -> None:
         if self.kind not in FEATURE_SETS:
             raise ValueError(f"unknown feature set {self.kind!r}; expected one of {FEATURE_SETS}")
         if self.kind != "counts" and self.n_classes != 1:
             raise ValueError(f"feature set {self.kind!r} takes one class")
+        if self.state is not None and (self.kind != "counts" or self.state.n_bins != self.n_bins
+                                       or self.state.n_classes != self.n_classes or self.state.step_ms != self.window_ms):
+            raise ValueError("a state filter goes with 'counts' features of its own bins and classes, window = step")
 
     # ---------------------------------------------------------------- constant matrices
     def smoothing(self) -> np.ndarray:
@@ -70,20 +80,28 @@ class FeatureSpec:
     def names(self) -> list[str]:
         """Feature order of the matrix fed to the estimator."""
         if self.kind == "counts":
-            return [f"count[bin{b}][c{c}]" for b in range(self.n_bins) for c in range(self.n_classes)]
+            counts = [f"count[bin{b}][c{c}]" for b in range(self.n_bins) for c in range(self.n_classes)]
+            return counts + ([] if self.state is None else self.state.names([f"c{c}" for c in range(self.n_classes)]))
         temporal = [f"psth[bin{b}]" for b in range(self.n_bins)]
         rate = ["rate_hz", "count_var", "frac_nonempty"] + [f"dft_{lo:g}_{hi:g}Hz" for lo, hi in BANDS_HZ]
         return {"temporal": temporal, "rate": rate, "both": temporal + rate}[self.kind]
 
     # ---------------------------------------------------------------------- numpy
-    def transform(self, counts: np.ndarray) -> np.ndarray:
-        """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph."""
+    def transform(self, counts: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+        """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph.
+
+        With a state filter the rows are consecutive steps and ``groups`` (trial of each row) is
+        required: the state restarts at zero on each trial (:meth:`ExpFilter.sequence`)."""
         c = np.asarray(counts, dtype=np.float32)
         if c.ndim != 3 or c.shape[1:] != (self.n_bins, self.n_classes):
             raise ValueError(f"counts must be (batch, {self.n_bins}, {self.n_classes}), got {c.shape}")
         x = c.reshape(c.shape[0], -1)
         if self.kind == "counts":
-            return x
+            if self.state is None:
+                return x
+            if groups is None or len(groups) != x.shape[0]:
+                raise ValueError("stateful features need the trial of every row (groups)")
+            return np.concatenate([x, self.state.sequence(c, groups)], axis=1)
         parts = []
         if self.kind in ("temporal", "both"):
             parts.append(x @ self.smoothing().T.astype(np.float32))
@@ -112,8 +130,18 @@ class FeatureSpec:
             nodes.append(helper.make_node(op, inputs, [out], **attrs))
             return out
 
-        flat = node("Flatten", [input_name], "flat" if self.kind != "counts" else output_name, axis=1)
-        if self.kind != "counts":
+        plain = self.kind == "counts" and self.state is None
+        flat = node("Flatten", [input_name], output_name if plain else "flat", axis=1)
+        inputs = [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [None, self.n_bins, self.n_classes])]
+        outputs = [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [None, len(self.names())])]
+        if self.state is not None:
+            state_nodes, state_inits = self.state.nodes(flat)
+            nodes += state_nodes
+            inits += state_inits
+            node("Concat", [flat, STATE_OUTPUT], output_name, axis=1)
+            inputs.append(self.state.value_info(STATE_INPUT))
+            outputs.append(self.state.value_info(STATE_OUTPUT))
+        elif self.kind != "counts":
             parts = []
             if self.kind in ("temporal", "both"):
                 parts.append(node("MatMul", [flat, const("smooth_T", self.smoothing().T)], "psth"))
@@ -134,11 +162,5 @@ class FeatureSpec:
                 var = node("Sub", [mean_sq, node("Mul", [mean, mean], "mean2")], "var")
                 parts += [rate, var, frac, bands]
             node("Concat", parts, output_name, axis=1)
-        g = helper.make_graph(
-            nodes,
-            f"features_{self.kind}",
-            [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [None, self.n_bins, self.n_classes])],
-            [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [None, len(self.names())])],
-            inits,
-        )
+        g = helper.make_graph(nodes, f"features_{self.kind}", inputs, outputs, inits)
         return helper.make_model(g, opset_imports=[helper.make_opsetid("", opset)], ir_version=ir_version)

@@ -33,23 +33,26 @@ from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
 from .features import BANDS_HZ, SMOOTH_SIGMA_MS, FeatureSpec
 from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
+from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
 from .windows import TEXTURE_SILENCE_US, EncodedTrial, force_windows, texture_windows
 
 BIN_MS = F.BIN_US / 1000
-STEP_MS = F.STEP_US / 1000
 SVC_C = 10.0
 CALIBRATION_FOLDS = 3
 
 
 def feature_spec(spec: ModelSpec) -> FeatureSpec:
-    return FeatureSpec(spec.features, F.n_bins(round(spec.window_ms * 1000), F.BIN_US), len(spec.classes), BIN_MS, spec.window_ms)
+    nb = F.n_bins(round(spec.window_ms * 1000), F.BIN_US)
+    state = ExpFilter(spec.state_taus_ms, spec.step_ms, nb, len(spec.classes)) if spec.state_taus_ms else None
+    return FeatureSpec(spec.features, nb, len(spec.classes), BIN_MS, spec.window_ms, state)
 
 
 def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(counts, target, trial index, step us) of ``trials`` for ``spec``: force (N) or label strings."""
+    """(counts, target, trial index, step us) of ``trials`` for ``spec``: force (N) or label strings.
+    A stateful model's windows are every step of each trial from the recording's start."""
     w_us = round(spec.window_ms * 1000)
     if spec.task == "force":
-        return force_windows(trials, spec.classes, w_us)
+        return force_windows(trials, spec.classes, w_us, step_us=round(spec.step_ms * 1000), from_start=bool(spec.state_taus_ms))
     x, labels, g, t = texture_windows(trials, w_us)
     return x, np.asarray(labels, dtype=object), g, t
 
@@ -81,17 +84,24 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "name": spec.name,
         "task": spec.task,
         "description": (f"force (N) from {'+'.join(spec.classes)} counts, {spec.window_ms:g} ms causal window"
+                        + (f" and step, with their exponential filters ({', '.join(f'{t:g}' for t in spec.state_taus_ms)} ms) "
+                           "carried across steps in 'state'" if spec.state_taus_ms else "")
                         if spec.task == "force" else f"texture from PC counts ({spec.features} features), "
                         f"{spec.window_ms:g} ms window anchored at the first PC spike"),
         "input": {"name": INPUT_NAME, "shape": [None, fs.n_bins, fs.n_classes], "dtype": "float32",
                   "layout": "(batch = taxels, bins oldest -> newest, classes in 'classes' order)"},
-        "outputs": [REGRESSION_OUTPUT] if spec.task == "force" else ["probabilities", "label"],
+        "outputs": ([REGRESSION_OUTPUT] + ([STATE_OUTPUT] if fs.state else [])) if spec.task == "force" else ["probabilities", "label"],
         "output_names": [REGRESSION_OUTPUT] if spec.task == "force" else labels,
         "labels": labels,
         "classes": list(spec.classes),
         "bin_ms": BIN_MS,
         "window_ms": spec.window_ms,
-        "step_ms": STEP_MS,
+        "step_ms": spec.step_ms,
+        "state": None if fs.state is None else {
+            "input": STATE_INPUT, "output": STATE_OUTPUT, "size": fs.state.size, "initial": 0.0,
+            "taus_ms": list(spec.state_taus_ms), "order": fs.state.names(spec.classes),
+            "rule": "state_out = exp(-step_ms / tau) * state + the window's spike count of the class; feed state_out "
+                    "back as state at the next step, zeros (batch, size) at the first; one row per taxel"},
         "binning": "touchreal_client.features.window_counts: ceil(window/bin) bins counted back from the window end, "
                    "oldest first, the oldest bin truncated; a bin [a, b) counts a <= t < b (sensor clock, us)",
         "alignment": None if spec.task == "force" else {
@@ -127,6 +137,6 @@ def train_model(
     counts, target, groups, _ = windows(spec, trials)
     if counts.shape[0] == 0:
         raise ValueError(f"{spec.name}: the training trials give no decoding window")
-    pipe = fit_pipeline(spec, fs.transform(counts), target, groups, seed)
+    pipe = fit_pipeline(spec, fs.transform(counts, groups), target, groups, seed)
     meta = metadata(spec, fs, pipe, params, training | {"windows": int(counts.shape[0]), "trials": len(trials)})
     return to_onnx(pipe, fs, meta), meta, pipe, fs

@@ -98,9 +98,11 @@ def require_trials(ds: Dataset, protocol: str, what: str) -> None:
 
 
 # ------------------------------------------------------------------------------------- force
-def force_steps(tr: EncodedTrial, window_us: int, step_us: int = F.STEP_US) -> np.ndarray:
-    """Decoding steps of a trial whose whole window lies inside the recording."""
-    start = int(tr.st_t_us[0]) + window_us
+def force_steps(tr: EncodedTrial, window_us: int, step_us: int = F.STEP_US, from_start: bool = False) -> np.ndarray:
+    """Decoding steps of a trial whose whole window lies inside the recording; ``from_start``: from
+    the first step whose window starts at or after the recording's t = 0 instead of its first
+    SingleTact sample (a stateful decoder's state then holds every spike of the recording)."""
+    start = (0 if from_start else int(tr.st_t_us[0])) + window_us
     return F.step_times(start, min(tr.end_us, int(tr.st_t_us[-1])), step_us)
 
 
@@ -116,12 +118,14 @@ def force_label(tr: EncodedTrial, steps_us: np.ndarray, bin_us: int = F.BIN_US) 
 
 
 def force_windows(
-    trials: Sequence[EncodedTrial], classes: Sequence[str], window_us: int, bin_us: int = F.BIN_US, step_us: int = F.STEP_US
+    trials: Sequence[EncodedTrial], classes: Sequence[str], window_us: int, bin_us: int = F.BIN_US, step_us: int = F.STEP_US,
+    from_start: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(counts (n, n_bins, n_classes), force (n,), trial index (n,), step (n,) us) over ``trials``."""
+    """(counts (n, n_bins, n_classes), force (n,), trial index (n,), step (n,) us) over ``trials``;
+    a trial's windows are contiguous and in step order."""
     xs, ys, gs, ts = [], [], [], []
     for i, tr in enumerate(trials):
-        steps = force_steps(tr, window_us, step_us)
+        steps = force_steps(tr, window_us, step_us, from_start)
         xs.append(F.counts_tensor(tr.spikes_us, classes, steps, window_us, bin_us))
         ys.append(force_label(tr, steps, bin_us))
         gs.append(np.full(steps.size, i))
