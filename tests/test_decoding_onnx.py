@@ -46,7 +46,7 @@ def _export(tmp_path, spec, counts, target, groups):
     return load_model(path), pipe, fs
 
 
-@pytest.mark.parametrize("features", ["temporal", "rate", "both"])
+@pytest.mark.parametrize("features", ["temporal", "rate", "both", "spectral"])
 def test_texture_onnx_matches_sklearn(tmp_path, features):
     rng = np.random.default_rng(0)
     spec = ModelSpec(f"tex_{features}", "texture", ("PC",), 200.0, features)

@@ -21,7 +21,7 @@ import skl2onnx
 import sklearn
 from sklearn.calibration import CalibratedClassifierCV
 from sklearn.model_selection import StratifiedGroupKFold
-from sklearn.neural_network import MLPRegressor
+from sklearn.neural_network import MLPClassifier, MLPRegressor
 from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
@@ -30,21 +30,20 @@ from touchreal_client import features as F
 from .. import __version__
 from ..params import EncoderParams
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
-from .features import BANDS_HZ, SMOOTH_SIGMA_MS, FeatureSpec
+from .features import BANDS_HZ, SMOOTH_SIGMA_MS, SPECTRUM_HZ, FeatureSpec
 from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
 from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
 from .windows import TEXTURE_SILENCE_US, EncodedTrial, force_windows, texture_windows
 
-BIN_MS = F.BIN_US / 1000
 SVC_C = 10.0
 CALIBRATION_FOLDS = 3
 
 
 def feature_spec(spec: ModelSpec) -> FeatureSpec:
-    nb = F.n_bins(round(spec.window_ms * 1000), F.BIN_US)
+    nb = F.n_bins(round(spec.window_ms * 1000), round(spec.bin_ms * 1000))
     state = ExpFilter(spec.state_taus_ms, spec.step_ms, nb, len(spec.classes)) if spec.state_taus_ms else None
-    return FeatureSpec(spec.features, nb, len(spec.classes), BIN_MS, spec.window_ms, state)
+    return FeatureSpec(spec.features, nb, len(spec.classes), spec.bin_ms, spec.window_ms, state)
 
 
 def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -53,7 +52,7 @@ def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> tuple[np.ndarray
     w_us = round(spec.window_ms * 1000)
     if spec.task == "force":
         return force_windows(trials, spec.classes, w_us, step_us=round(spec.step_ms * 1000), from_start=bool(spec.state_taus_ms))
-    x, labels, g, t = texture_windows(trials, w_us)
+    x, labels, g, t = texture_windows(trials, w_us, bin_us=round(spec.bin_ms * 1000), classes=spec.classes)
     return x, np.asarray(labels, dtype=object), g, t
 
 
@@ -62,6 +61,10 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
     if spec.task == "force":
         mlp = MLPRegressor(hidden_layer_sizes=(64, 32), alpha=1e-3, max_iter=400, early_stopping=True,
                            n_iter_no_change=20, random_state=seed)
+        return make_pipeline(StandardScaler(), mlp).fit(feats, target)
+    if spec.features == "spectral":
+        mlp = MLPClassifier(hidden_layer_sizes=(128,), alpha=1e-3, max_iter=300, early_stopping=True,
+                            n_iter_no_change=15, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
     _, first = np.unique(groups, return_index=True)  # one row per trial
     names, per_label = np.unique(target[first], return_counts=True)
@@ -86,15 +89,15 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "description": (f"force (N) from {'+'.join(spec.classes)} counts, {spec.window_ms:g} ms causal window"
                         + (f" and step, with their exponential filters ({', '.join(f'{t:g}' for t in spec.state_taus_ms)} ms) "
                            "carried across steps in 'state'" if spec.state_taus_ms else "")
-                        if spec.task == "force" else f"texture from PC counts ({spec.features} features), "
-                        f"{spec.window_ms:g} ms window anchored at the first PC spike"),
+                        if spec.task == "force" else f"texture from {'+'.join(spec.classes)} counts in {spec.bin_ms:g} ms bins "
+                        f"({spec.features} features), {spec.window_ms:g} ms window anchored at the first PC spike"),
         "input": {"name": INPUT_NAME, "shape": [None, fs.n_bins, fs.n_classes], "dtype": "float32",
                   "layout": "(batch = taxels, bins oldest -> newest, classes in 'classes' order)"},
         "outputs": ([REGRESSION_OUTPUT] + ([STATE_OUTPUT] if fs.state else [])) if spec.task == "force" else ["probabilities", "label"],
         "output_names": [REGRESSION_OUTPUT] if spec.task == "force" else labels,
         "labels": labels,
         "classes": list(spec.classes),
-        "bin_ms": BIN_MS,
+        "bin_ms": spec.bin_ms,
         "window_ms": spec.window_ms,
         "step_ms": spec.step_ms,
         "state": None if fs.state is None else {
@@ -109,7 +112,7 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
             "doc": "touchreal_client.features.anchors / anchored_end / StreamBinner: window ends on anchor + k * bin "
                    "<= step, output once end - anchor >= window"},
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
-                     "bands_hz": [list(b) for b in BANDS_HZ], "in_graph": True},
+                     "bands_hz": [list(b) for b in BANDS_HZ], "spectrum_hz": list(SPECTRUM_HZ), "in_graph": True},
         "estimator": _describe(pipe),
         "params": {"sha256": params_hash(used), "pvdf_window_ms": spec.pvdf_window_ms,
                    "source": str(params.provenance.get("source") or params.provenance.get("dataset") or "unknown"),
@@ -123,8 +126,8 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
 
 def _describe(pipe: Pipeline) -> str:
     est = pipe.steps[-1][1]
-    if isinstance(est, MLPRegressor):
-        return f"StandardScaler + MLPRegressor(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_})"
+    if isinstance(est, (MLPRegressor, MLPClassifier)):
+        return f"StandardScaler + {type(est).__name__}(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_})"
     svc = est.estimator
     return f"StandardScaler + CalibratedClassifierCV(SVC(rbf, C={svc.C}, gamma=scale), sigmoid, ensemble=False, trial folds)"
 

@@ -143,8 +143,10 @@ def texture_windows(
     silence_us: int = TEXTURE_SILENCE_US,
     bin_us: int = F.BIN_US,
     step_us: int = F.STEP_US,
+    classes: Sequence[str] = ("PC",),
 ) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray]:
-    """(PC counts (n, n_bins, 1), label per window, trial index (n,), step (n,) us) over ``trials``.
+    """(counts of ``classes`` (n, n_bins, n_classes), label per window, trial index (n,), step (n,) us)
+    over ``trials``.
 
     The anchor is the trial's first PC spike, or a later one after ``silence_us`` without PC
     spikes (:func:`features.anchors`, as the streaming decoder does); windows end at most at the
@@ -160,11 +162,11 @@ def texture_windows(
         ends, anchor = F.anchored_end(steps, F.anchors(pc, silence_us), bin_us)
         ok = F.ready(ends, anchor, window_us) & (ends <= stop)
         ends = ends[ok]
-        xs.append(F.counts_tensor(tr.spikes_us, ["PC"], ends, window_us, bin_us))
+        xs.append(F.counts_tensor(tr.spikes_us, classes, ends, window_us, bin_us))
         labels += [tr.label] * ends.size
         gs.append(np.full(ends.size, i))
         ts.append(steps[ok])
     nb = F.n_bins(window_us, bin_us)
     if not xs:
-        return np.zeros((0, nb, 1), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64)
+        return np.zeros((0, nb, len(classes)), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64)
     return np.concatenate(xs), labels, np.concatenate(gs), np.concatenate(ts)
