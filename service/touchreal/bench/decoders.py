@@ -23,19 +23,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
 
 
-def _times_ms(fn, n: int) -> tuple[float, float, float]:
-    """(mean, p99, median) of ``n`` timed calls after a warm-up (ms)."""
+def _times_ms(fn, n: int) -> tuple[float, float, float, float]:
+    """(wall mean, wall p99, wall median, CPU mean = process user + sys) of ``n`` timed calls after a
+    warm-up (ms); the CPU time does not grow with other jobs' load as the wall time does."""
     for _ in range(min(20, n)):
         fn()
     t = np.empty(n)
+    c0 = time.process_time()
     for i in range(n):
         t0 = time.perf_counter()
         fn()
         t[i] = time.perf_counter() - t0
-    return float(t.mean() * 1e3), float(np.percentile(t, 99) * 1e3), float(np.median(t) * 1e3)
+    cpu = (time.process_time() - c0) / n
+    return float(t.mean() * 1e3), float(np.percentile(t, 99) * 1e3), float(np.median(t) * 1e3), cpu * 1e3
 
 
-def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
+def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float, float]:
     """One inference per update (a stateful model's state fed back, as the streaming decoder does)."""
     sess = model.session(threads)
     shape = [n_taxels] + model.meta["input"]["shape"][1:]
@@ -48,7 +51,7 @@ def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[floa
     return _times_ms(one, updates)
 
 
-def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float]:
+def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[float, float, float, float]:
     from touchreal.decoding.streaming import StreamingDecoder
     from touchreal_client.features import CLASSES
 
@@ -80,13 +83,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("no decoder models to benchmark")
     rng = np.random.default_rng(0)
     product = [m for m in models if m.meta["training"].get("folder", "") == ""]
-    print("time per update (ms), onnxruntime run and the whole StreamingDecoder.push, threads =", args.threads)
-    print(f"{'model':<18} {'taxels':>6} {'ort mean':>9} {'ort p99':>8} {'push mean':>10} {'push p99':>9}")
+    print("time per update (ms; wall mean, p99, CPU mean), onnxruntime run and the whole StreamingDecoder.push, threads =", args.threads)
+    print(f"{'model':<18} {'taxels':>6} {'ort mean':>9} {'ort p99':>8} {'ort cpu':>8} {'push mean':>10} {'push p99':>9} {'push cpu':>9}")
     for m in product:
         for n in args.taxels:
-            om, op, _ = _ort_ms(m, n, args.updates, args.threads, rng)
-            pm, pp, _ = _push_ms(m, n, args.updates, args.threads, rng)
-            print(f"{m.name:<18} {n:>6d} {om:>9.3f} {op:>8.3f} {pm:>10.3f} {pp:>9.3f}")
+            om, op, _, oc = _ort_ms(m, n, args.updates, args.threads, rng)
+            pm, pp, _, pc = _push_ms(m, n, args.updates, args.threads, rng)
+            print(f"{m.name:<18} {n:>6d} {om:>9.3f} {op:>8.3f} {oc:>8.3f} {pm:>10.3f} {pp:>9.3f} {pc:>9.3f}")
     print()
     print("run time against accuracy across decoding windows (held-out metrics from the metadata)")
     big = max(args.taxels)
