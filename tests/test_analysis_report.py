@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from test_fitting_fit import tiny_rig_subset
+from touchreal.analysis import metrics as M
 from touchreal.analysis import report as R
+from touchreal.analysis import trials as T
 from touchreal.fitting import fit as F
 from touchreal.params import default_params
 from touchreal.settings import CHANNELS, CLASSES
@@ -67,14 +69,14 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
             total = sum(r[f"n_{key}"] * per_cond[r["condition"]] for r in ramp_rows)
             assert sum(r[f"{key}_spikes"] * r["n_trials"] for r in tp_rows) == pytest.approx(total)
     assert "turning points" in (out / "report.md").read_text()
-    assert set(disk["missing_spike_bound"]) == set(R.BOUND_CLASSES)
-    for c in R.BOUND_CLASSES:  # the missing-spike bound: one row per jitter; filling can only add spikes
+    assert set(disk["missing_spike_bound"]) == set(M.BOUND_CLASSES)
+    for c in M.BOUND_CLASSES:  # the missing-spike bound: one row per jitter; filling can only add spikes
         fitted = disk["missing_spike_bound"][c]["as_fitted"]
         assert fitted["ratio_inter_intra"] == pytest.approx(disk["mapping"][c]["all"]["ratio_inter_intra"])
         assert fitted["count_error"] == pytest.approx(disk["mapping"][c]["all"]["count_error_mean"])
         for b in disk["missing_spike_bound"][c].values():
             rows = b["filled"]
-            assert [r["jitter_ms"] for r in rows] == list(R.BOUND_JITTERS_MS)
+            assert [r["jitter_ms"] for r in rows] == list(M.BOUND_JITTERS_MS)
             assert len({r["added_per_ramp_trial"] for r in rows}) == 1 and rows[0]["added_per_ramp_trial"] >= 0
             assert len({r["count_error"] for r in rows}) == 1  # jitter moves spikes, not counts
     assert "Missing-spike bound" in (out / "report.md").read_text()
@@ -88,8 +90,8 @@ def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
 def test_mapping_metrics_against_direct_vr_computation(tiny):
     params = default_params()
     entries = [e for e in tiny.entries("sine") if e["params"]["freq_hz"] == 100.0]
-    trials = R.run_trials(tiny, entries, params, ["PC"])
-    m = R.mapping_metrics(trials, trials, ["PC"], 0.001)
+    trials = T.run_trials(tiny, entries, params, ["PC"])
+    m = M.mapping_metrics(trials, trials, ["PC"], 0.001)
     row = m["PC"]["rows"][0]
     from touchreal.analysis.spiketrains import vr_distance
 
@@ -105,20 +107,20 @@ def test_mapping_metrics_against_direct_vr_computation(tiny):
 def test_held_out_selection_follows_the_fit_provenance(tiny):
     entries = [e for e in tiny.entries() if e["protocol"] in ("ramp", "sine")]
     p = default_params()
-    held, all_e, note = R.select_held_out(tiny, p)
+    held, all_e, note = T.select_held_out(tiny, p)
     assert len(held) == len(all_e) == len(entries) and "not fitted" in note
     prov = dict(p.provenance, fitted_by="touchreal fit", split_method=F.SPLIT_METHOD, dataset="rig-v1-tiny", split_seed=7)
     fitted = p.model_copy(update={"provenance": prov})
-    held, _, note = R.select_held_out(tiny, fitted)
+    held, _, note = T.select_held_out(tiny, fitted)
     _, expected = F.split_repeats(entries, 7)
     assert [e["id"] for e in held] == [e["id"] for e in expected]
     assert "seed 7" in note
-    held_all, _, _ = R.select_held_out(tiny, fitted, "all")
+    held_all, _, _ = T.select_held_out(tiny, fitted, "all")
     assert len(held_all) == len(entries)
-    train, _, note = R.select_held_out(tiny, fitted, "train")
+    train, _, note = T.select_held_out(tiny, fitted, "train")
     assert {e["id"] for e in train} == {e["id"] for e in entries} - {e["id"] for e in expected} and "TRAINING" in note
     with pytest.raises(ValueError, match="split train needs"):
-        R.select_held_out(tiny, p, "train")
+        T.select_held_out(tiny, p, "train")
 
 
 def test_cli_evaluate(tiny, tmp_path):

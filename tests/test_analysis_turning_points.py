@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from touchreal.analysis import turning_points as tp
-from touchreal.analysis.report import EvalTrial
+from touchreal.analysis.trials import EvalTrial
 
 
 def ramp_entry(v_up: float, v_down: float, hold_s: float, depth_mm: float = 1.0, onset_s: float = 0.3) -> dict:
@@ -106,7 +106,7 @@ def _trial(cond: str, tr: np.ndarray, ts: list[np.ndarray]) -> EvalTrial:
 
 
 def test_missing_spike_bound_with_exact_times_removes_the_count_error_and_jitter_costs_vr():
-    from touchreal.analysis.report import mapping_metrics, missing_spike_bound
+    from touchreal.analysis.metrics import mapping_metrics, missing_spike_bound
 
     e = ramp_entry(40.0, 40.0, 0.5)
     tps = [t for _, t, _ in tp.turning_points(e)]
@@ -128,7 +128,7 @@ def test_missing_spike_bound_with_exact_times_removes_the_count_error_and_jitter
 
 
 def test_missing_spike_bound_unbiased_base_removes_each_turning_points_median_offset():
-    from touchreal.analysis.report import missing_spike_bound
+    from touchreal.analysis.metrics import missing_spike_bound
 
     e = ramp_entry(40.0, 40.0, 0.5)
     tps = np.asarray([t for _, t, _ in tp.turning_points(e)])

@@ -82,14 +82,16 @@ def test_authenticated_publisher_and_gateway_stream_and_nobody_else_gets_in(tmp_
             refused = [await _refused_publish(url, pub_auth, subjects.demand(SENSOR), fake),  # publishers: no demand
                        await _refused_publish(url, gw_auth, subjects.frames(SENSOR), b"TR"),  # gateways: no frames
                        await _refused_publish(url, gw_auth, subjects.hello(SENSOR), b"{}")]  # nor hello announcements
-            return hello, frames
+            return hello, frames, refused
 
-        hello, frames = run(go())
+        hello, frames, refused = run(go())
         status = httpx.get(f"http://{addr}/v1/status").json()["nats"]
     spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
     assert hello["session"] == svc.session and len(spikes) >= 30
     seqs = [f.header.seq for f in spikes]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and all(set(f.taxel.tolist()) <= {1} for f in spikes)
+    for error, subject in zip(refused, (subjects.demand(SENSOR), subjects.frames(SENSOR), subjects.hello(SENSOR))):
+        assert subject in error.lower(), error  # each refusal names the subject it refused
     assert status["auth"] == "user publisher" and "intruder" not in status["gateways"]
     assert gw.status()["auth"] == "user gateway"
     assert pub_auth.password.get_secret_value() not in json.dumps(status)
@@ -165,7 +167,7 @@ def test_deploy_nats_wires_the_config_credentials_and_ports_the_commands_have():
 
     from touchreal.bridge import command as gateway_command
     from touchreal.bridge.gateway import GatewaySettings
-    from touchreal.server import command as serve_command
+    from touchreal.commands import serve as serve_command
 
     deploy = CONF.parent
     parser = argparse.ArgumentParser()

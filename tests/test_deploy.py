@@ -21,12 +21,11 @@ import time
 from pathlib import Path
 
 import httpx
-import pytest
 import yaml
 from server_harness import free_port
 from touchreal_client import Client
 
-from touchreal.server import command
+from touchreal.commands import serve as command
 from touchreal.server.app import create_app
 from touchreal.server.service import Service
 from touchreal.server.settings import RuntimeConfig, ServeSettings

@@ -254,7 +254,8 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
 def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path):
     """Each class fitted on its own window's channels; every trial trains; the file records the
     rig's lag as its alignment (delays >= 0), and `evaluate --split auto` knows nothing was held out."""
-    from touchreal.analysis.report import EvalConfig, evaluate, run_trials
+    from touchreal.analysis.report import EvalConfig, evaluate
+    from touchreal.analysis.trials import run_trials
 
     ds = tiny_rig_subset(rig, tmp_path / "tiny", sine_repeats=1)
     cfg = F.FitConfig(classes=("SA1", "RA"), class_window_ms={"SA1": 16.0, "RA": 32.0}, holdout=False, popsize=4,

@@ -15,7 +15,7 @@ import pytest
 from server_harness import free_port, running_server
 
 from touchreal.cli import build_parser
-from touchreal.server.command import settings_from
+from touchreal.commands.serve import settings_from
 from touchreal.server.settings import ServeSettings
 from touchreal.server.settings_doc import render
 

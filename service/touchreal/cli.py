@@ -21,7 +21,7 @@ COMMAND_MODULES = (
     "touchreal.analysis.command",
     "touchreal.bench.command",
     "touchreal.decoding.command",
-    "touchreal.server.command",
+    "touchreal.commands.serve",
     "touchreal.bridge.command",
     "touchreal.commands.record",
     "touchreal.commands.export",

@@ -1,5 +1,5 @@
 """Matplotlib figures of the evaluation report (Agg backend, PNG). Each function takes plain
-arrays/dicts computed by :mod:`touchreal.analysis.report` and writes one file."""
+arrays/dicts computed by :mod:`touchreal.analysis.metrics` and writes one file."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ end), over the trials:
   (median and quartiles over the trials where both fired), and ``ts_latency_ms`` / ``tr_latency_ms``:
   the first spikes' median latency from the commanded turning point.
 
-Times are relative to the commanded onset, as in :class:`~touchreal.analysis.report.EvalTrial`.
+Times are relative to the commanded onset, as in :class:`~touchreal.analysis.trials.EvalTrial`.
 Pure computation: no I/O.
 """
 
@@ -100,7 +100,7 @@ def _quartiles(v: list[float]) -> list[float] | None:
 
 def turning_point_table(trials: Sequence[Any], classes: Sequence[str]) -> dict[str, list[dict[str, Any]]]:
     """Per class: one row per (turning point, speed) over the ramp trials (objects with ``entry``,
-    ``tr`` and ``ts`` as :class:`~touchreal.analysis.report.EvalTrial`), ordered by turning point
+    ``tr`` and ``ts`` as :class:`~touchreal.analysis.trials.EvalTrial`), ordered by turning point
     and speed."""
     out: dict[str, list[dict[str, Any]]] = {}
     for cls in classes:

@@ -1,6 +1,6 @@
 """``touchreal serve``: the service on a source (the simulated e-skin by default).
 
-Its flags are :class:`~.settings.ServeSettings`' fields: ``--NAME`` for each (``_`` -> ``-``), each
+Its flags are :class:`~touchreal.server.settings.ServeSettings`' fields: ``--NAME`` for each (``_`` -> ``-``), each
 also read from ``TOUCHREAL_<NAME>``; a flag given wins over the environment, which wins over the
 default. Booleans are ``--NAME`` / ``--no-NAME``; lists are one comma-separated value.
 """
@@ -10,13 +10,12 @@ from __future__ import annotations
 import argparse
 import typing
 
-from .settings import ServeSettings
+from ..bridge import auth as nats_auth
+from ..server.settings import ServeSettings
 
 
 def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
-
-from ..bridge import auth as nats_auth
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,8 +45,8 @@ def settings_from(args: argparse.Namespace) -> ServeSettings:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .app import create_app, uvicorn_config
-    from .service import Service
+    from ..server.app import create_app, uvicorn_config
+    from ..server.service import Service
 
     settings = settings_from(args)
     config = settings.runtime_config()
