@@ -87,7 +87,8 @@ def validate_metadata(meta: Any, where: str) -> dict[str, Any]:
     state = meta.get("state")
     if state is not None:
         ok = (isinstance(state, dict) and isinstance(state.get("size"), int) and state["size"] > 0
-              and isinstance(state.get("input"), str) and state.get("output") in meta["outputs"][1:]
+              and isinstance(state.get("input"), str) and isinstance(meta["outputs"], list)
+              and state.get("output") in meta["outputs"][1:]
               and meta["window_ms"] == meta["step_ms"])
         if not ok:
             raise DecoderModelError(f"{where}: a stateful model names its state input, its state output (after the "
@@ -146,7 +147,8 @@ class DecoderModel:
 
     def run(self, session, counts: np.ndarray, state: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """One step: ((batch, n_outputs) float32 force (N) or label probabilities, the next state or
-        None) from a counts tensor and, for a stateful model, the previous state (required)."""
+        None) from a counts tensor and, for a stateful model, the previous state (required; a
+        stateless model ignores it)."""
         feeds = {self.meta["input"]["name"]: np.asarray(counts, np.float32)}
         if not self.stateful:
             return session.run([self.meta["outputs"][0]], feeds)[0], None

@@ -58,7 +58,7 @@ class StreamingDecoder:
         order, rows in the order of ``taxels``."""
         out = []
         for step, counts, filled in self.binner.push(t_us, taxel, cls, final_us):
-            values, state = self.model.run(self._session, counts, self._state if self.model.stateful else None)
+            values, state = self.model.run(self._session, counts, self._state)  # a stateless model ignores it
             if state is not None:
                 self._state = state
             values = np.asarray(values, dtype=np.float32).reshape(counts.shape[0], -1)
