@@ -61,7 +61,7 @@ def test_trained_spectral_model_streams_the_offline_outputs(fine, tmp_path):
     assert model.meta["bin_ms"] == 1.0 and model.meta["classes"] == ["SA1", "RA", "PC"]
     assert spec_from_meta(model.meta) == spec
     tr = fine[9]
-    held, _, g, steps = windows(spec, [tr])
+    held, _, _, steps = windows(spec, [tr])
     expected = model.run(model.session(1), held)[0]
     np.testing.assert_allclose(expected, pipe.predict_proba(fs.transform(held)), atol=1e-4)
     t = np.concatenate([tr.spikes_us[c] for c in CLASSES])
