@@ -1,7 +1,9 @@
 """Training: windows of the training trials -> scikit-learn pipeline -> ONNX with metadata.
 
 Force: ``StandardScaler`` + ``MLPRegressor`` (64, 32 ReLU units, early stopping) on the flattened
-counts. Texture: ``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
+counts (and, stateful, their filtered counts carried across steps). Texture ``spectral``:
+``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping). Other texture sets:
+``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
 ``CalibratedClassifierCV(ensemble=False)`` on folds of whole trials (scikit-learn's own
 ``SVC(probability=True)`` is deprecated and calibrates on folds of windows, which would mix a
 trial's windows across its internal folds). Every model is then evaluated by

@@ -2,9 +2,9 @@
 streaming decoder would see (the rules of :mod:`touchreal_client.features`).
 
 * Force: one window per 32 ms step ``T`` (absolute grid) with ``window_ms <= T - t_first`` inside
-  the trial; label = mean SingleTact force (N) of the samples in the last bin ``[T - 10 ms, T)``
+  the trial (a stateful model: one per step of its own, window = step, from the recording's start); label = mean SingleTact force (N) of the samples in the last bin ``[T - 10 ms, T)``
   (the force interpolated at the bin centre when the bin holds no sample).
-* Texture: PC counts anchored at the first PC spike of the trial (re-anchored after 500 ms of PC
+* Texture: counts of the model's classes (PC; SA1, RA, PC for ``spectral``) anchored at the first PC spike of the trial (re-anchored after 500 ms of PC
   silence, as online); one window per step whose
   anchored window is filled and ends by the stimulus end (manifest ``stim_end_s``); label = the
   manifest's ``texture`` (else its condition).
