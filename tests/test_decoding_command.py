@@ -30,7 +30,8 @@ def trained(datasets, tmp_path_factory):
 
 def test_train_writes_models_with_metadata(trained, datasets):
     names = sorted(p.stem for p in trained.glob("*.onnx"))
-    assert names == ["force", "force_ra", "force_sa1", "texture", "texture_both", "texture_rate"]
+    assert names == ["force", "force_fast", "force_ra", "force_sa1", "texture", "texture_both", "texture_rate",
+                     "texture_spectral"]
     tex = load_model(trained / "texture.onnx").meta
     assert tex["labels"] == ["comb_0.5mm", "comb_2mm", "comb_4mm"]
     assert tex["training"]["split"] == "train" and tex["training"]["heldout_trials"] == 6
@@ -38,8 +39,22 @@ def test_train_writes_models_with_metadata(trained, datasets):
     assert tex["alignment"]["class"] == "PC" and tex["window_ms"] == 500.0
     force = load_model(trained / "force.onnx").meta
     assert force["classes"] == ["SA1", "RA"] and force["input"]["shape"] == [None, 13, 2]
+    fast = load_model(trained / "force_fast.onnx").meta
+    assert fast["window_ms"] == fast["step_ms"] == 32.0 and fast["input"]["shape"] == [None, 4, 2]
+    assert fast["state"]["size"] == 12 and fast["outputs"] == ["force_N", "state_out"]
     held = json.loads((trained / "metrics.json").read_text())
     assert "texture.temporal.acc_500ms" in held and held["info.split"] == "heldout"
+
+
+def test_train_only_named_models_and_unknown_names_are_an_error(datasets, tmp_path, capsys):
+    out = tmp_path / "only"
+    assert main(["decoders", "train", str(datasets[0]), "--tasks", "texture", "--only", "texture_spectral",
+                 "--out", str(out), "--no-sweeps", "--quiet"]) == 0
+    assert sorted(p.stem for p in out.glob("*.onnx")) == ["texture_spectral"]
+    spectral = load_model(out / "texture_spectral.onnx").meta
+    assert spectral["classes"] == ["SA1", "RA", "PC"] and spectral["bin_ms"] == 1.0 and spectral["input"]["shape"] == [None, 200, 3]
+    rc = main(["decoders", "train", str(datasets[0]), "--tasks", "texture", "--only", "force_fast", "--out", str(tmp_path / "x"), "--quiet"])
+    assert rc == 2 and "force_fast" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
 
 def test_evaluate_all_on_a_test_dataset(trained, datasets, tmp_path, capsys):
@@ -47,8 +62,9 @@ def test_evaluate_all_on_a_test_dataset(trained, datasets, tmp_path, capsys):
     assert main(["decoders", "evaluate", str(datasets[1]), "--models", str(trained), "--out", str(out), "--split", "all", "--quiet"]) == 0
     m = json.loads(out.read_text())
     for key in ("force.SA1+RA.r2", "force.SA1.rmse", "force.RA.mae", "force.SA1+RA.oscillation", "force.SA1+RA.pearson_r",
-                "force.SA1+RA.trial_rmse", "force.window.128ms.SA1+RA.r2", "texture.temporal.acc_500ms",
-                "texture.rate.acc_500ms_fold_std", "texture.both.acc_500ms", "texture.chance"):
+                "force.SA1+RA.trial_rmse", "force.window.128ms.SA1+RA.r2", "force.fast.SA1+RA.r2",
+                "force.fast.window.32ms.SA1+RA.rmse", "texture.temporal.acc_500ms",
+                "texture.rate.acc_500ms_fold_std", "texture.both.acc_500ms", "texture.spectral.acc_200ms", "texture.chance"):
         assert key in m, key
     assert len(m["force.SA1+RA.trial_rmse"]) == 3 and m["texture.chance"] == pytest.approx(1 / 3)
     assert m["info.runtime"] == "onnxruntime" and m["info.split"] == "all"

@@ -46,7 +46,7 @@ def _export(tmp_path, spec, counts, target, groups):
     return load_model(path), pipe, fs
 
 
-@pytest.mark.parametrize("features", ["temporal", "rate", "both"])
+@pytest.mark.parametrize("features", ["temporal", "rate", "both", "spectral"])
 def test_texture_onnx_matches_sklearn(tmp_path, features):
     rng = np.random.default_rng(0)
     spec = ModelSpec(f"tex_{features}", "texture", ("PC",), 200.0, features)
@@ -76,7 +76,7 @@ def test_force_onnx_matches_sklearn(tmp_path, classes):
     model, pipe, fs = _export(tmp_path, spec, x, y, np.arange(len(y)) // 30)
     hx, hy = _force_data(np.random.default_rng(4), 300, 13)
     hx = hx[:, :, : len(classes)]
-    out = model.run(model.session(1), hx)
+    out, _ = model.run(model.session(1), hx)
     ref = pipe.predict(fs.transform(hx))
     assert out.shape == (300, 1)
     assert np.max(np.abs(out[:, 0] - ref) / np.maximum(np.abs(ref), 1e-3)) < 1e-4

@@ -46,7 +46,7 @@ def test_stream_equals_offline_windows(trials, name, protocol):
     tr = trials[protocol]
     counts, _, _, steps = windows(spec_from_meta(model.meta), [tr])
     assert steps.size > 10
-    expected = model.run(model.session(1), counts)
+    expected, _ = model.run(model.session(1), counts)
     t, _, cls = _events(tr, 3)
     noise = np.sort(np.random.default_rng(0).integers(0, tr.end_us, 300)).astype(np.uint64)
     events = (np.concatenate([t, noise]), np.concatenate([np.full(t.size, 3), np.full(noise.size, 4)]),

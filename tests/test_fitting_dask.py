@@ -53,7 +53,7 @@ def _assert_same_fit(a: F.FitResult, b: F.FitResult) -> None:
     assert list(a.classes) == list(b.classes)
     for c in a.classes:
         np.testing.assert_array_equal(a.classes[c].x, b.classes[c].x)  # bit-identical, not close
-        assert a.classes[c].history == b.classes[c].history
+        assert [r.history for r in a.classes[c].runs] == [r.history for r in b.classes[c].runs]
         assert a.classes[c].evaluations == b.classes[c].evaluations
         assert a.params.classes[c] == b.params.classes[c]
         assert a.classes[c].train.as_dict() == b.classes[c].train.as_dict()

@@ -11,6 +11,11 @@ import pytest
 from touchreal.analysis.turning_points import turning_points
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
+from touchreal.fitting import search as S
+from touchreal.fitting.config import FitConfig
+from touchreal.fitting.executor import FitState, LocalExecutor
+from touchreal.fitting.split import split_repeats
+from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
 from touchreal.fitting.objective import evaluate_loss
 from touchreal.fitting.space import INITIAL_WEIGHTS, N_DIM, ParamSpace
 from touchreal.params import ClassParams, EncoderParams, PreprocessParams
@@ -44,14 +49,14 @@ def tiny_rig_subset(rig, root, sine_repeats: int = 4):
 def test_split_by_repeat_is_disjoint_balanced_and_seeded():
     entries = [{"id": f"c{c}_r{r}", "condition": f"c{c}", "repeat": r} for c in range(30) for r in range(4)]
     entries += [{"id": "solo", "condition": "solo", "repeat": 0}]
-    tr, te = F.split_repeats(entries, seed=3)
+    tr, te = split_repeats(entries, seed=3)
     ids_tr, ids_te = {e["id"] for e in tr}, {e["id"] for e in te}
     assert not ids_tr & ids_te and len(ids_tr | ids_te) == len(entries)
     for c in range(30):
         assert sum(e["condition"] == f"c{c}" for e in tr) == 2
     assert "solo" in ids_tr  # one-trial conditions only train
-    assert F.split_repeats(entries, seed=3) == (tr, te)
-    assert {e["id"] for e in F.split_repeats(entries, seed=4)[0]} != ids_tr
+    assert split_repeats(entries, seed=3) == (tr, te)
+    assert {e["id"] for e in split_repeats(entries, seed=4)[0]} != ids_tr
 
 
 # ----------------------------------------------------------------------------------- space
@@ -87,7 +92,7 @@ def test_space_without_pvdf_holds_the_pvdf_weights_at_zero():
     assert space.fixed() == {4: 0.0, 5: 0.0, 6: 0.0, 7: 0.0}
     x = np.random.default_rng(1).uniform(*space.bounds())
     assert space.decode(x).weights[4:] == [0.0] * 4 and space.decode(x).weights[0] != 0.0
-    es = F._cma(space, space.initial(0.0, 1), 6, 2, 1)  # CMA-ES does not search them
+    es = S.make_cma(space, space.initial(0.0, 1), 6, 2, 1)  # CMA-ES does not search them
     assert np.all(np.asarray(es.ask())[:, 4:8] == 0.0)
 
 
@@ -105,7 +110,7 @@ def _synthetic_channels(seed, n=6000):
 
 
 def _trial(i, channels, onset, refs, k0=50):
-    return F.TrialData(f"t{i}", f"c{i // 2}", "ramp", onset, k0, channels, {"SA1": refs}, {"SA1": 1})
+    return TrialData(f"t{i}", f"c{i // 2}", "ramp", onset, k0, channels, {"SA1": refs}, {"SA1": 1})
 
 
 def test_batched_candidates_equal_one_at_a_time():
@@ -115,7 +120,7 @@ def test_batched_candidates_equal_one_at_a_time():
         ClassParams(weights=[0, 0, 0, 0, 2.0, 2.0, 1e-3, 1e-3], i_sat=20.0, tau_ms=1.2, ih=[-6, -0.5], delay_ms=0),
     ]
     trials = [_trial(i, _synthetic_channels(i), 0.1 * i, []) for i in range(3)]
-    batched = F.simulate(trials, params, lag_s=0.065)  # on the reference clock: stamps minus the rig's lag
+    batched = simulate(trials, params, lag_s=0.065)  # on the reference clock: stamps minus the rig's lag
     n_spikes = 0
     for j, p in enumerate(params):
         for a, tr in zip(batched[j], trials):
@@ -149,11 +154,11 @@ def test_synthetic_fit_recovers_the_generating_parameters():
             for m in models:
                 base = encode_population(ch, 50 / 5000.0, [m])[0] - onset
                 refs.append(np.sort(base + rng.normal(0, 0.002, base.size)))
-        trials.append(F.TrialData(f"t{i}", f"c{i}", "ramp", onset, 50, ch, {"SA1": refs}, {"SA1": 4}))
-    tset = F.TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
-    cfg = F.FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
+        trials.append(TrialData(f"t{i}", f"c{i}", "ramp", onset, 50, ch, {"SA1": refs}, {"SA1": 4}))
+    tset = TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
+    cfg = FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
     refs = tset.reference_set("SA1", cfg.objective.kernel_tau_s, 80)
-    ev = F.LocalExecutor(F.FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0), 1)
+    ev = LocalExecutor(FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0), 1)
 
     def loss(x):
         return ev("SA1", np.array([x]))[0][0]
@@ -162,15 +167,16 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     x_start = space.initial(10.0)
     x_start[:8] = [0.5, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     l_start = loss(x_start)
-    fit = F.fit_class("SA1", space, ev, cfg, [x_start], 0.0)
-    assert fit.history == sorted(fit.history, reverse=True)  # best-so-far never increases
+    fit = S.fit_class("SA1", space, ev, cfg, [x_start], 0.0)
+    for run in fit.runs:
+        assert run.history == sorted(run.history, reverse=True)  # best-so-far never increases
     l_fit = loss(fit.x)
     assert l_fit < 0.4 * l_start
     assert l_fit < l_true + 0.15
     assert fit.params.delay_ms == pytest.approx(true.delay_ms, abs=6.0)
     # identifiable behaviour: spike counts per condition match the references' (tau and the
     # weights trade off against each other, so they are not compared one by one)
-    terms = evaluate_loss(F.simulate(trials, [fit.params])[0], tset.cond_index, refs, cfg.objective)
+    terms = evaluate_loss(simulate(trials, [fit.params])[0], tset.cond_index, refs, cfg.objective)
     assert np.mean(np.abs(terms.n_s - terms.n_t) / terms.n_t) < 0.15
 
 
@@ -180,7 +186,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
 @pytest.mark.shared
 def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     ds = tiny_rig_subset(rig, tmp_path / "tiny")
-    cfg = F.FitConfig(popsize=6, max_generations=2, workers=2, progress=False, seed=1)
+    cfg = FitConfig(popsize=6, max_generations=2, workers=2, progress=False, seed=1)
     res = F.fit_dataset(ds.root, cfg)
     p = res.params
     assert set(p.classes) == set(CLASSES)
@@ -197,7 +203,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
         assert f.generations <= 3
     # reproducible
-    res2 = F.fit_dataset(ds.root, F.FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
+    res2 = F.fit_dataset(ds.root, FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
     for c in CLASSES:
         assert res2.params.classes[c] == p.classes[c]
     # the CLI writes a loadable file; --classes keeps the others from --init
@@ -222,10 +228,16 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--segmented-count-classes", "none"]) == 0
     assert json.loads(out.read_text())["provenance"]["objective"]["segmented_count_classes"] == []
+    # the file records every CMA-ES run of a class (a restart: population x2, generations /2)
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "2", "--popsize", "4", "--restarts", "1",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert [(r["popsize"], r["generations"], r["stop"]) for r in prov["loss"]["PC"]["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
+    assert prov["loss"]["PC"]["generations"] == 3 and prov["optimizer"]["restarts"] == 1
     with pytest.raises(ValueError):
-        F.FitConfig(count_weight=-1.0)
+        FitConfig(count_weight=-1.0)
     with pytest.raises(ValueError, match="segmented_count_classes"):
-        F.FitConfig(segmented_count_classes=("PC", "SA2"))
+        FitConfig(segmented_count_classes=("PC", "SA2"))
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "XX"]) == 2
 
 
@@ -233,7 +245,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
 def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     ds = tiny_rig_subset(rig, tmp_path / "tiny")
     entries = [e for e in ds.entries() if e["protocol"] in ("ramp", "sine")]
-    tset = F.build_trial_set(ds, entries, PreprocessParams(), ["PC"])
+    tset = build_trial_set(ds, entries, PreprocessParams(), ["PC"])
     for e, t in zip(entries, tset.trials):
         if e["protocol"] == "ramp":
             tps = [x for _, x, _ in turning_points(e)]
@@ -258,7 +270,7 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
     from touchreal.analysis.trials import run_trials
 
     ds = tiny_rig_subset(rig, tmp_path / "tiny", sine_repeats=1)
-    cfg = F.FitConfig(classes=("SA1", "RA"), class_window_ms={"SA1": 16.0, "RA": 32.0}, holdout=False, popsize=4,
+    cfg = FitConfig(classes=("SA1", "RA"), class_window_ms={"SA1": 16.0, "RA": 32.0}, holdout=False, popsize=4,
                       max_generations=1, restarts=0, workers=1, progress=False, input_stage_classes=(), no_pvdf_classes=("SA1",))
     res = F.fit_dataset(ds.root, cfg)
     p = res.params
@@ -273,8 +285,8 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
     entries = [e for e in ds.entries() if e["protocol"] in ("ramp", "sine")]
     trials = run_trials(ds, entries, p, ["SA1", "RA"])
     for cls in ("SA1", "RA"):
-        tset = F.build_trial_set(ds, entries, p.preprocess.model_copy(update={"window_ms": p.window_ms(cls)}), [cls])
-        fast = F.simulate(tset.trials, [p.classes[cls]], p.alignment.lag_ms / 1000.0)[0]
+        tset = build_trial_set(ds, entries, p.preprocess.model_copy(update={"window_ms": p.window_ms(cls)}), [cls])
+        fast = simulate(tset.trials, [p.classes[cls]], p.alignment.lag_ms / 1000.0)[0]
         for a, t in zip(fast, trials):
             np.testing.assert_allclose(a, t.tr[cls], atol=1e-9)
     # ... and of the online stream (every class on its own source; SA1 on the SingleTact alone)
@@ -310,5 +322,5 @@ def test_window_option_per_class():
         with pytest.raises(argparse.ArgumentTypeError):
             parse_windows(bad)
     with pytest.raises(ValueError, match="window_ms"):
-        F.FitConfig(class_window_ms={"RA": 2.0})
-    assert F.FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
+        FitConfig(class_window_ms={"RA": 2.0})
+    assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0

@@ -19,6 +19,13 @@ def _tasks(text: str) -> tuple[str, ...]:
     return tasks
 
 
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    if not names:
+        raise argparse.ArgumentTypeError("--only takes comma-separated model names")
+    return names
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("decoders", help="train, evaluate and list the spike decoders (force, texture; ONNX)",
                        description="Downstream decoders on TouchReal spikes: force regression from SA1/RA and "
@@ -31,6 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", required=True, help="models folder to write (<name>.onnx + <name>.json, sweeps in sweep/)")
     t.add_argument("--tasks", type=_tasks, default=TASKS, help="force,texture (default both)")
     t.add_argument("--no-sweeps", action="store_true", help="only the product models (no window sweeps)")
+    t.add_argument("--only", type=_names, help="only these models of the plan (comma-separated names, e.g. "
+                   "texture_spectral,texture_spectral_w100ms)")
     t.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=run_train)
@@ -76,6 +85,12 @@ def run_train(args: argparse.Namespace) -> int:
     for task in args.tasks:
         require_trials(ds, "ramp" if task == "force" else "texture", f"the {task} decoder")
     specs = plan(args.tasks, sweeps=not args.no_sweeps)
+    if args.only:
+        unknown = sorted(set(args.only) - {s.name for s in specs})
+        if unknown:
+            raise ValueError(f"--only: {unknown} are not in the plan for tasks {','.join(args.tasks)} "
+                             f"(models: {', '.join(s.name for s in specs)})")
+        specs = [s for s in specs if s.name in args.only]
     cache = TrialCache(ds, params)
     total = cache.n_to_encode(specs, "all") + len(specs)
     with _bar(total, args.quiet, "decoders train") as bar:
@@ -165,7 +180,7 @@ def _with_info(metrics: dict[str, Any], ds, split: str, seed: int | None, params
 
 def _summary(metrics: dict[str, Any]) -> None:
     for k in sorted(metrics):
-        if k.startswith("force.") and not k.startswith("force.window.") and k.rsplit(".", 1)[1] in ("rmse", "r2", "pearson_r", "oscillation"):
+        if k.startswith("force.") and ".window." not in k and k.rsplit(".", 1)[1] in ("rmse", "r2", "pearson_r", "oscillation"):
             print(f"  {k} = {metrics[k]:.4f}")
         elif k.startswith("texture.") and k.rsplit("_", 1)[-1] == "500ms" and "prewindow" not in k:
             print(f"  {k} = {metrics[k]:.3f}")

@@ -65,7 +65,7 @@ def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads:
     counts, target, groups, _ = windows(spec, trials)
     if counts.shape[0] == 0:
         return {"n_windows": 0}
-    out = model.run(model.session(threads), counts)
+    out = model.run_windows(model.session(threads), counts, groups)
     if spec.task == "force":
         return force_metrics(target, out[:, 0], groups)
     labels = np.asarray(model.meta["labels"], dtype=object)

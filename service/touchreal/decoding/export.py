@@ -4,7 +4,8 @@ The exported graph is the feature graph of :class:`~touchreal.decoding.features.
 followed by the skl2onnx conversion of the fitted pipeline, so a client feeds binned counts and
 nothing else. Outputs:
 
-* regression: ``force_N`` (batch, 1) float32;
+* regression: ``force_N`` (batch, 1) float32; a stateful model (features with a state filter) also
+  takes ``state`` and returns ``state_out`` (batch, size) float32, to feed back at the next step;
 * classification: ``probabilities`` (batch, n_labels) float32 (no ZipMap) and ``label`` (batch,)
   int64 = ``argmax(probabilities)``, an index into the metadata's ``labels``. The scikit-learn
   side predicts the same way (:func:`predict_labels`), not with ``SVC.predict``.
@@ -25,6 +26,7 @@ from skl2onnx.common.data_types import FloatTensorType
 from touchreal_client.features import META_KEY  # the key clients read too
 
 from .features import FeatureSpec
+from .state import STATE_OUTPUT
 
 TARGET_OPSET = 17
 ML_OPSET = 3
@@ -57,6 +59,7 @@ def to_onnx(pipe: Pipeline, spec: FeatureSpec, meta: dict[str, Any]) -> onnx.Mod
     feats = spec.graph(opset, est.ir_version, INPUT_NAME, "features")
     feats.opset_import.extend([o for o in est.opset_import if o.domain != ""])
     feats = compose.add_prefix(feats, "feat_", rename_inputs=False)
+    state_out = [f"feat_{STATE_OUTPUT}"] if spec.state is not None else []
     out_names = [o.name for o in est.graph.output]
     if classifier:
         proba = next(n for n in out_names if n.endswith("probabilities"))
@@ -72,11 +75,14 @@ def to_onnx(pipe: Pipeline, spec: FeatureSpec, meta: dict[str, Any]) -> onnx.Mod
             ]
         )
     else:
-        merged = compose.merge_models(feats, est, io_map=[("feat_features", "est_features")], outputs=[out_names[0]])
+        merged = compose.merge_models(feats, est, io_map=[("feat_features", "est_features")], outputs=[out_names[0]] + state_out)
         g = merged.graph
         g.node.append(helper.make_node("Identity", [out_names[0]], [REGRESSION_OUTPUT]))
         del g.output[:]
         g.output.extend([helper.make_tensor_value_info(REGRESSION_OUTPUT, onnx.TensorProto.FLOAT, [None, 1])])
+        if state_out:
+            g.node.append(helper.make_node("Identity", state_out, [STATE_OUTPUT]))
+            g.output.append(spec.state.value_info(STATE_OUTPUT))
     merged.producer_name = "touchreal decoders train"
     merged.doc_string = meta.get("description", "")
     set_metadata(merged, meta)

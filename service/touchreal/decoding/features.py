@@ -12,6 +12,15 @@ constant matrices built here are the single definition both sides use.
   and the mean DFT magnitude of the count sequence per 10 Hz band, (0, 10] ... (40, 50] Hz,
   normalised by the number of bins.
 * ``both``: ``temporal`` then ``rate``.
+* ``spectral`` (any classes, fine bins): per class its spike count in the window, then the
+  magnitude of the Hann-tapered Fourier transform of its count sequence at 4, 5, ... 80 Hz
+  (:data:`SPECTRUM_HZ`, evaluated at these frequencies whatever the window), divided by
+  ``max(count, 1)``: a count-normalised line spectrum that carries the spike timing (a texture's
+  temporal frequency speed / spacing and its harmonics) apart from the rate.
+
+A spec with a ``state`` filter (:class:`~touchreal.decoding.state.ExpFilter`, force models at
+closed-loop speed) appends the filtered counts carried across steps to ``counts``; its graph has a
+second input ``state`` and a second output ``state_out``.
 """
 
 from __future__ import annotations
@@ -22,9 +31,12 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-FEATURE_SETS = ("counts", "temporal", "rate", "both")
+from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
+
+FEATURE_SETS = ("counts", "temporal", "rate", "both", "spectral")
 SMOOTH_SIGMA_MS = 20.0
 BANDS_HZ = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 50.0))
+SPECTRUM_HZ = (4.0, 80.0, 1.0)  #: spectral set: first, last, step of the evaluated frequencies (Hz)
 
 
 @dataclass(frozen=True)
@@ -36,12 +48,16 @@ class FeatureSpec:
     n_classes: int
     bin_ms: float
     window_ms: float
+    state: ExpFilter | None = None  #: filtered counts carried across steps (``counts`` only)
 
     def __post_init__(self) -> None:
         if self.kind not in FEATURE_SETS:
             raise ValueError(f"unknown feature set {self.kind!r}; expected one of {FEATURE_SETS}")
-        if self.kind != "counts" and self.n_classes != 1:
+        if self.kind not in ("counts", "spectral") and self.n_classes != 1:
             raise ValueError(f"feature set {self.kind!r} takes one class")
+        if self.state is not None and (self.kind != "counts" or self.state.n_bins != self.n_bins
+                                       or self.state.n_classes != self.n_classes or self.state.step_ms != self.window_ms):
+            raise ValueError("a state filter goes with 'counts' features of its own bins and classes, window = step")
 
     # ---------------------------------------------------------------- constant matrices
     def smoothing(self) -> np.ndarray:
@@ -66,24 +82,62 @@ class FeatureSpec:
                 band[sel, b] = 1.0 / sel.sum()
         return np.cos(arg) / n, np.sin(arg) / n, band
 
+    def spectrum(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(cos, sin, total, expand) matrices on the flattened counts (bins oldest first, classes
+        innermost): ``re = flat @ cos``, ``im = flat @ sin`` ((n_classes * n_freqs) columns, class-major),
+        ``count = flat @ total`` (n_classes), ``count @ expand`` repeats each class's count per frequency."""
+        lo, hi, df = SPECTRUM_HZ
+        freqs = np.arange(lo, hi + df / 2, df)
+        nb, nc, nf = self.n_bins, self.n_classes, freqs.size
+        t = (np.arange(nb) + 0.5) * self.bin_ms / 1000.0  # bin centres (s)
+        taper = np.hanning(nb + 2)[1:-1]
+        cos = np.zeros((nb * nc, nc * nf))
+        sin = np.zeros((nb * nc, nc * nf))
+        total = np.zeros((nb * nc, nc))
+        for c in range(nc):
+            cos[c::nc, c * nf:(c + 1) * nf] = np.cos(2 * np.pi * np.outer(t, freqs)) * taper[:, None]
+            sin[c::nc, c * nf:(c + 1) * nf] = np.sin(2 * np.pi * np.outer(t, freqs)) * taper[:, None]
+            total[c::nc, c] = 1.0
+        expand = np.kron(np.eye(nc), np.ones((1, nf)))
+        return cos, sin, total, expand
+
     # ---------------------------------------------------------------------- names
     def names(self) -> list[str]:
         """Feature order of the matrix fed to the estimator."""
         if self.kind == "counts":
-            return [f"count[bin{b}][c{c}]" for b in range(self.n_bins) for c in range(self.n_classes)]
+            counts = [f"count[bin{b}][c{c}]" for b in range(self.n_bins) for c in range(self.n_classes)]
+            return counts + ([] if self.state is None else self.state.names([f"c{c}" for c in range(self.n_classes)]))
+        if self.kind == "spectral":
+            lo, hi, df = SPECTRUM_HZ
+            freqs = np.arange(lo, hi + df / 2, df)
+            return [f"count[c{c}]" for c in range(self.n_classes)] + [
+                f"spectrum[c{c}][{f:g}Hz]" for c in range(self.n_classes) for f in freqs]
         temporal = [f"psth[bin{b}]" for b in range(self.n_bins)]
         rate = ["rate_hz", "count_var", "frac_nonempty"] + [f"dft_{lo:g}_{hi:g}Hz" for lo, hi in BANDS_HZ]
         return {"temporal": temporal, "rate": rate, "both": temporal + rate}[self.kind]
 
     # ---------------------------------------------------------------------- numpy
-    def transform(self, counts: np.ndarray) -> np.ndarray:
-        """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph."""
+    def transform(self, counts: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+        """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph.
+
+        With a state filter the rows are consecutive steps and ``groups`` (trial of each row) is
+        required: the state restarts at zero on each trial (:meth:`ExpFilter.sequence`)."""
         c = np.asarray(counts, dtype=np.float32)
         if c.ndim != 3 or c.shape[1:] != (self.n_bins, self.n_classes):
             raise ValueError(f"counts must be (batch, {self.n_bins}, {self.n_classes}), got {c.shape}")
         x = c.reshape(c.shape[0], -1)
         if self.kind == "counts":
-            return x
+            if self.state is None:
+                return x
+            if groups is None or len(groups) != x.shape[0]:
+                raise ValueError("stateful features need the trial of every row (groups)")
+            return np.concatenate([x, self.state.sequence(c, groups)], axis=1)
+        if self.kind == "spectral":
+            cos, sin, total, expand = (m.astype(np.float32) for m in self.spectrum())
+            re, im = x @ cos, x @ sin
+            n = x @ total
+            mag = np.sqrt(re * re + im * im)
+            return np.concatenate([n, mag / np.maximum(n @ expand, np.float32(1.0))], axis=1)
         parts = []
         if self.kind in ("temporal", "both"):
             parts.append(x @ self.smoothing().T.astype(np.float32))
@@ -100,7 +154,8 @@ class FeatureSpec:
 
     # ----------------------------------------------------------------------- ONNX
     def graph(self, opset: int, ir_version: int, input_name: str = "counts", output_name: str = "features") -> onnx.ModelProto:
-        """The same transform as an ONNX model ``counts -> features`` (default-domain operators)."""
+        """The same transform as an ONNX model ``counts -> features`` (default-domain operators; a
+        stateful spec also ``state -> state_out``)."""
         nodes: list[onnx.NodeProto] = []
         inits: list[onnx.TensorProto] = []
 
@@ -112,8 +167,27 @@ class FeatureSpec:
             nodes.append(helper.make_node(op, inputs, [out], **attrs))
             return out
 
-        flat = node("Flatten", [input_name], "flat" if self.kind != "counts" else output_name, axis=1)
-        if self.kind != "counts":
+        plain = self.kind == "counts" and self.state is None
+        flat = node("Flatten", [input_name], output_name if plain else "flat", axis=1)
+        inputs = [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [None, self.n_bins, self.n_classes])]
+        outputs = [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [None, len(self.names())])]
+        if self.state is not None:
+            state_nodes, state_inits = self.state.nodes(flat)
+            nodes += state_nodes
+            inits += state_inits
+            node("Concat", [flat, STATE_OUTPUT], output_name, axis=1)
+            inputs.append(self.state.value_info(STATE_INPUT))
+            outputs.append(self.state.value_info(STATE_OUTPUT))
+        elif self.kind == "spectral":
+            cos, sin, total, expand = self.spectrum()
+            re = node("MatMul", [flat, const("spec_cos", cos)], "re")
+            im = node("MatMul", [flat, const("spec_sin", sin)], "im")
+            n = node("MatMul", [flat, const("total", total)], "n")
+            power = node("Add", [node("Mul", [re, re], "re2"), node("Mul", [im, im], "im2")], "power")
+            mag = node("Sqrt", [power], "mag")
+            per = node("Max", [node("MatMul", [n, const("expand", expand)], "n_per_freq"), const("one", np.ones(1))], "n_floor")
+            node("Concat", [n, node("Div", [mag, per], "spectrum")], output_name, axis=1)
+        elif self.kind != "counts":
             parts = []
             if self.kind in ("temporal", "both"):
                 parts.append(node("MatMul", [flat, const("smooth_T", self.smoothing().T)], "psth"))
@@ -134,11 +208,5 @@ class FeatureSpec:
                 var = node("Sub", [mean_sq, node("Mul", [mean, mean], "mean2")], "var")
                 parts += [rate, var, frac, bands]
             node("Concat", parts, output_name, axis=1)
-        g = helper.make_graph(
-            nodes,
-            f"features_{self.kind}",
-            [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [None, self.n_bins, self.n_classes])],
-            [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, [None, len(self.names())])],
-            inits,
-        )
+        g = helper.make_graph(nodes, f"features_{self.kind}", inputs, outputs, inits)
         return helper.make_model(g, opset_imports=[helper.make_opsetid("", opset)], ir_version=ir_version)

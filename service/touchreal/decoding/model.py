@@ -22,6 +22,7 @@ from touchreal_client import features as F
 from ..params import EncoderParams
 from ..settings import PACKAGE_DATA
 from .export import META_KEY
+from .state import step_index
 
 SCHEMA = "touchreal.decoder"
 SCHEMA_VERSION = 1
@@ -83,6 +84,15 @@ def validate_metadata(meta: Any, where: str) -> dict[str, Any]:
         raise DecoderModelError(f"{where}: unknown alignment {align!r}")
     if meta["task"] == "texture" and (not meta.get("labels") or meta["output_names"] != meta["labels"]):
         raise DecoderModelError(f"{where}: a texture model names its labels (output_names == labels)")
+    state = meta.get("state")
+    if state is not None:
+        ok = (isinstance(state, dict) and isinstance(state.get("size"), int) and state["size"] > 0
+              and isinstance(state.get("input"), str) and isinstance(meta["outputs"], list)
+              and state.get("output") in meta["outputs"][1:]
+              and meta["window_ms"] == meta["step_ms"])
+        if not ok:
+            raise DecoderModelError(f"{where}: a stateful model names its state input, its state output (after the "
+                                    f"first output) and size, and its window equals its step; got {state!r}")
     return meta
 
 
@@ -126,9 +136,41 @@ class DecoderModel:
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         return ort.InferenceSession(self.onnx_bytes, so, providers=["CPUExecutionProvider"])
 
-    def run(self, session, counts: np.ndarray) -> np.ndarray:
-        """(batch, n_outputs) float32: force (N) or label probabilities, from a counts tensor."""
-        (out,) = session.run([self.meta["outputs"][0]], {self.meta["input"]["name"]: np.asarray(counts, np.float32)})
+    @property
+    def stateful(self) -> bool:
+        """True when the graph carries state across steps (metadata ``state``)."""
+        return self.meta.get("state") is not None
+
+    def initial_state(self, batch: int) -> np.ndarray:
+        """The state before the first step: zeros ``(batch, size)`` float32 (``(batch, 0)`` stateless)."""
+        return np.zeros((batch, self.meta["state"]["size"] if self.stateful else 0), np.float32)
+
+    def run(self, session, counts: np.ndarray, state: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One step: ((batch, n_outputs) float32 force (N) or label probabilities, the next state or
+        None) from a counts tensor and, for a stateful model, the previous state (required; a
+        stateless model ignores it)."""
+        feeds = {self.meta["input"]["name"]: np.asarray(counts, np.float32)}
+        if not self.stateful:
+            return session.run([self.meta["outputs"][0]], feeds)[0], None
+        if state is None:
+            raise ValueError(f"{self.name} is stateful: pass its state (initial_state at the first step)")
+        feeds[self.meta["state"]["input"]] = np.asarray(state, np.float32)
+        out, nxt = session.run([self.meta["outputs"][0], self.meta["state"]["output"]], feeds)
+        return out, nxt
+
+    def run_windows(self, session, counts: np.ndarray, groups: np.ndarray) -> np.ndarray:
+        """(n, n_outputs) for the windows of recorded trials (``groups``: trial of each row, a trial's
+        windows contiguous and consecutive steps). A stateful model runs one step of every trial per
+        call, each trial's state from zero, as a stream of it would."""
+        if not self.stateful:
+            return self.run(session, counts)[0]
+        pos = step_index(groups)
+        out = np.zeros((pos.size, len(self.meta["output_names"])), np.float32)
+        state = self.initial_state(pos.size)
+        for k in range(int(pos.max()) + 1 if pos.size else 0):
+            rows = np.flatnonzero(pos == k)
+            prev = state[rows - 1] if k else self.initial_state(rows.size)
+            out[rows], state[rows] = self.run(session, counts[rows], prev)
         return out
 
 
@@ -164,10 +206,12 @@ def load_model(path: str | Path) -> DecoderModel:
         if side != meta:
             diff = sorted(k for k in set(side) | set(meta) if side.get(k) != meta.get(k))
             raise DecoderModelError(f"{sidecar}: metadata does not match the one embedded in {path.name} (keys {diff})")
-    inputs = [i for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
-    if len(inputs) != 1 or inputs[0].name != meta["input"]["name"] or _graph_shape(inputs[0])[1:] != meta["input"]["shape"][1:]:
-        got = [(i.name, _graph_shape(i)) for i in inputs]
-        raise DecoderModelError(f"{path}: graph input {got} does not match the metadata's {meta['input']}")
+    inputs = [(i.name, _graph_shape(i)[1:]) for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
+    want = [(meta["input"]["name"], meta["input"]["shape"][1:])]
+    if meta.get("state") is not None:
+        want.append((meta["state"]["input"], [meta["state"]["size"]]))
+    if inputs != want:
+        raise DecoderModelError(f"{path}: graph inputs {inputs} do not match the metadata's {want}")
     outs = [o.name for o in model.graph.output]
     if outs != meta["outputs"]:
         raise DecoderModelError(f"{path}: graph outputs {outs} do not match the metadata's {meta['outputs']}")

@@ -24,7 +24,8 @@ class StreamingDecoder:
     the spikes with ``t < T``; all taxels go through one inference call (batch = taxels).
 
     * Force models: the window is ``[T - window, T)`` in 10 ms bins counted back from ``T``;
-      outputs ``["force_N"]``.
+      outputs ``["force_N"]``. A stateful model (metadata ``state``; window = step) also carries
+      its filtered counts per taxel from step to step, from zeros at the decoder's first step.
     * Texture models (metadata alignment ``first spike after silence``): per taxel, a PC spike
       after at least 500 ms without one - or the first PC spike seen - is an anchor; the 500 ms
       window is anchored at the latest anchor before ``T`` (bins on ``anchor + j * 10 ms``, ending
@@ -42,8 +43,7 @@ class StreamingDecoder:
         self.binner = StreamBinner.from_metadata(model.meta, taxels, start_us)
         self.taxels = self.binner.taxels
         self._session = model.session(threads)
-        self._input = model.meta["input"]["name"]
-        self._output = model.meta["outputs"][0]
+        self._state = model.initial_state(self.taxels.size)
 
     @property
     def output_names(self) -> list[str]:
@@ -58,7 +58,9 @@ class StreamingDecoder:
         order, rows in the order of ``taxels``."""
         out = []
         for step, counts, filled in self.binner.push(t_us, taxel, cls, final_us):
-            (values,) = self._session.run([self._output], {self._input: counts})
+            values, state = self.model.run(self._session, counts, self._state)  # a stateless model ignores it
+            if state is not None:
+                self._state = state
             values = np.asarray(values, dtype=np.float32).reshape(counts.shape[0], -1)
             values[~filled] = np.nan
             out.append((step, values))

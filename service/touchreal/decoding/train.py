@@ -1,7 +1,9 @@
 """Training: windows of the training trials -> scikit-learn pipeline -> ONNX with metadata.
 
 Force: ``StandardScaler`` + ``MLPRegressor`` (64, 32 ReLU units, early stopping) on the flattened
-counts. Texture: ``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
+counts (and, stateful, their filtered counts carried across steps). Texture ``spectral``:
+``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping). Other texture sets:
+``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
 ``CalibratedClassifierCV(ensemble=False)`` on folds of whole trials (scikit-learn's own
 ``SVC(probability=True)`` is deprecated and calibrates on folds of windows, which would mix a
 trial's windows across its internal folds). Every model is then evaluated by
@@ -21,7 +23,7 @@ import skl2onnx
 import sklearn
 from sklearn.calibration import CalibratedClassifierCV
 from sklearn.model_selection import StratifiedGroupKFold
-from sklearn.neural_network import MLPRegressor
+from sklearn.neural_network import MLPClassifier, MLPRegressor
 from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
@@ -30,27 +32,29 @@ from touchreal_client import features as F
 from .. import __version__
 from ..params import EncoderParams
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
-from .features import BANDS_HZ, SMOOTH_SIGMA_MS, FeatureSpec
+from .features import BANDS_HZ, SMOOTH_SIGMA_MS, SPECTRUM_HZ, FeatureSpec
 from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
+from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
 from .windows import TEXTURE_SILENCE_US, EncodedTrial, force_windows, texture_windows
 
-BIN_MS = F.BIN_US / 1000
-STEP_MS = F.STEP_US / 1000
 SVC_C = 10.0
 CALIBRATION_FOLDS = 3
 
 
 def feature_spec(spec: ModelSpec) -> FeatureSpec:
-    return FeatureSpec(spec.features, F.n_bins(round(spec.window_ms * 1000), F.BIN_US), len(spec.classes), BIN_MS, spec.window_ms)
+    nb = F.n_bins(round(spec.window_ms * 1000), round(spec.bin_ms * 1000))
+    state = ExpFilter(spec.state_taus_ms, spec.step_ms, nb, len(spec.classes)) if spec.state_taus_ms else None
+    return FeatureSpec(spec.features, nb, len(spec.classes), spec.bin_ms, spec.window_ms, state)
 
 
 def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(counts, target, trial index, step us) of ``trials`` for ``spec``: force (N) or label strings."""
+    """(counts, target, trial index, step us) of ``trials`` for ``spec``: force (N) or label strings.
+    A stateful model's windows are every step of each trial from the recording's start."""
     w_us = round(spec.window_ms * 1000)
     if spec.task == "force":
-        return force_windows(trials, spec.classes, w_us)
-    x, labels, g, t = texture_windows(trials, w_us)
+        return force_windows(trials, spec.classes, w_us, step_us=round(spec.step_ms * 1000), from_start=bool(spec.state_taus_ms))
+    x, labels, g, t = texture_windows(trials, w_us, bin_us=round(spec.bin_ms * 1000), classes=spec.classes)
     return x, np.asarray(labels, dtype=object), g, t
 
 
@@ -59,6 +63,10 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
     if spec.task == "force":
         mlp = MLPRegressor(hidden_layer_sizes=(64, 32), alpha=1e-3, max_iter=400, early_stopping=True,
                            n_iter_no_change=20, random_state=seed)
+        return make_pipeline(StandardScaler(), mlp).fit(feats, target)
+    if spec.features == "spectral":
+        mlp = MLPClassifier(hidden_layer_sizes=(128,), alpha=1e-3, max_iter=300, early_stopping=True,
+                            n_iter_no_change=15, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
     _, first = np.unique(groups, return_index=True)  # one row per trial
     names, per_label = np.unique(target[first], return_counts=True)
@@ -81,17 +89,24 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "name": spec.name,
         "task": spec.task,
         "description": (f"force (N) from {'+'.join(spec.classes)} counts, {spec.window_ms:g} ms causal window"
-                        if spec.task == "force" else f"texture from PC counts ({spec.features} features), "
-                        f"{spec.window_ms:g} ms window anchored at the first PC spike"),
+                        + (f" and step, with their exponential filters ({', '.join(f'{t:g}' for t in spec.state_taus_ms)} ms) "
+                           "carried across steps in 'state'" if spec.state_taus_ms else "")
+                        if spec.task == "force" else f"texture from {'+'.join(spec.classes)} counts in {spec.bin_ms:g} ms bins "
+                        f"({spec.features} features), {spec.window_ms:g} ms window anchored at the first PC spike"),
         "input": {"name": INPUT_NAME, "shape": [None, fs.n_bins, fs.n_classes], "dtype": "float32",
                   "layout": "(batch = taxels, bins oldest -> newest, classes in 'classes' order)"},
-        "outputs": [REGRESSION_OUTPUT] if spec.task == "force" else ["probabilities", "label"],
+        "outputs": ([REGRESSION_OUTPUT] + ([STATE_OUTPUT] if fs.state else [])) if spec.task == "force" else ["probabilities", "label"],
         "output_names": [REGRESSION_OUTPUT] if spec.task == "force" else labels,
         "labels": labels,
         "classes": list(spec.classes),
-        "bin_ms": BIN_MS,
+        "bin_ms": spec.bin_ms,
         "window_ms": spec.window_ms,
-        "step_ms": STEP_MS,
+        "step_ms": spec.step_ms,
+        "state": None if fs.state is None else {
+            "input": STATE_INPUT, "output": STATE_OUTPUT, "size": fs.state.size, "initial": 0.0,
+            "taus_ms": list(spec.state_taus_ms), "order": fs.state.names(spec.classes),
+            "rule": "state_out = exp(-step_ms / tau) * state + the window's spike count of the class; feed state_out "
+                    "back as state at the next step, zeros (batch, size) at the first; one row per taxel"},
         "binning": "touchreal_client.features.window_counts: ceil(window/bin) bins counted back from the window end, "
                    "oldest first, the oldest bin truncated; a bin [a, b) counts a <= t < b (sensor clock, us)",
         "alignment": None if spec.task == "force" else {
@@ -99,7 +114,7 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
             "doc": "touchreal_client.features.anchors / anchored_end / StreamBinner: window ends on anchor + k * bin "
                    "<= step, output once end - anchor >= window"},
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
-                     "bands_hz": [list(b) for b in BANDS_HZ], "in_graph": True},
+                     "bands_hz": [list(b) for b in BANDS_HZ], "spectrum_hz": list(SPECTRUM_HZ), "in_graph": True},
         "estimator": _describe(pipe),
         "params": {"sha256": params_hash(used), "pvdf_window_ms": spec.pvdf_window_ms,
                    "source": str(params.provenance.get("source") or params.provenance.get("dataset") or "unknown"),
@@ -113,8 +128,8 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
 
 def _describe(pipe: Pipeline) -> str:
     est = pipe.steps[-1][1]
-    if isinstance(est, MLPRegressor):
-        return f"StandardScaler + MLPRegressor(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_})"
+    if isinstance(est, (MLPRegressor, MLPClassifier)):
+        return f"StandardScaler + {type(est).__name__}(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_})"
     svc = est.estimator
     return f"StandardScaler + CalibratedClassifierCV(SVC(rbf, C={svc.C}, gamma=scale), sigmoid, ensemble=False, trial folds)"
 
@@ -127,6 +142,6 @@ def train_model(
     counts, target, groups, _ = windows(spec, trials)
     if counts.shape[0] == 0:
         raise ValueError(f"{spec.name}: the training trials give no decoding window")
-    pipe = fit_pipeline(spec, fs.transform(counts), target, groups, seed)
+    pipe = fit_pipeline(spec, fs.transform(counts, groups), target, groups, seed)
     meta = metadata(spec, fs, pipe, params, training | {"windows": int(counts.shape[0]), "trials": len(trials)})
     return to_onnx(pipe, fs, meta), meta, pipe, fs

@@ -2,9 +2,9 @@
 streaming decoder would see (the rules of :mod:`touchreal_client.features`).
 
 * Force: one window per 32 ms step ``T`` (absolute grid) with ``window_ms <= T - t_first`` inside
-  the trial; label = mean SingleTact force (N) of the samples in the last bin ``[T - 10 ms, T)``
+  the trial (a stateful model: one per step of its own, window = step, from the recording's start); label = mean SingleTact force (N) of the samples in the last bin ``[T - 10 ms, T)``
   (the force interpolated at the bin centre when the bin holds no sample).
-* Texture: PC counts anchored at the first PC spike of the trial (re-anchored after 500 ms of PC
+* Texture: counts of the model's classes (PC; SA1, RA, PC for ``spectral``) anchored at the first PC spike of the trial (re-anchored after 500 ms of PC
   silence, as online); one window per step whose
   anchored window is filled and ends by the stimulus end (manifest ``stim_end_s``); label = the
   manifest's ``texture`` (else its condition).
@@ -98,9 +98,11 @@ def require_trials(ds: Dataset, protocol: str, what: str) -> None:
 
 
 # ------------------------------------------------------------------------------------- force
-def force_steps(tr: EncodedTrial, window_us: int, step_us: int = F.STEP_US) -> np.ndarray:
-    """Decoding steps of a trial whose whole window lies inside the recording."""
-    start = int(tr.st_t_us[0]) + window_us
+def force_steps(tr: EncodedTrial, window_us: int, step_us: int = F.STEP_US, from_start: bool = False) -> np.ndarray:
+    """Decoding steps of a trial whose whole window lies inside the recording; ``from_start``: from
+    the first step whose window starts at or after the recording's t = 0 instead of its first
+    SingleTact sample (a stateful decoder's state then holds every spike of the recording)."""
+    start = (0 if from_start else int(tr.st_t_us[0])) + window_us
     return F.step_times(start, min(tr.end_us, int(tr.st_t_us[-1])), step_us)
 
 
@@ -116,12 +118,14 @@ def force_label(tr: EncodedTrial, steps_us: np.ndarray, bin_us: int = F.BIN_US) 
 
 
 def force_windows(
-    trials: Sequence[EncodedTrial], classes: Sequence[str], window_us: int, bin_us: int = F.BIN_US, step_us: int = F.STEP_US
+    trials: Sequence[EncodedTrial], classes: Sequence[str], window_us: int, bin_us: int = F.BIN_US, step_us: int = F.STEP_US,
+    from_start: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(counts (n, n_bins, n_classes), force (n,), trial index (n,), step (n,) us) over ``trials``."""
+    """(counts (n, n_bins, n_classes), force (n,), trial index (n,), step (n,) us) over ``trials``;
+    a trial's windows are contiguous and in step order."""
     xs, ys, gs, ts = [], [], [], []
     for i, tr in enumerate(trials):
-        steps = force_steps(tr, window_us, step_us)
+        steps = force_steps(tr, window_us, step_us, from_start)
         xs.append(F.counts_tensor(tr.spikes_us, classes, steps, window_us, bin_us))
         ys.append(force_label(tr, steps, bin_us))
         gs.append(np.full(steps.size, i))
@@ -139,8 +143,10 @@ def texture_windows(
     silence_us: int = TEXTURE_SILENCE_US,
     bin_us: int = F.BIN_US,
     step_us: int = F.STEP_US,
+    classes: Sequence[str] = ("PC",),
 ) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray]:
-    """(PC counts (n, n_bins, 1), label per window, trial index (n,), step (n,) us) over ``trials``.
+    """(counts of ``classes`` (n, n_bins, n_classes), label per window, trial index (n,), step (n,) us)
+    over ``trials``.
 
     The anchor is the trial's first PC spike, or a later one after ``silence_us`` without PC
     spikes (:func:`features.anchors`, as the streaming decoder does); windows end at most at the
@@ -156,11 +162,11 @@ def texture_windows(
         ends, anchor = F.anchored_end(steps, F.anchors(pc, silence_us), bin_us)
         ok = F.ready(ends, anchor, window_us) & (ends <= stop)
         ends = ends[ok]
-        xs.append(F.counts_tensor(tr.spikes_us, ["PC"], ends, window_us, bin_us))
+        xs.append(F.counts_tensor(tr.spikes_us, classes, ends, window_us, bin_us))
         labels += [tr.label] * ends.size
         gs.append(np.full(ends.size, i))
         ts.append(steps[ok])
     nb = F.n_bins(window_us, bin_us)
     if not xs:
-        return np.zeros((0, nb, 1), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64)
+        return np.zeros((0, nb, len(classes)), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64)
     return np.concatenate(xs), labels, np.concatenate(gs), np.concatenate(ts)

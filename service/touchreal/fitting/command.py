@@ -11,7 +11,9 @@ from ..settings import CLASSES, DEFAULT_WINDOW_MS
 
 if TYPE_CHECKING:
     from ..params import EncoderParams
-    from .fit import ExecutorFactory, FitConfig, FitResult
+    from .config import FitConfig
+    from .executor import ExecutorFactory
+    from .fit import FitResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
-    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts after the first run (population x2, generations /2; default 1)")
+    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts beside the first run (same start, own seed, population x2, generations /2; default 0)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
@@ -90,7 +92,7 @@ def _classes(text: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams
-    from .fit import FitConfig
+    from .config import FitConfig
 
     classes = _classes(args.classes)
     kw = {"classes": classes, "seed": args.seed, "progress": not args.quiet,

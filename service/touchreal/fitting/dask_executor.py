@@ -1,6 +1,6 @@
 """Evaluate a fit's CMA-ES candidates on Dask distributed workers (``touchreal fit --scheduler``).
 
-The same seam as the local processes (:class:`~touchreal.fitting.fit.Executor`): the driver runs
+The same seam as the local processes (:class:`~touchreal.fitting.executor.Executor`): the driver runs
 CMA-ES and sends each generation's candidates, split into one chunk per worker thread; every worker
 holds the fit's training state, built once by :class:`FitDataPlugin` from the :class:`FitSource`
 (the dataset folder, the configuration, the ``--init`` file) with the driver's own deterministic
@@ -30,7 +30,8 @@ import dask
 import numpy as np
 from distributed import Client, LocalCluster, WorkerPlugin, get_worker
 
-from .fit import ExecutorFactory, FitSource, FitState, Losses, losses, prepare, warm_up
+from .executor import ExecutorFactory, FitSource, FitState, Losses, losses, warm_up
+from .fit import prepare
 
 #: worker settings for fits: the statistical profiler samples every thread's stack every 10 ms; with
 #: it a generation took 1.75x the local one instead of 1.3-1.5x (docs/scale-out-dask.md); deploy/dask sets the same

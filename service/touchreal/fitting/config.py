@@ -1,0 +1,77 @@
+"""Settings of a fit (:class:`FitConfig`): classes and their windows, split, objective, optimiser
+budget, workers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..params import default_params
+from ..settings import CLASSES
+from .objective import ObjectiveConfig
+
+
+def shipped_windows_ms() -> dict[str, float]:
+    """Per class, the causal PVDF window (ms) it runs at in the shipped defaults (SA1 and RA on the
+    16 ms fast path, PC on 128 ms): the windows a fit uses unless told otherwise."""
+    p = default_params()
+    return {c: p.window_ms(c) for c in CLASSES if c in p.classes}
+
+
+@dataclass
+class FitConfig:
+    """What to fit and how (``touchreal fit``'s options); validated on construction."""
+
+    classes: tuple[str, ...] = CLASSES
+    window_ms: float = 128.0  #: preprocessing window (ms): every class without its own entry in class_window_ms
+    #: a class's own causal PVDF window (ms); default: the shipped windows (:func:`shipped_windows_ms`)
+    class_window_ms: dict[str, float] = field(default_factory=shipped_windows_ms)
+    holdout: bool = True  #: False: every trial trains (no held-out half)
+    seed: int = 0
+    kernel_ms: float = 10.0  #: kernel tau of the objective's D_kernel (eqs. 2-3)
+    popsize: int = 12
+    max_generations: int = 250  #: generations of the first CMA-ES run
+    restarts: int = 0  #: IPOP restarts (population x2, generations /2 each), side by side with the first run
+    workers: int | None = None  #: None = all cores
+    max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
+    max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
+    sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
+    count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
+    segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window (paper eq. 7: none)
+    input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
+    no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
+    progress: bool = True
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+
+    def __post_init__(self) -> None:
+        bad = [c for c in self.classes if c not in CLASSES]
+        if bad or not self.classes:
+            raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
+        bad = [c for c in self.input_stage_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"input_stage_classes must be a subset of {list(CLASSES)}, got {list(self.input_stage_classes)}")
+        bad = [c for c in self.class_window_ms if c not in CLASSES]
+        if bad:
+            raise ValueError(f"class_window_ms names unknown classes {bad}; expected a subset of {list(CLASSES)}")
+        if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
+            raise ValueError("window_ms must be in [4, 512]")
+        if self.popsize < 4 or self.max_generations < 1:
+            raise ValueError("popsize must be >= 4 and max_generations >= 1")
+        if self.kernel_ms <= 0:
+            raise ValueError("kernel_ms must be > 0")
+        if not np.isfinite(self.count_weight) or self.count_weight < 0:
+            raise ValueError("count_weight must be >= 0")
+        bad = [c for c in self.no_pvdf_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"no_pvdf_classes must be a subset of {list(CLASSES)}, got {list(self.no_pvdf_classes)}")
+        bad = [c for c in self.segmented_count_classes if c not in CLASSES]
+        if bad:
+            raise ValueError(f"segmented_count_classes must be a subset of {list(CLASSES)}, got {list(self.segmented_count_classes)}")
+        self.objective = ObjectiveConfig(
+            **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
+        )
+
+    def window_of(self, cls: str) -> float:
+        """Causal PVDF window (ms) class ``cls`` is fitted at."""
+        return float(self.class_window_ms.get(cls, self.window_ms))

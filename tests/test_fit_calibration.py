@@ -1,0 +1,36 @@
+"""The fit's PVDF calibration finds the build's mains frequency: simulated builds on 50 and 60 Hz
+mains (the real simulator, `touchreal simulate --build`)."""
+
+from __future__ import annotations
+
+import pytest
+
+from touchreal.cli import main
+from touchreal.fitting.calibration import calibrate_pvdf, mains_residual
+from touchreal.fitting.trials import baseline_segments
+from touchreal.params import PreprocessParams
+from touchreal.preprocess.gate import calibrate
+from touchreal.recording import Dataset
+
+
+def _baselines(tmp_path, build: str):
+    out = tmp_path / build
+    assert main(["simulate", "ramp", "--trials", "ramp=12", "--seed", "3", "--build", build, "--out", str(out), "--quiet"]) == 0
+    ds = Dataset.open(out)
+    return baseline_segments(ds, list(ds.entries()))
+
+
+def test_a_60_hz_build_is_notched_at_60_hz(tmp_path):
+    seg = _baselines(tmp_path, "weak-film-60hz")
+    at_50 = calibrate(seg, PreprocessParams())  # the default mains: the 60 Hz lines stay in the gate's floor
+    pre = calibrate_pvdf(seg, PreprocessParams())
+    assert pre.mains_hz == 60.0
+    assert {1, 2, 3} <= set(pre.notch_harmonics)
+    assert mains_residual(pre) < 0.5 < mains_residual(at_50)
+
+
+@pytest.mark.parametrize("given", [50.0, 60.0])
+def test_a_50_hz_build_keeps_the_50_hz_calibration(tmp_path, given):
+    seg = _baselines(tmp_path, "nominal")
+    pre = calibrate_pvdf(seg, PreprocessParams(mains_hz=given))
+    assert pre == calibrate(seg, PreprocessParams(mains_hz=50.0))  # what the fit calibrated before, whatever it was told

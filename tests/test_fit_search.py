@@ -1,0 +1,67 @@
+"""The fit's CMA-ES driver: every run has its own random stream, so runs and classes may interleave
+without changing a seeded fit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchreal.fitting import search as S
+from touchreal.fitting.config import FitConfig
+from touchreal.fitting.space import ParamSpace
+
+SPACE = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True)
+
+
+def _sphere(cls: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
+    """Loss of candidates on a shifted sphere (an objective with a known optimum)."""
+    return [(float(np.sum((x - 0.3) ** 2)), {}) for x in np.asarray(xs)]
+
+
+def _asks(strategies, generations: int) -> list[list[np.ndarray]]:
+    """Ask/tell the strategies in turn, one generation each, on the sphere; every strategy's asks."""
+    out: list[list[np.ndarray]] = [[] for _ in strategies]
+    for _ in range(generations):
+        for k, es in enumerate(strategies):
+            xs = np.asarray(es.ask())
+            es.tell(list(xs), [f for f, _ in _sphere("RA", xs)])
+            out[k].append(xs)
+    return out
+
+
+def test_interleaved_runs_draw_the_same_candidates_as_runs_alone_and_as_a_globally_seeded_cma():
+    import cma
+
+    x0 = SPACE.initial(100.0)
+    together = _asks([S.make_cma(SPACE, x0, 6, 20, 11), S.make_cma(SPACE, x0, 12, 20, 12)], 8)
+    alone = [_asks([S.make_cma(SPACE, x0, 6, 20, 11)], 8)[0], _asks([S.make_cma(SPACE, x0, 12, 20, 12)], 8)[0]]
+    for a, b in zip(together, alone):
+        for xa, xb in zip(a, b):
+            np.testing.assert_array_equal(xa, xb)
+    # the numbers are those of cma seeding NumPy's global generator (how a fit drew them when it ran one run at a time)
+    lo, hi = SPACE.bounds()
+    es = cma.CMAEvolutionStrategy(list(x0), 1.0, {"seed": 11, "popsize": 6, "bounds": [list(lo), list(hi)],
+                                                  "CMA_stds": list(SPACE.stds()), "maxiter": 20, "verbose": -9,
+                                                  "tolfun": 1e-6, "tolflatfitness": 10})
+    for xa, xb in zip(together[0], _asks([es], 8)[0]):
+        np.testing.assert_array_equal(xa, xb)
+    assert not np.array_equal(together[0][0], _asks([S.make_cma(SPACE, x0, 6, 20, 13)], 1)[0][0])  # the seed matters
+
+
+def test_restarts_run_side_by_side_independently_and_the_best_point_wins():
+    x0 = SPACE.initial(100.0)
+    cfg = FitConfig(classes=("RA",), popsize=6, max_generations=12, restarts=1, seed=4, progress=False)
+    fit = S.fit_class("RA", SPACE, _sphere, cfg, [x0], 100.0)
+    assert [(r.popsize, r.budget, r.generations) for r in fit.runs] == [(6, 12, 12), (12, 6, 6)]
+    grid = S.start_grid(SPACE, [x0], 100.0)
+    start = grid[int(np.argmin([f for f, _ in _sphere("RA", grid)]))]
+    for k, run in enumerate(fit.runs):  # each run is the run it would be alone: it shares nothing with the other
+        alone = S.run_cma("RA", SPACE, _sphere, start, run.popsize, run.budget, S.cma_seed(4, "RA", k))
+        assert alone.history == run.history
+        np.testing.assert_array_equal(alone.best_x, run.best_x)
+    best = min(fit.runs, key=lambda r: r.best_loss)
+    np.testing.assert_array_equal(fit.x, SPACE.clip(best.best_x))
+    assert fit.evaluations == len(grid) + 6 * 12 + 12 * 6  # start grid + both runs
+    seen: list[int] = []
+    S.run_cma("RA", SPACE, _sphere, x0, 6, 5, 3, seen.append)
+    assert sum(seen) == 5  # the progress bar reaches the budget
