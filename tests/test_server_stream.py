@@ -203,6 +203,30 @@ def test_taxel_blocks_nobody_subscribes_to_run_nothing(tmp_path):
     assert all(set(f.taxel.tolist()) <= {5} for f in _spikes(frames))
 
 
+def test_float32_compute_runs_the_pipeline_in_float32(tmp_path):
+    """--compute-dtype float32 reaches the encoder the service runs, and it streams spikes and channels."""
+    with running_server(tmp_path, RuntimeConfig(taxels=2), compute_dtype="float32") as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["spikes", "channels"])
+                frames = await collect(ws, 20.0, lambda fs: len(_spikes(fs)) >= 10)
+                return frames, svc.runtime.encoder.dtype, [b.pre.dtype for b in svc.runtime.encoder.blocks]
+
+        frames, dtype, block_dtypes = run(go())
+    assert dtype == np.float32 and all(d == np.float32 for d in block_dtypes)
+    assert len(_spikes(frames)) >= 10
+    ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
+    assert ch and all(np.isfinite(f.data).all() for f in ch)
+
+
+async def _next_reply(ws) -> dict:
+    """The next text message that is not the periodic ``clock``."""
+    while (msg := json.loads(await ws.recv()))["type"] == "clock":
+        pass
+    return msg
+
+
 def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 
@@ -212,17 +236,18 @@ def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
                 json.loads(await ws.recv())
                 for bad in ("{", "[1]", '{"type": "subscribe", "classes": ["SA9"]}'):
                     await ws.send(bad)
-                    out.setdefault("errors", []).append(json.loads(await ws.recv()))
+                    out.setdefault("errors", []).append(await _next_reply(ws))
                 await ws.send(b"\x00\x01")
-                out["binary"] = json.loads(await ws.recv())
+                out["binary"] = await _next_reply(ws)
                 await ws.send(json.dumps({"type": "subscribe"}))  # still alive and serving
-                out["ok"] = json.loads(await ws.recv())["type"]
+                out["ok"] = (await _next_reply(ws))["type"]
             async with connect(addr) as ws:
                 await ws.recv()
                 await ws.send(json.dumps({"type": "subscribe", "version": 99}))
-                out["version_error"] = json.loads(await ws.recv())
+                out["version_error"] = await _next_reply(ws)
                 with pytest.raises(websockets.ConnectionClosed) as closed:
-                    await asyncio.wait_for(ws.recv(), 5)
+                    while True:  # a clock message may come before the close
+                        await asyncio.wait_for(ws.recv(), 5)
                 out["version_close"] = closed.value.rcvd.code
             async with connect(addr) as ws:
                 await ws.recv()
@@ -236,7 +261,8 @@ def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
                 await ws.recv()
                 await ws.send("x" * (P.MAX_CLIENT_MESSAGE_BYTES + 10))
                 with pytest.raises(websockets.ConnectionClosed) as closed:
-                    await asyncio.wait_for(ws.recv(), 5)
+                    while True:  # a clock message may come before the close
+                        await asyncio.wait_for(ws.recv(), 5)
                 out["big_close"] = closed.value.rcvd.code
             return out
 

@@ -83,9 +83,11 @@ class Runtime:
         taxel_block: int | None = None,
         fallback: Callable[[int, int | None, Exception], bool] | None = None,
         on_end: Callable[[], None] | None = None,
+        dtype: str = "float64",
     ):
         self.source = source
         self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
+        self.dtype = np.dtype(dtype)  #: StreamEncoder's dtype (the preprocessing's arithmetic)
         self._demand, self._params, self._publish = demand, params, publish
         self._make_decoder = make_decoder
         #: ``fallback(failed rev, last good rev or None, error)``: on a pipeline failure, activate
@@ -174,7 +176,7 @@ class Runtime:
             self.encoder = None
         if self.encoder is None:
             self.enc_rev, self.active, self._enc_stats = rev, None, {}
-            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block,
+            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
                                          update_s=params.preprocess.update_ms / 1000.0)
             self.decoders = {}
         self._follow_decoder_demand(demand)

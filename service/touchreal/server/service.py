@@ -138,7 +138,8 @@ class Service:
         self.source_error, self.ended = None, None
         self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
-                               self.settings.taxel_block or None, self._fall_back, self._post_end)
+                               self.settings.taxel_block or None, self._fall_back, self._post_end,
+                               self.settings.compute_dtype)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again

@@ -43,8 +43,12 @@ class ServeSettings(BaseSettings):
                               "writes open to whoever reaches the port")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")
     params: Path | None = Field(default=None, description="initial parameter file (default: last active, else shipped)")
-    taxel_block: int = Field(default=64, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
-                             "taxels nobody subscribes to runs nothing (docs/benchmarks.md, Demand); 0 = one block")
+    taxel_block: int = Field(default=256, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
+                             "taxels nobody subscribes to runs nothing, and each block costs a fixed ~130 us per 5 ms "
+                             "hop (docs/benchmarks.md, Encoder); 0 = one block")
+    compute_dtype: Literal["float64", "float32"] = Field(default="float64", description="arithmetic of the "
+                                                        "preprocessing: float32 takes ~40 % less CPU at 4096 taxels and "
+                                                        "gave the same spikes on the measured sets (docs/benchmarks.md, Encoder)")
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = Field(
         default="warning", description="uvicorn log level")
     publish: str | None = Field(default=None, description="also publish the frames to this NATS URL "
