@@ -324,3 +324,10 @@ def test_window_option_per_class():
     with pytest.raises(ValueError, match="window_ms"):
         FitConfig(class_window_ms={"RA": 2.0})
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
+
+
+@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "segmented_count_classes"])
+def test_fit_config_refuses_unknown_classes_in_every_class_list(name):
+    with pytest.raises(ValueError, match=f"{name} must be a subset"):
+        FitConfig(**{name: ("PC", "SA9")})
+    assert getattr(FitConfig(**{name: ("PC",)}), name) == ("PC",)

@@ -48,9 +48,10 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
-        bad = [c for c in self.input_stage_classes if c not in CLASSES]
-        if bad:
-            raise ValueError(f"input_stage_classes must be a subset of {list(CLASSES)}, got {list(self.input_stage_classes)}")
+        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes"):
+            bad = [c for c in getattr(self, name) if c not in CLASSES]
+            if bad:
+                raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(getattr(self, name))}")
         bad = [c for c in self.class_window_ms if c not in CLASSES]
         if bad:
             raise ValueError(f"class_window_ms names unknown classes {bad}; expected a subset of {list(CLASSES)}")
@@ -62,12 +63,6 @@ class FitConfig:
             raise ValueError("kernel_ms must be > 0")
         if not np.isfinite(self.count_weight) or self.count_weight < 0:
             raise ValueError("count_weight must be >= 0")
-        bad = [c for c in self.no_pvdf_classes if c not in CLASSES]
-        if bad:
-            raise ValueError(f"no_pvdf_classes must be a subset of {list(CLASSES)}, got {list(self.no_pvdf_classes)}")
-        bad = [c for c in self.segmented_count_classes if c not in CLASSES]
-        if bad:
-            raise ValueError(f"segmented_count_classes must be a subset of {list(CLASSES)}, got {list(self.segmented_count_classes)}")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
