@@ -39,8 +39,9 @@ from .. import __version__
 from ..server import ws
 from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
-from . import subjects
+from . import connection, subjects
 from .auth import NatsAuth
+from touchreal_client.events import wait_set
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 
@@ -137,19 +138,18 @@ class Gateway:
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        if self.nc is not None and not self.nc.is_closed:
+        if self.nc is not None and self.nc.is_connected:
             try:  # tell the publisher at once that our demand is gone
                 await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, Announced({})))
-                await asyncio.wait_for(self.nc.drain(), 5)
-            except (asyncio.TimeoutError, NatsError, OSError):
-                await self.nc.close()
+            except (NatsError, OSError):
+                pass
+        await connection.close(self.nc)
 
     async def _run(self) -> None:
         s = self.settings
-        self.nc = await nats.connect(
-            s.nats.split(","), name=f"touchreal-gateway-{self.sensor_id}-{self.id}", max_reconnect_attempts=-1,
-            reconnect_time_wait=1, error_cb=self._on_error, disconnected_cb=self._on_conn, reconnected_cb=self._on_conn,
-            **self.auth.connect_options())
+        self.nc = connection.client()
+        await connection.connect(self.nc, s.nats.split(","), f"touchreal-gateway-{self.sensor_id}-{self.id}", self.auth,
+                                 self._on_error, self._on_conn)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
         await self.nc.subscribe(subjects.clock(self.sensor_id), cb=self._on_clock)
@@ -250,10 +250,7 @@ class Gateway:
     # -- demand ---------------------------------------------------------------------------------
     async def _announce_demand(self) -> None:
         while True:
-            try:
-                await asyncio.wait_for(self._demand_dirty.wait(), self.settings.demand_interval_s)
-            except asyncio.TimeoutError:
-                pass
+            await wait_set(self._demand_dirty, self.settings.demand_interval_s)
             self._demand_dirty.clear()
             ttl = max(DEFAULT_TTL_S, 3 * self.settings.demand_interval_s)
             try:

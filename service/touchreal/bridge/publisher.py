@@ -36,8 +36,9 @@ from touchreal_client import protocol as P
 from ..decoding.model import DecoderModelError
 from ..server.hub import Subscriber
 from ..server.service import Service
-from . import subjects
+from . import connection, subjects
 from .auth import NatsAuth
+from touchreal_client.events import wait_set
 from .demand import MAX_GATEWAYS, REJECT_REASONS, ForwardedDemand, Rejected, parse_announcement
 
 log = logging.getLogger("touchreal.bridge")
@@ -94,11 +95,7 @@ class NatsPublisher:
         self.service.status_sections.pop("nats", None)
         for sub in self.lanes.values():
             self.service.hub.remove(sub)
-        if self.nc is not None and not self.nc.is_closed:
-            try:
-                await asyncio.wait_for(self.nc.drain(), 5)
-            except (asyncio.TimeoutError, NatsError, OSError):
-                await self.nc.close()
+        await connection.close(self.nc)
 
     def status(self) -> dict:
         """The ``nats`` section of the service's ``/v1/status``."""
@@ -116,10 +113,9 @@ class NatsPublisher:
 
     # -- the loop -------------------------------------------------------------------------------
     async def _run(self) -> None:
-        self.nc = await nats.connect(
-            self.url, name=f"touchreal-publisher-{self.sensor_id}", max_reconnect_attempts=-1, reconnect_time_wait=1,
-            pending_size=self.pending_bytes, error_cb=self._on_error, disconnected_cb=self._on_conn,
-            reconnected_cb=self._on_conn, **self.auth.connect_options())
+        self.nc = connection.client()
+        await connection.connect(self.nc, self.url, f"touchreal-publisher-{self.sensor_id}", self.auth,
+                                 self._on_error, self._on_conn, pending_size=self.pending_bytes)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello_request(self.sensor_id), cb=self._on_hello_request)
         await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
@@ -131,10 +127,7 @@ class NatsPublisher:
         log.info("publishing %s to %s", subjects.frames(self.sensor_id), self.url)
         headers = {subjects.SESSION_HEADER: self.service.session}
         while True:
-            try:
-                await asyncio.wait_for(self._wakeup.wait(), EXPIRE_EVERY_S)
-            except asyncio.TimeoutError:
-                pass
+            await wait_set(self._wakeup, EXPIRE_EVERY_S)
             self._wakeup.clear()
             self._expire()
             for subject, sub in list(self.lanes.items()):  # a demand callback may add a lane meanwhile

@@ -25,6 +25,7 @@ from .settings import ServeSettings
 
 #: The live dashboard: plain static files (no build step), package data of the wheel.
 DASHBOARD_DIR = Path(__file__).with_name("dashboard")
+STOP_TIMEOUT_S = 20.0  #: how long serving_app waits for its server (lifespan shutdown included) to stop
 
 
 class Companion(Protocol):
@@ -119,4 +120,6 @@ def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level:
         yield f"{bound[0]}:{bound[1]}"
     finally:
         server.should_exit = True
-        thread.join(15.0)
+        thread.join(STOP_TIMEOUT_S)
+        if thread.is_alive():  # its companions or its source would run on under whoever called us
+            raise RuntimeError(f"the server did not stop within {STOP_TIMEOUT_S:g} s")

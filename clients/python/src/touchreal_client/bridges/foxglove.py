@@ -17,7 +17,6 @@ so ``--from`` may be a gateway.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import threading
@@ -29,6 +28,7 @@ import websockets
 
 from .. import protocol as P
 from ..errors import StreamClosed, StreamError
+from ..events import wait_set
 from ..stream import AsyncStream
 from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_PREFIX, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
                       SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic)
@@ -162,8 +162,7 @@ class FoxgloveBridge:
         hello, session = stream.hello, stream.hello.get("session")
         refused: P.Subscription | None = None
         while True:
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), FOLLOW_PERIOD_S)
+            await wait_set(self._changed, FOLLOW_PERIOD_S)
             self._changed.clear()
             if stream.hello is not hello:
                 hello = stream.hello
