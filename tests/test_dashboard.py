@@ -67,11 +67,13 @@ def wait_for(driver, script: str, seconds: float = 30.0):
         if value:
             return value
         time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for: {script}")
+    page_log = driver.execute_script("return document.getElementById('log').innerText")
+    raise AssertionError(f"timed out waiting for: {script}\npage log:\n{page_log}")
 
 
 def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser, tmp_path):
     from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
 
     with running_server(tmp_path / "state", RuntimeConfig(taxels=3), token="tok") as (addr, svc):
         browser.get(f"http://{addr}/")
@@ -95,12 +97,16 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         assert line == svc.clock.wall_us - svc.clock.sensor_us
         assert 0 < lat_sa1 < 150_000 and shown.endswith("ms") and shown.split(" / ")[0].isdigit(), (lat_sa1, shown)
 
-        # subscription control: PC spikes of taxels 1 and 2, no decoders -> exactly that is computed
-        browser.find_element(By.ID, "taxels").clear()
-        browser.find_element(By.ID, "taxels").send_keys("1,2")
+        # subscription control: PC spikes of taxels 1 and 2, no decoders -> exactly that is computed.
+        # The form is driven from the keyboard (space toggles a box, Enter submits the form through its
+        # subscribe button): a mouse click lands on coordinates, which the live readouts above can shift.
         for name, value in (("cls", "SA1"), ("cls", "RA"), ("stream", "decoded")):
-            browser.find_element(By.CSS_SELECTOR, f"input[name={name}][value={value}]").click()
-        browser.find_element(By.ID, "subscribe").click()
+            box = browser.find_element(By.CSS_SELECTOR, f"input[name={name}][value={value}]")
+            box.send_keys(Keys.SPACE)
+            assert not box.is_selected(), (name, value)
+        taxels = browser.find_element(By.ID, "taxels")
+        taxels.clear()
+        taxels.send_keys("1,2", Keys.ENTER)
         wait_for(browser, "const s = window.touchreal.subscribed; return s && s.classes.join() === 'PC'")
         deadline = time.monotonic() + 10
         while dict(svc.hub.demand.columns) != {"PC": (1, 2)} and time.monotonic() < deadline:
@@ -111,8 +117,7 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         def apply_window(ms: str) -> None:
             win = browser.find_element(By.ID, "window-ms")
             win.clear()
-            win.send_keys(ms)
-            browser.find_element(By.ID, "apply-window").click()
+            win.send_keys(ms, Keys.ENTER)  # submits through the apply button
 
         apply_window("64")
         wait_for(browser, "return document.getElementById('log').textContent.includes('HTTP 401')")
