@@ -58,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="subscriber counts for part 2d: every stream (spikes, channels, decoded) at the largest "
                    "--fanout-taxels; the largest count served within 10 ms p99 is reported")
     p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
-    p.add_argument("--settle-s", type=float, default=1.0, help="part 1: spikes caused this long after subscribing "
+    p.add_argument("--settle-s", type=float, default=1.0, help="part 2: the steady state starts this long after every "
+                   "subscriber held its first frame; part 1: spikes caused this long after subscribing "
                    "or later are the steady state; those caused before (the start rebuilds every subscribed branch "
                    "from the raw history, a burst of compute with many taxels) are reported apart (max)")
     p.add_argument("--params", type=Path, default=None, help="parameter file (default: shipped)")
@@ -188,8 +189,11 @@ class _LightClient(asyncio.Protocol):
             self.done.set_result(None)
 
 
-async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[np.ndarray]:
-    """``n`` :class:`_LightClient` subscribers for ``seconds``; their rows."""
+async def _light_clients(addr: str, n: int, seconds: float, sub: dict, settle_s: float) -> tuple[list, list]:
+    """``n`` :class:`_LightClient` subscribers: connected one after another, then, once every one holds a
+    frame, ``settle_s`` more before the ``seconds`` measured. Returns each one's rows of the measured
+    seconds (the steady state) and of the joining before them (everybody connecting and subscribing
+    while the others stream: reported apart)."""
     loop = asyncio.get_running_loop()
     host, port = addr.rsplit(":", 1)
     clients = []
@@ -197,34 +201,43 @@ async def _light_clients(addr: str, n: int, seconds: float, sub: dict) -> list[n
         done = loop.create_future()
         _, c = await loop.create_connection(lambda: _LightClient(addr, sub, done), host, int(port))
         clients.append(c)
+    deadline = time.monotonic() + 60.0
+    while not all(c.rows for c in clients) and time.monotonic() < deadline:
+        await asyncio.sleep(0.01)
+    await asyncio.sleep(settle_s)
+    marks = [len(c.rows) for c in clients]
     await asyncio.sleep(seconds)
-    rows = [np.array(c.rows, dtype=np.int64).reshape(-1, 8) for c in clients]
+    rows = [np.array(c.rows[m:], dtype=np.int64).reshape(-1, 8) for c, m in zip(clients, marks)]
+    joining = [np.array(c.rows[:m], dtype=np.int64).reshape(-1, 8) for c, m in zip(clients, marks)]
     for c in clients:  # a closing handshake, so the server stops sending before the socket goes
         c.ws.send_close(1000)
         c._flush()
     await asyncio.wait([c.done for c in clients], timeout=10.0)
     for c in clients:
         c.transport.abort()
-    return rows
+    return rows, joining
 
 
 def _client_process(addr: str, n: int, seconds: float, sub: dict, out: mp.Queue, spikes: bool = False,
                     settle_s: float = 0.0) -> None:
-    """Runs ``n`` clients; puts their results and this process's CPU time (s) per second of the run."""
+    """Runs ``n`` clients; puts their results, the light clients' rows while joining (none for ``spikes``
+    clients) and this process's CPU time (s) per second of the run."""
     async def main():
         if not spikes:
-            return await _light_clients(addr, n, seconds, sub)
-        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes, settle_s) for _ in range(n)))
+            return await _light_clients(addr, n, seconds, sub, settle_s)
+        return await asyncio.gather(*(_one_client(addr, seconds, sub, spikes, settle_s) for _ in range(n))), []
 
     cpu0, t0 = time.process_time(), time.monotonic()
-    results = asyncio.run(main())
-    out.put((results, (time.process_time() - cpu0) / (time.monotonic() - t0)))
+    results, joining = asyncio.run(main())
+    out.put((results, joining, (time.process_time() - cpu0) / (time.monotonic() - t0)))
 
 
 def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int, sub: dict | None = None,
-                 spikes: bool = False, cpu: list[float] | None = None, settle_s: float = 0.0) -> list:
+                 spikes: bool = False, cpu: list[float] | None = None, settle_s: float = 0.0,
+                 joining: list | None = None) -> list:
     """Rows of ``n`` clients in ``processes`` processes; process i connects to ``addrs[i % len(addrs)]``.
-    ``cpu`` (if given) receives each process's CPU time per second (s/s)."""
+    ``cpu`` (if given) receives each process's CPU time per second (s/s), ``joining`` the light
+    clients' rows from before their measured seconds."""
     addrs = [addrs] if isinstance(addrs, str) else addrs
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -235,10 +248,12 @@ def _run_clients(addrs: str | list[str], n: int, seconds: float, processes: int,
         p.start()
     results = []
     for _ in procs:
-        rows, cpu_s = q.get(timeout=seconds + 120)
+        rows, join_rows, cpu_s = q.get(timeout=seconds + settle_s + 180)
         results += rows
         if cpu is not None:
             cpu.append(cpu_s)
+        if joining is not None:
+            joining += join_rows
     for p in procs:
         p.join(30)
     return results
@@ -394,28 +409,37 @@ def _part2(addrs: list[str], args, subscribers: str, title: str, sub: dict | Non
            cpu: Callable[[], float] | None = None, within_ms: float | None = None) -> None:
     """One row per subscriber count: frames and bytes per second, receipt minus emission, drops; with
     ``cpu`` (the server's process time, when it runs in this process) its CPU per second and per frame
-    sent; with ``within_ms`` the largest count whose p99 stayed within it."""
+    sent; with ``within_ms`` the largest count whose p99 stayed within it. Latency figures are the
+    steady state, from ``--settle-s`` after the last subscriber held its first frame; while the
+    subscribers were joining (connecting and subscribing one after another) only the worst is shown.
+    Drops and seq gaps count the whole run, joining included."""
     counts = [int(x) for x in subscribers.split(",") if x]
     print(f"\n{title}")
-    print("   subscribers  seconds  frames/s/client  kB/s/client  MB/s total  p50 ms  p99 ms  max ms  server CPU  "
-          "clients' CPU  dropped")
+    print(f"   steady state: from {args.settle_s:g} s after every subscriber held a frame; 'joining max': the worst "
+          "while they connected")
+    print("   subscribers  seconds  frames/s/client  kB/s/client  MB/s total  p50 ms  p99 ms  max ms  joining max  "
+          "server CPU  clients' CPU  dropped")
     served = None
     for n in counts:
         seconds = args.soak_seconds if n == counts[-1] else args.seconds
         cpu0 = cpu() if cpu else 0.0
         t0 = time.monotonic()
         client_cpu: list[float] = []
-        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub, cpu=client_cpu)
+        joining: list[np.ndarray] = []
+        res = _run_clients(addrs, n, seconds, max(args.processes, len(addrs)), sub, cpu=client_cpu,
+                           settle_s=args.settle_s, joining=joining)
         cpu_s = (cpu() - cpu0) / (time.monotonic() - t0) if cpu else float("nan")
         fan = np.concatenate([(r[:, 3] - r[:, 1]) / 1000 for r in res if r.size])
+        join_max = max(((r[:, 3] - r[:, 1]).max() / 1000 for r in joining if r.size), default=float("nan"))
         frames = sum(r.shape[0] for r in res)
         per_client = np.mean([r[:, 7].sum() / seconds for r in res]) / 1e3
-        dropped = sum(int(r[-1, 6]) for r in res if r.size)
-        gaps = sum(int(np.sum(np.diff(r[:, 5]) != 1)) for r in res if r.shape[0] > 1)
+        whole = [np.concatenate([j, r]) for j, r in zip(joining, res)]
+        dropped = sum(int(r[-1, 6]) for r in whole if r.size)
+        gaps = sum(int(np.sum(np.diff(r[:, 5]) != 1)) for r in whole if r.shape[0] > 1)
         p99 = np.percentile(fan, 99)
         load = f"{cpu_s * 1000:4.0f} ms/s, {cpu_s * seconds / max(frames, 1) * 1e6:4.1f} us/frame" if cpu else "n/a"
         print(f"   {n:11d}  {seconds:7.0f}  {frames / n / seconds:15.1f}  {per_client:11.1f}  {per_client * n / 1e3:10.2f}  "
-              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {load}  {sum(client_cpu) * 1000:4.0f} ms/s  "
+              f"{np.percentile(fan, 50):6.2f}  {p99:6.2f}  {fan.max():6.1f}  {join_max:11.1f}  {load}  {sum(client_cpu) * 1000:4.0f} ms/s  "
               f"{dropped} (seq gaps {gaps})")
         if within_ms is not None and p99 <= within_ms:
             served = n
