@@ -1,0 +1,28 @@
+"""``touchreal bench builds``: simulate, fit and evaluate each build; the table shows what evaluate
+measured on the build's held-out trials (a tiny calibration set and a short search here)."""
+
+from __future__ import annotations
+
+import json
+
+from touchreal.bench.builds import TARGETS
+from touchreal.cli import main
+
+
+def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, capsys):
+    assert main(["bench", "builds", "--builds", "nominal,noisy-amplifier", "--trials", "ramp=24,sine=10",
+                 "--fit-args", "--generations 2 --popsize 4", "--work", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line.split() for line in out.splitlines() if line.startswith("   ") and "m " in line}
+    assert set(rows) == {"nominal", "noisy-amplifier"}
+    for build, cells in rows.items():
+        manifest = json.loads((tmp_path / build / "manifest.json").read_text())
+        assert manifest["simulator"]["build"]["name"] == build  # each build simulated as itself
+        fitted = json.loads((tmp_path / f"{build}.json").read_text())
+        assert fitted  # its own parameter file
+        metrics = json.loads((tmp_path / f"{build}-report" / "metrics.json").read_text())
+        for i, c in enumerate(TARGETS):
+            s = metrics["mapping"][c]["all"]
+            count, vr = cells[2 + 2 * i], cells[3 + 2 * i]
+            assert count == f"{s['count_error_mean']:.1%}" and vr == f"{s['ratio_inter_intra']:.2f}", (build, c)
+    assert "every build within the targets:" in out
