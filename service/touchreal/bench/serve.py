@@ -11,8 +11,9 @@ compute per update, and the clock model's check on the sim (each chunk in hand a
 acquisition: the skin simulation's compute plus the thread's wake-up; the time-sync offset).
 
 Part 2 connects 1, 10 and 100 subscribers (client processes) and reports events/s received, the
-fan-out latency (receipt minus ``emit_us``) p50/p99 and frames dropped. ``--soak-seconds`` runs the
-last count for that long.
+fan-out latency (receipt minus ``emit_us``) p50/p99 in the steady state (from ``--settle-s`` after
+every subscriber held a frame; the worst while they joined is shown apart) and frames dropped.
+``--soak-seconds`` runs the last count for that long.
 
 With ``--nats`` (needs Debian's ``nats-server``), part 2 runs again through NATS: the service
 publishes (``--publish``), two ``touchreal gateway`` processes serve the subscribers (spread evenly
