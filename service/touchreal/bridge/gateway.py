@@ -34,6 +34,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
+from touchreal_client.events import wait_set
 
 from .. import __version__
 from ..server import ws
@@ -41,7 +42,6 @@ from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
 from . import connection, subjects
 from .auth import NatsAuth
-from touchreal_client.events import wait_set
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 

@@ -32,13 +32,13 @@ from nats.js.api import DiscardPolicy, StorageType, StreamConfig
 from nats.js.errors import BadRequestError
 from prometheus_client import Counter, Gauge
 from touchreal_client import protocol as P
+from touchreal_client.events import wait_set
 
 from ..decoding.model import DecoderModelError
 from ..server.hub import Subscriber
 from ..server.service import Service
 from . import connection, subjects
 from .auth import NatsAuth
-from touchreal_client.events import wait_set
 from .demand import MAX_GATEWAYS, REJECT_REASONS, ForwardedDemand, Rejected, parse_announcement
 
 log = logging.getLogger("touchreal.bridge")
