@@ -296,8 +296,11 @@ def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path
     assert len(steady) > 150 and _consecutive(steady) and steady[-1].header.dropped == 0
     ups = [f.header.update for f in steady]
     finals = np.array([f.final_us["SA1"] for f in steady])
-    # upstream never paused for the restart: in order, SA1's watermark moving on in hops (5-10 ms), no jump
-    assert all(b > a for a, b in zip(ups, ups[1:])) and np.diff(finals).max() <= 100_000
+    # upstream never paused for the restart: in order, SA1's watermark moving on in hops (5-10 ms). A pause
+    # the restart caused would last a demand announcement (1 s) or its expiry (3 s); a loaded 2-core CI
+    # box has stalled this one process (service, two gateways, client) for 320 ms once, hence 0.5 s
+    assert all(b > a for a, b in zip(ups, ups[1:]))
+    assert np.diff(finals).max() <= 500_000, np.sort(np.diff(finals))[-5:]
 
 
 def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored(tmp_path, nats_url):
