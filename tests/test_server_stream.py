@@ -289,6 +289,30 @@ def test_stalled_client_is_dropped_and_others_are_unaffected(tmp_path):
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and frames[-1].header.dropped == 0
 
 
+def test_updates_an_overloaded_loop_drops_are_seq_gaps_every_client_sees(tmp_path):
+    """The event loop stalls (0.8 s of 5 ms hops > MAX_BACKLOG): the updates the service drops rather
+    than queue reach no client, and each client's seq jumps by exactly that many, counted in dropped."""
+    import time
+
+    with running_server(tmp_path) as (addr, svc):
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["spikes"])
+                frames = _spikes(await collect(ws, 1.0))
+                svc.loop.call_soon_threadsafe(time.sleep, 0.8)  # the server's loop, not ours
+                return frames + _spikes(await collect(ws, 2.0))
+
+        frames = run(go())
+        lost = int(svc.metrics.overload._value.get())
+    assert lost > 0
+    seqs, updates = np.array([f.header.seq for f in frames]), np.array([f.header.update for f in frames])
+    jumps = np.flatnonzero(np.diff(seqs) != 1)
+    assert len(jumps) == 1 and seqs[jumps[0] + 1] - seqs[jumps[0]] == lost + 1  # one gap, exactly the loss
+    assert updates[jumps[0] + 1] - updates[jumps[0]] == lost + 1  # where the lost updates were
+    assert frames[jumps[0]].header.dropped == 0 and frames[-1].header.dropped == lost
+
+
 def test_many_subscribers_lose_nothing(tmp_path):
     n = 25
     # the 25 clients share this process (and its GIL) with the server: a frame can wait more than the

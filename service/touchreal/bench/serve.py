@@ -335,9 +335,9 @@ def _service(args, n_taxels: int):
         log: dict = {"updates": []}
         deliver = svc._deliver
 
-        def recording_deliver(upd):  # server-side figures of each update: latency to emission, compute, clock
+        def recording_deliver(upd, lost_before=0):  # server-side figures of each update: latency, compute, clock
             log["updates"].append((upd.latency_us, upd.compute_s, upd.acq_us, upd.clock))
-            deliver(upd)
+            deliver(upd, lost_before)
 
         svc._deliver = recording_deliver
         companions = []

@@ -39,7 +39,7 @@ from .demand import Demand, build_demand
 from .runtime import Update, wall_us
 
 DROP_QUEUE_FULL = "queue_full"  #: a frame that did not fit a client's queue
-DROP_UPSTREAM = "upstream_loss"  #: a frame lost before it reached the hub (a gateway's broker hop)
+DROP_UPSTREAM = "upstream_loss"  #: a frame lost before it reached the hub (a gateway's broker hop, an overloaded loop)
 DROP_STALE = "stale"  #: a frame that waited in a client's queue longer than its max age
 DROP_REASONS = (DROP_QUEUE_FULL, DROP_UPSTREAM, DROP_STALE)
 MAX_AGE_S = 0.25  #: default: a queued frame older than this (s) is dropped rather than sent
@@ -271,8 +271,8 @@ class Hub:
 
     def skip(self, n_frames: int, stream: str, decoder: str | None = None) -> None:
         """``n_frames`` frames of ``stream`` (of ``decoder``'s outputs, for ``decoded``) were lost upstream (a
-        gateway's broker hop): every subscriber that would have received them is told, one ``seq`` and one
-        ``dropped`` per frame."""
+        gateway's broker hop, or updates the service's overloaded event loop dropped): every subscriber
+        that would have received them is told, one ``seq`` and one ``dropped`` per frame."""
         for sub in self.subscribers.values():
             s = sub.subscription
             if s is None or sub.kick is not None or stream not in s.streams:

@@ -8,7 +8,9 @@ classes, decoders, the address map).
 Threading: the acquisition :class:`~.runtime.Runtime` runs on its own thread and posts each update
 to the event loop (``call_soon_threadsafe``); everything else here runs on the event loop. If the
 loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dropped and counted
-(``touchreal_updates_dropped_overload``) rather than queued without bound.
+(``touchreal_updates_dropped_overload``) rather than queued without bound; every subscriber is told
+with the next update it gets: its ``seq`` jumps and ``dropped`` counts one frame per stream it takes
+for each update lost (see :meth:`.hub.Hub.skip`), so no loss goes unseen.
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ class Service:
         self._startup: asyncio.Task | None = None
         self._posted = 0
         self._delivered = 0
+        self._lost = 0  #: updates _post dropped since the last one it posted (acquisition thread)
         self.source_error: str | None = None
         self.ended: dict[str, Any] | None = None  #: the ``ended`` message once the source has ended (a finished replay)
 
@@ -155,9 +158,11 @@ class Service:
         """Called on the acquisition thread; never blocks."""
         if self._posted - self._delivered >= MAX_BACKLOG:
             self.metrics.overload.inc()
+            self._lost += 1
             return
         self._posted += 1
-        self.loop.call_soon_threadsafe(self._deliver, upd)
+        self.loop.call_soon_threadsafe(self._deliver, upd, self._lost)
+        self._lost = 0
 
     def _post_end(self) -> None:
         """Called on the acquisition thread after the source's last update was posted."""
@@ -178,7 +183,8 @@ class Service:
             if sub.takes_control:
                 sub.say_after_frames(text)
 
-    def _deliver(self, upd: Update) -> None:
+    def _deliver(self, upd: Update, lost_before: int = 0) -> None:
+        """Publish ``upd``; ``lost_before`` updates were dropped between it and the one before (overload)."""
         self._delivered += 1
         m = self.metrics
         m.updates.inc()
@@ -204,6 +210,9 @@ class Service:
         self._tell_clock(upd.clock)
         if self._hello_key != self._describe():
             self.announce_hello()
+        if lost_before:
+            for stream in P.STREAMS:
+                self.hub.skip(lost_before, stream)
         self.hub.publish(upd)
 
     # -- what clients are told besides frames ------------------------------------------------------
