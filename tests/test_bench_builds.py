@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import json
 
-from touchreal.bench.builds import TARGETS
 from touchreal.cli import main
+from touchreal.settings import CLASSES
 
 
 def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, capsys):
@@ -21,7 +21,7 @@ def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, c
         fitted = json.loads((tmp_path / f"{build}.json").read_text())
         assert fitted  # its own parameter file
         metrics = json.loads((tmp_path / f"{build}-report" / "metrics.json").read_text())
-        for i, c in enumerate(TARGETS):
+        for i, c in enumerate(CLASSES):
             s = metrics["mapping"][c]["all"]
             count, vr = cells[2 + 2 * i], cells[3 + 2 * i]
             assert count == f"{s['count_error_mean']:.1%}" and vr == f"{s['ratio_inter_intra']:.2f}", (build, c)

@@ -1,8 +1,8 @@
 """The NATS client life cycle shared by the publisher and the gateway.
 
-The client object exists before it connects, so whoever stops us can always close it: a task
-cancelled in the middle of its first connect, or a drain that times out, must not leave the client's
-reconnect loop running after its owner has gone.
+Owners create their ``nats.NATS()`` before :func:`connect`, so whoever stops them can always close
+it: a task cancelled in the middle of its first connect, or a drain that times out, must not leave
+the client's reconnect loop running after its owner has gone.
 """
 
 from __future__ import annotations
@@ -16,11 +16,6 @@ from nats.errors import Error as NatsError
 from .auth import NatsAuth
 
 DRAIN_S = 5.0  #: how long a stop waits for buffered messages to reach the server
-
-
-def client() -> nats.NATS:
-    """A client that is not connected yet (hand it to :func:`connect`)."""
-    return nats.NATS()
 
 
 async def connect(nc: nats.NATS, servers: str | list[str], name: str, auth: NatsAuth,

@@ -147,7 +147,7 @@ class Gateway:
 
     async def _run(self) -> None:
         s = self.settings
-        self.nc = connection.client()
+        self.nc = nats.NATS()
         await connection.connect(self.nc, s.nats.split(","), f"touchreal-gateway-{self.sensor_id}-{self.id}", self.auth,
                                  self._on_error, self._on_conn)
         self.m_connected.set(1)

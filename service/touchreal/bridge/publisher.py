@@ -113,7 +113,7 @@ class NatsPublisher:
 
     # -- the loop -------------------------------------------------------------------------------
     async def _run(self) -> None:
-        self.nc = connection.client()
+        self.nc = nats.NATS()
         await connection.connect(self.nc, self.url, f"touchreal-publisher-{self.sensor_id}", self.auth,
                                  self._on_error, self._on_conn, pending_size=self.pending_bytes)
         self.m_connected.set(1)
