@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fanout-taxels", default="1,256", help="taxel counts for the fan-out of spikes (part 2)")
     p.add_argument("--all-streams-subscribers", default="10,25,50,100",
                    help="subscriber counts for part 2d: every stream (spikes, channels, decoded) at the largest "
-                   "--fanout-taxels; the largest count served within 10 ms p99 is reported")
+                   "--fanout-taxels (none given: --taxels); empty: skipped; the largest count served within 10 ms p99 is reported")
     p.add_argument("--latency-taxels", default="1,256", help="taxel counts for part 1 (comma-separated)")
     p.add_argument("--settle-s", type=float, default=1.0, help="part 2: the steady state starts this long after every "
                    "subscriber held its first frame; part 1: spikes caused this long after subscribing "
@@ -287,10 +287,12 @@ def run(args: argparse.Namespace) -> int:
         with _service(args, n) as (_, log):
             _part2([log["addr"]], args, direct_counts, f"2. Fan-out of spikes, direct (receipt minus emission), all "
                    f"classes and {n} taxel(s)", cpu=time.process_time)
-    with _service(args, fan_taxels[-1]) as (_, log):
-        _part2([log["addr"]], args, args.all_streams_subscribers, f"2d. Every stream (spikes, channels, decoded), "
-               f"{fan_taxels[-1]} taxel(s) (receipt minus emission)", {"streams": ["spikes", "channels", "decoded"]},
-               cpu=time.process_time, within_ms=10.0)
+    all_taxels = fan_taxels[-1] if fan_taxels else args.taxels
+    if args.all_streams_subscribers:
+        with _service(args, all_taxels) as (_, log):
+            _part2([log["addr"]], args, args.all_streams_subscribers, f"2d. Every stream (spikes, channels, "
+                   f"decoded), {all_taxels} taxel(s) (receipt minus emission)",
+                   {"streams": ["spikes", "channels", "decoded"]}, cpu=time.process_time, within_ms=10.0)
     if args.nats:
         with _service(args, args.taxels) as (_, log), contextlib.ExitStack() as stack:
             gateways = [stack.enter_context(_gateway_process(log["nats"])) for _ in range(2)]

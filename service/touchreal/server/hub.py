@@ -288,8 +288,11 @@ class Hub:
         if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
             classes = self.allowed_classes if s.classes is None else s.classes
-            cls_idx = [P.CLASSES.index(c) for c in classes]
-            sel = np.isin(upd.cls, cls_idx) & np.isin(upd.taxel, taxels)
+            sel = np.ones(upd.cls.size, bool)
+            if len(set(classes)) < len(P.CLASSES):
+                sel &= np.isin(upd.cls, [P.CLASSES.index(c) for c in classes])
+            if s.taxels is not None:
+                sel &= np.isin(upd.taxel, taxels)
             final = {c: (upd.final_us.get(c) if c in classes else None) for c in P.CLASSES}
             mark = tuple(final.values())
             if sel.any() or upd.flags or self._finals.get(key) != mark:
