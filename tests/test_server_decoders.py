@@ -75,3 +75,8 @@ def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_s
     common = [i for i, t in enumerate(steps) if t in mine]
     assert len(common) > 100
     assert np.allclose([mine[steps[i]] for i in common], values[common], rtol=1e-5, atol=1e-6)
+    # a decoder runs after its update's spikes went out: their frame comes first and was emitted before it ran
+    spikes_of = {f.header.update: (i, f.header.emit_us) for i, f in enumerate(frames) if isinstance(f, P.SpikesFrame)}
+    pos = {id(f): i for i, f in enumerate(frames)}
+    pairs = [(spikes_of[f.header.update], (pos[id(f)], f.header.emit_us)) for f in force if f.header.update in spikes_of]
+    assert len(pairs) > 100 and all(s[0] < d[0] and s[1] < d[1] for s, d in pairs)

@@ -337,8 +337,9 @@ def _service(args, n_taxels: int):
         log: dict = {"updates": []}
         deliver = svc._deliver
 
-        def recording_deliver(upd, lost_before=0):  # server-side figures of each update: latency, compute, clock
-            log["updates"].append((upd.latency_us, upd.compute_s, upd.acq_us, upd.clock))
+        def recording_deliver(upd, lost_before=None):  # server-side figures of each update: latency, compute, clock
+            if upd.spikes:  # (not its decoders' outputs, which follow it)
+                log["updates"].append((upd.latency_us, upd.compute_s, upd.acq_us, upd.clock))
             deliver(upd, lost_before)
 
         svc._deliver = recording_deliver

@@ -4,7 +4,9 @@ Once per hop (``serve --hop-ms``) it reads the source's next chunk (the source p
 time, a replay's speed, or the serial device), looks at the current :class:`~.demand.Demand`, runs
 the :class:`~touchreal.stream.StreamEncoder` on exactly that (short windows every hop, long ones
 once per gate frame: ``update_s``), and hands an :class:`Update` to
-``publish`` (which must not block: the service posts it to the event loop). The network side can
+``publish`` (which must not block: the service posts it to the event loop). The decoders run after
+that, on the update's spikes, and their outputs follow as an update of their own (same number), so
+spikes never wait for a decoder. The network side can
 therefore never stall acquisition, and compute never stalls the network side.
 
 What runs follows the demand (``StreamEncoder.set_active``): only the demanded (taxel, class)
@@ -65,7 +67,8 @@ class Update:
     compute_s: float = 0.0
     #: per class, per spike: emit minus the acquisition of its causing sample (s, clock model)
     latency_us: dict[str, np.ndarray] = field(default_factory=dict)
-    spikes: bool = True  #: False for an update that carries only channels (a gateway's channels frame)
+    #: False for an update that carries only channels (a gateway's channels frame) or only decoded outputs
+    spikes: bool = True
     clock: ClockPoint | None = None  #: the source's clock model after this update's chunk
 
 
@@ -267,8 +270,12 @@ class Runtime:
                     latency[c] = (emit - self.clocks.to_server_wall_us(cause_us)) / 1e6
         upd = Update(self.update_no, self.enc_rev, flags, acq_us, emit, t_us, taxel, cls, final_us, channels, offset_us,
                      [], compute_s, latency, clock=self.clock)
-        upd.decoded = self._decode(upd)
         self._publish(upd)
+        decoded = self._decode(upd)  # after the spikes went out: they never wait for the decoders
+        if decoded:
+            none = np.zeros(0, np.uint64)
+            self._publish(Update(self.update_no, self.enc_rev, flags, acq_us, wall_us(), none, none.astype(np.uint16),
+                                 none.astype(np.uint8), {}, None, offset_us, decoded, spikes=False, clock=self.clock))
         return upd
 
     def _follow_decoder_demand(self, demand: Demand) -> None:

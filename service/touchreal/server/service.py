@@ -50,6 +50,12 @@ HANDOFF_S = 0.002
 CLOCK_EVERY_US = 1_000_000  #: the clock model is restated at least this often (us)
 
 
+def _lanes(upd: Update) -> list[tuple[str, str | None]]:
+    """The (stream, decoder) lanes an update feeds: spikes and channels, or its decoders' outputs."""
+    lanes: list[tuple[str, str | None]] = [("spikes", None), ("channels", None)] if upd.spikes else []
+    return lanes + [("decoded", name) for name, *_ in upd.decoded]
+
+
 def _settle_heap() -> None:
     """Collect once, then exempt everything alive (modules, the warmed-up kernels: some 300,000
     objects) from the cyclic garbage collector: its full passes over them stalled the event loop
@@ -90,7 +96,8 @@ class Service:
         self._posted = 0
         self._delivered = 0
         self._taken = threading.Event()  #: set by the event loop as it takes up a posted update
-        self._lost = 0  #: updates _post dropped since the last one it posted (acquisition thread)
+        #: per (stream, decoder): frames of the updates _post dropped since the last one it posted (acquisition thread)
+        self._lost: dict[tuple[str, str | None], int] = {}
         self.source_error: str | None = None
         self.ended: dict[str, Any] | None = None  #: the ``ended`` message once the source has ended (a finished replay)
 
@@ -171,15 +178,16 @@ class Service:
 
     # -- acquisition thread -> event loop ------------------------------------------------------------
     def _post(self, upd: Update) -> None:
-        """Called on the acquisition thread; never blocks."""
+        """Called on the acquisition thread; blocks at most HANDOFF_S."""
         if self._posted - self._delivered >= MAX_BACKLOG:
             self.metrics.overload.inc()
-            self._lost += 1
+            for lane in _lanes(upd):
+                self._lost[lane] = self._lost.get(lane, 0) + 1
             return
         self._posted += 1
         self._taken.clear()
         self.loop.call_soon_threadsafe(self._deliver, upd, self._lost)
-        self._lost = 0
+        self._lost = {}
         self._taken.wait(HANDOFF_S)  # hand the GIL to the event loop (HANDOFF_S)
 
     def _post_end(self) -> None:
@@ -201,18 +209,18 @@ class Service:
             if sub.takes_control:
                 sub.say_after_frames(text)
 
-    def _deliver(self, upd: Update, lost_before: int = 0) -> None:
-        """Publish ``upd``; ``lost_before`` updates were dropped between it and the one before (overload).
-        The metrics are kept after the fan-out (:meth:`_account`): its senders go first."""
+    def _deliver(self, upd: Update, lost_before: dict[tuple[str, str | None], int] | None = None) -> None:
+        """Publish ``upd``; ``lost_before``: per (stream, decoder) the frames of the updates dropped
+        between it and the one before (overload). The metrics are kept after the fan-out
+        (:meth:`_account`): its senders go first."""
         self._taken.set()
         self._delivered += 1
         self._follow_served_classes()  # whichever way a parameter set became active
         self._tell_clock(upd.clock)
         if self._hello_key != self._describe():
             self.announce_hello()
-        if lost_before:
-            for stream in P.STREAMS:
-                self.hub.skip(lost_before, stream)
+        for (stream, decoder), n in (lost_before or {}).items():
+            self.hub.skip(n, stream, decoder)
         self.hub.publish(upd)
         self.loop.call_soon(self._account, upd)
 
