@@ -6,11 +6,13 @@ jumps), and a new ``hello`` whenever what it describes changes (parameter revisi
 classes, decoders, the address map).
 
 Threading: the acquisition :class:`~.runtime.Runtime` runs on its own thread and posts each update
-to the event loop (``call_soon_threadsafe``); everything else here runs on the event loop. If the
-loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dropped and counted
-(``touchreal_updates_dropped_overload``) rather than queued without bound; every subscriber is told
-with the next update it gets: its ``seq`` jumps and ``dropped`` counts one frame per stream it takes
-for each update lost (see :meth:`.hub.Hub.skip`), so no loss goes unseen.
+to the event loop (``call_soon_threadsafe``), then waits at most :data:`HANDOFF_S` until the loop has
+taken it up, so the fan-out gets the interpreter lock first; everything else here runs on the event
+loop. If the loop falls more than :data:`MAX_BACKLOG` updates behind, further updates are dropped and
+counted (``touchreal_updates_dropped_overload``) rather than queued without bound; every subscriber
+is told with the next update it gets: its ``seq`` jumps and ``dropped`` counts one frame per lane
+(spikes, channels, a decoder's outputs) it takes for each update lost (see :meth:`.hub.Hub.skip`),
+so no loss goes unseen.
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ CLOCK_EVERY_US = 1_000_000  #: the clock model is restated at least this often (
 
 def _lanes(upd: Update) -> list[tuple[str, str | None]]:
     """The (stream, decoder) lanes an update feeds: spikes and channels, or its decoders' outputs."""
-    lanes: list[tuple[str, str | None]] = [("spikes", None), ("channels", None)] if upd.spikes else []
+    lanes: list[tuple[str, str | None]] = [("spikes", None)] if upd.spikes else []
+    if upd.channels is not None:
+        lanes.append(("channels", None))
     return lanes + [("decoded", name) for name, *_ in upd.decoded]
 
 
@@ -227,8 +231,9 @@ class Service:
     def _account(self, upd: Update) -> None:
         """The metrics of one delivered update (on the event loop, after its fan-out's senders)."""
         m = self.metrics
-        m.updates.inc()
-        m.compute.observe(upd.compute_s)
+        if upd.spikes:  # (not the decoders' outputs that follow it)
+            m.updates.inc()
+            m.compute.observe(upd.compute_s)
         for i, c in enumerate(P.CLASSES):
             n = int((upd.cls == i).sum())
             if n:
