@@ -46,8 +46,8 @@ log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
 #: After posting an update the acquisition thread waits at most this long (s) for the event loop to
 #: take it up: the GIL passes to the fan-out at once instead of when the acquisition thread next
-#: blocks (e.g. after a slow class's frame), which cut the p99 fan-out latency to 100 subscribers by
-#: about 1 ms (docs/benchmarks.md).
+#: blocks (e.g. after a slow class's frame); without it the p99 fan-out latency to 100 subscribers
+#: is about 1 ms longer (docs/architecture.md).
 HANDOFF_S = 0.002
 CLOCK_EVERY_US = 1_000_000  #: the clock model is restated at least this often (us)
 
