@@ -65,19 +65,16 @@ def update_from_frame(frame: P.Frame, n_taxels: int, decoder: str | None = None)
     (NaN for taxels the publisher did not send); its 5 kHz grid index is counted from the wire
     clock's zero, so a client's decimation picks samples on that grid."""
     h = frame.header
-    empty = np.zeros(0, np.uint64)
     if isinstance(frame, P.DecodedFrame):
         if decoder is None:
             raise ValueError("a decoded frame needs its decoder's name")
-        return Update(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, empty, empty.astype(np.uint16),
-                      empty.astype(np.uint8), {}, spikes=False,
-                      decoded=[(decoder, tuple(int(t) for t in frame.taxels), frame.t_us, frame.values)])
+        return Update.without_spikes(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us,
+                                     decoded=[(decoder, tuple(int(t) for t in frame.taxels), frame.t_us, frame.values)])
     if isinstance(frame, P.ChannelsFrame):
         data = np.full((frame.data.shape[0], n_taxels, len(P.CHANNELS)), np.nan, np.float32)
         keep = frame.taxels < n_taxels
         data[:, frame.taxels[keep].astype(int), :] = frame.data[:, keep, :]
         k0, offset = divmod(int(frame.t0_us), GRID_US)
-        return Update(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, empty, empty.astype(np.uint16),
-                      empty.astype(np.uint8), {}, Channels(k0, data), offset, spikes=False)
+        return Update.without_spikes(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, Channels(k0, data), offset)
     final = {c: v for c, v in frame.final_us.items() if v is not None}
     return Update(h.update, h.params_rev, h.flags, h.emit_us, h.emit_us, frame.t_us, frame.taxel, frame.cls, final)

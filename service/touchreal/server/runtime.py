@@ -71,6 +71,15 @@ class Update:
     spikes: bool = True
     clock: ClockPoint | None = None  #: the source's clock model after this update's chunk
 
+    @classmethod
+    def without_spikes(cls, update: int, params_rev: int, flags: int, acq_us: int, emit_us: int,
+                       channels: Channels | None = None, offset_us: int = 0, decoded: list | None = None,
+                       clock: ClockPoint | None = None) -> Update:
+        """An update that carries only channels or only decoded outputs (``spikes`` False)."""
+        none = np.zeros(0, np.uint64)
+        return cls(update, params_rev, flags, acq_us, emit_us, none, none.astype(np.uint16), none.astype(np.uint8), {},
+                   channels, offset_us, decoded or [], spikes=False, clock=clock)
+
 
 class Runtime:
     """The acquisition thread of one source. ``demand()`` returns the current Demand, ``params()``
@@ -273,9 +282,8 @@ class Runtime:
         self._publish(upd)
         decoded = self._decode(upd)  # after the spikes went out: they never wait for the decoders
         if decoded:
-            none = np.zeros(0, np.uint64)
-            self._publish(Update(self.update_no, self.enc_rev, flags, acq_us, wall_us(), none, none.astype(np.uint16),
-                                 none.astype(np.uint8), {}, None, offset_us, decoded, spikes=False, clock=self.clock))
+            self._publish(Update.without_spikes(self.update_no, self.enc_rev, flags, acq_us, wall_us(), offset_us=offset_us,
+                                                decoded=decoded, clock=self.clock))
         return upd
 
     def _follow_decoder_demand(self, demand: Demand) -> None:
