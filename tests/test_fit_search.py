@@ -65,3 +65,28 @@ def test_restarts_run_side_by_side_independently_and_the_best_point_wins():
     seen: list[int] = []
     S.run_cma("RA", SPACE, _sphere, x0, 6, 5, 3, seen.append)
     assert sum(seen) == 5  # the progress bar reaches the budget
+
+
+def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_objective():
+    lo, hi = SPACE.bounds()
+    a, b = lo + 0.4 * (hi - lo), lo + 0.45 * (hi - lo)  # the search's optimum, and the refinement's nearby
+
+    def two_objectives(key: str, xs: np.ndarray) -> list[tuple[float, dict[str, float]]]:
+        centre = b if key == "RA:refine" else a
+        return [(float(np.sum((x - centre) ** 2)), {}) for x in np.asarray(xs)]
+
+    x0 = SPACE.initial(100.0)
+    cfg = FitConfig(classes=("RA",), popsize=6, max_generations=30, seed=4, progress=False, refine={"RA": 3.0})
+    fit = S.search_and_refine("RA", SPACE, two_objectives, cfg, [x0], 100.0)
+    assert fit.cls == "RA" and fit.search is not None and fit.search.search is None
+    on_refinement = lambda x: two_objectives("RA:refine", np.array([x]))[0][0]  # noqa: E731
+    # the search's best point is on the refinement's start grid: the refinement starts no worse than it
+    assert fit.start_loss <= on_refinement(fit.search.x) + 1e-12
+    assert on_refinement(fit.x) < on_refinement(fit.search.x)
+    assert fit.runs[0].history[-1] <= fit.start_loss
+    # a class not refined is searched once
+    plain = S.search_and_refine("RA", SPACE, two_objectives, FitConfig(classes=("RA",), popsize=6, max_generations=3, seed=4,
+                                                                       progress=False, refine={}), [x0], 100.0)
+    assert plain.search is None
+    # the refinement draws from streams of its own
+    assert S.cma_seed(4, "RA:refine") != S.cma_seed(4, "RA") == S.cma_seed(4, "RA", 0)

@@ -158,7 +158,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     tset = TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
     cfg = FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
     refs = tset.reference_set("SA1", cfg.objective.kernel_tau_s, 80)
-    ev = LocalExecutor(FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objective=cfg.objective, lag_s=0.0), 1)
+    ev = LocalExecutor(FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objectives={"SA1": cfg.objective_of("SA1")}, lag_s=0.0), 1)
 
     def loss(x):
         return ev("SA1", np.array([x]))[0][0]
@@ -196,12 +196,16 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert res.n_train > 0 and res.n_validation > 0
     for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # start grid (directions x 81) + 2 generations of 6 + one IPOP restart (1 generation of 12)
+        # search: start grid (directions x 81) + 2 generations of 6; RA and PC (the default) are then refined
+        # from the search's best point: a grid of 81 around it + 2 generations of 6
+        search = f.search if c in ("RA", "PC") else f
+        assert (f.search is not None) == (c in ("RA", "PC"))
         grid = len(INITIAL_WEIGHTS[c]) * 81
-        assert grid < f.evaluations <= grid + 2 * 6 + 1 * 12
+        assert grid < search.evaluations <= grid + 2 * 6 and search.generations <= 2
+        if f.search is not None:
+            assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
         # the input stage is fitted for RA and PC only (FitConfig default)
         assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
-        assert f.generations <= 3
     # reproducible
     res2 = F.fit_dataset(ds.root, FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
     for c in CLASSES:
@@ -220,22 +224,37 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert min(cp.delay_ms for cp in q.classes.values()) == 0.0  # the smallest alignment with every delay >= 0
     assert json.loads(out.read_text())["provenance"]["fitted_classes"] == ["RA"]
     assert q.window_ms("RA") == 16.0 and q.window_ms("PC") == 128.0  # the default: the shipped windows (fast path)
-    assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 1.0
+    objective = json.loads(out.read_text())["provenance"]["objective"]
+    assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
+    assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3"]) == 0
-    assert json.loads(out.read_text())["provenance"]["objective"]["count_weight"] == 3.0
-    assert json.loads(out.read_text())["provenance"]["objective"]["segmented_count_classes"] == ["PC"]  # the default
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--segmented-count-classes", "none"]) == 0
-    assert json.loads(out.read_text())["provenance"]["objective"]["segmented_count_classes"] == []
+    objective = json.loads(out.read_text())["provenance"]["objective"]
+    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0}
+    assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
+                 "--segmented-count-classes", "none"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["objective"]["refine"] == {} and prov["objective"]["segmented_count_classes"] == []  # the paper's objective
+    assert "search" not in prov["loss"]["PC"]
     # the file records every CMA-ES run of a class (a restart: population x2, generations /2)
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "2", "--popsize", "4", "--restarts", "1",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]) == 0
     prov = json.loads(out.read_text())["provenance"]
-    assert [(r["popsize"], r["generations"], r["stop"]) for r in prov["loss"]["PC"]["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
-    assert prov["loss"]["PC"]["generations"] == 3 and prov["optimizer"]["restarts"] == 1
+    for stage in (prov["loss"]["PC"], prov["loss"]["PC"]["search"]):  # the refinement, and the search it started from
+        assert [(r["popsize"], r["generations"], r["stop"]) for r in stage["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
+        assert stage["generations"] == 3
+    assert prov["optimizer"]["restarts"] == 1
     with pytest.raises(ValueError):
         FitConfig(count_weight=-1.0)
+    with pytest.raises(ValueError, match="count weights"):
+        FitConfig(refine={"PC": float("nan")})
+    with pytest.raises(ValueError, match="refine names unknown"):
+        FitConfig(refine={"SA2": 1.0})
+    cfg = FitConfig(count_weight=2.0)
+    assert cfg.objective_of("PC").count_weight == 2.0 and cfg.objective_of("PC:refine").count_weight == 5.0
+    assert cfg.refined() == ("RA", "PC") and FitConfig(classes=("SA1", "PC")).refined() == ("PC",)
     with pytest.raises(ValueError, match="segmented_count_classes"):
         FitConfig(segmented_count_classes=("PC", "SA2"))
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "XX"]) == 2
@@ -313,20 +332,25 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
 def test_window_option_per_class():
     import argparse
 
-    from touchreal.fitting.command import parse_windows
+    from touchreal.fitting.command import parse_refine, parse_windows
 
     assert parse_windows("64") == (64.0, {})
     assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
     assert parse_windows("32, SA1=16") == (32.0, {"SA1": 16.0})
+    assert parse_refine("PC=4,RA=2") == {"PC": 4.0, "RA": 2.0} and parse_refine("none") == {}
     for bad in ("SA2=16", "SA1=fast", "x"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_windows(bad)
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_refine(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match="per refined class"):
+        parse_refine("3")
     with pytest.raises(ValueError, match="window_ms"):
         FitConfig(class_window_ms={"RA": 2.0})
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
 
 
-@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "segmented_count_classes"])
+@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes"])
 def test_fit_config_refuses_unknown_classes_in_every_class_list(name):
     with pytest.raises(ValueError, match=f"{name} must be a subset"):
         FitConfig(**{name: ("PC", "SA9")})

@@ -137,3 +137,35 @@ def test_segmented_count_loss_per_condition_and_one_segment_is_the_paper():
         ReferenceSet.build([[np.array([0.1])]], TAU, segment_edges=[np.array([0.5, 0.2])])
     with pytest.raises(ValueError, match="one entry"):
         ReferenceSet.build([[np.array([0.1])]], TAU, segment_edges=[])
+
+
+def test_vr_normalised_distance_is_the_reports_inter_over_intra_ratio_per_condition():
+    from touchreal.analysis.spiketrains import vr_distance
+    from touchreal.fitting.objective import VR_NORM_FLOOR
+
+    refs_c0 = [np.array([0.100, 0.200]), np.array([0.104, 0.203]), np.array([0.098])]
+    refs_c1 = [np.array([0.5])]  # one reference: normalised by 1 (one unmatched spike)
+    refs = ReferenceSet.build([refs_c0, refs_c1], TAU, vr_normalised=True)
+    intra = np.mean([vr_distance(refs_c0[i], refs_c0[j], TAU) for i, j in ((0, 1), (0, 2), (1, 2))])
+    assert intra > VR_NORM_FLOOR
+    np.testing.assert_allclose(refs.vr_norm, [intra, 1.0])
+    preds = [np.array([0.101, 0.25]), np.array([0.51, 0.52])]
+    L = evaluate_loss(preds, [0, 1], refs, CFG)
+    inter0 = np.mean([vr_distance(preds[0], r, TAU) for r in refs_c0])
+    np.testing.assert_allclose(L.d_kernel, [inter0 / intra, vr_distance(preds[1], refs_c1[0], TAU)], rtol=1e-12)
+    assert L.d_basic == pytest.approx(L.d_kernel.mean())
+    # the kernel distance of the same trains differs: the option is what changes the score
+    assert not np.allclose(L.d_kernel, evaluate_loss(preds, [0, 1], ReferenceSet.build([refs_c0, refs_c1], TAU), CFG).d_kernel)
+
+
+def test_vr_normalised_distance_charges_a_missed_and_an_extra_spike_alike():
+    ref = np.array([0.1, 0.3])
+    refs = ReferenceSet.build([[ref]], TAU, vr_normalised=True)
+    missed = evaluate_loss([np.array([0.1])], [0], refs, CFG).d_basic
+    extra = evaluate_loss([np.array([0.1, 0.3, 0.5])], [0], refs, CFG).d_basic
+    assert missed == pytest.approx(extra) == pytest.approx(1.0)  # sqrt(1): one unmatched spike, floor-free norm 1
+    # identical repeats: the floor keeps the normaliser finite
+    same = ReferenceSet.build([[ref, ref.copy()]], TAU, vr_normalised=True)
+    from touchreal.fitting.objective import VR_NORM_FLOOR
+
+    assert same.vr_norm[0] == VR_NORM_FLOOR

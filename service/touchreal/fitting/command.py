@@ -17,6 +17,8 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from .config import DEFAULT_REFINE
+
     p = sub.add_parser(
         "fit",
         help="fit SA1/RA/PC encoder parameters to a dataset's TouchSim reference spike trains",
@@ -45,10 +47,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
-                   help="multiplier of the relative spike-count loss L_rel in the objective (default 1 = the paper's eq. 1)")
+                   help="multiplier of the relative spike-count loss L_rel in the search's objective (default 1 = the paper's eq. 1)")
     p.add_argument("--segmented-count-classes", default=None,
                    help="comma-separated classes whose ramp count loss is taken per turning-point window, or 'none' for "
-                   "the paper's whole-trial count (default: PC)")
+                   "the paper's whole-trial count, in the search (default: PC)")
+    p.add_argument("--refine", type=parse_refine, default=None, metavar="CLS=K,...|none",
+                   help="classes refined after their search by a second CMA-ES run from its best point, each with the count "
+                   f"weight K of the refinement's objective (whole-trial counts), or 'none' for the paper's single search "
+                   f"(default {_weights_text(DEFAULT_REFINE)})")
+    p.add_argument("--vr-distance-classes", default=None,
+                   help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
+                   "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")
     p.add_argument("--input-stage-classes", default=None,
                    help="classes whose input stage (low-pass cutoff, negative-part lead) is fitted, comma-separated or 'none' (default RA,PC)")
     p.add_argument("--max-ramp-conditions", type=int, default=None, help="fit on a seeded subsample of ramp conditions")
@@ -66,16 +75,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _weights_text(weights: dict[str, float]) -> str:
+    return ",".join(f"{c}={w:g}" for c, w in weights.items())
+
+
 def parse_windows(text: str) -> tuple[float, dict[str, float]]:
     """``"128"`` or ``"SA1=16,RA=16,PC=128"`` (a bare number in the list sets the default) ->
     (default window, per-class windows) in ms."""
-    default, per_class = DEFAULT_WINDOW_MS, {}
+    return _per_class_values(text, DEFAULT_WINDOW_MS, "W", " in ms")
+
+
+def parse_refine(text: str) -> dict[str, float]:
+    """``"RA=3,PC=4"`` -> {class: count weight of its refinement}; ``"none"`` -> {}."""
+    if text.strip().lower() == "none":
+        return {}
+    default, per_class = _per_class_values(text, None, "K", "")
+    if default is not None:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected CLS=K,... (a count weight per refined class) or none")
+    return per_class
+
+
+def _per_class_values(text: str, default: float | None, symbol: str, unit: str) -> tuple[float | None, dict[str, float]]:
+    per_class: dict[str, float] = {}
     for tok in (t.strip() for t in text.split(",") if t.strip()):
         name, sep, value = tok.rpartition("=")
         try:
             w = float(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{tok!r}: expected W or CLS=W with W in ms") from None
+            raise argparse.ArgumentTypeError(f"{tok!r}: expected {symbol} or CLS={symbol}{unit}") from None
         if not sep:
             default = w
         elif name.strip() in CLASSES:
@@ -100,11 +127,11 @@ def run(args: argparse.Namespace) -> int:
     if args.window_ms is not None:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
-                       ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v
-    for name in ("input_stage_classes", "segmented_count_classes"):
+    for name in ("input_stage_classes", "segmented_count_classes", "vr_distance_classes"):
         v = getattr(args, name)
         if v is not None:
             kw[name] = _classes(v)
@@ -182,5 +209,8 @@ def _summary(res: FitResult, out: Path) -> None:
     for c, f in res.classes.items():
         tr = f.train.total if f.train else float("nan")
         va = f"{f.validation.total:.4f}" if f.validation else "- (none held out)"
-        print(f"  {c}: loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
+        if f.search is not None:
+            s = f.search
+            print(f"  {c}: search loss start {s.start_loss:.4f} ({s.generations} generations, {s.evaluations} evaluations, {s.seconds:.0f} s), then")
+        print(f"  {c}: {'refinement ' if f.search is not None else ''}loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")

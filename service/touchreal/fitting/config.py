@@ -19,6 +19,13 @@ def shipped_windows_ms() -> dict[str, float]:
     return {c: p.window_ms(c) for c in CLASSES if c in p.classes}
 
 
+#: classes refined by default, each with the count weight of its refinement: RA, whose count is the
+#: target other sensor builds miss first, and PC, refined on the VR-normalised distance (docs/fitting.md)
+DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
+
+REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
+
+
 @dataclass
 class FitConfig:
     """What to fit and how (``touchreal fit``'s options); validated on construction."""
@@ -37,8 +44,12 @@ class FitConfig:
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
-    count_weight: float = 1.0  #: multiplier of L_rel in the objective (paper: 1)
-    segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window (paper eq. 7: none)
+    count_weight: float = 1.0  #: multiplier of L_rel in the objective of the search (paper: 1)
+    segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window in the search (paper eq. 7: none)
+    #: classes refined after their search (a second CMA-ES run from its best point), each with the
+    #: count weight of its refinement's objective (whole-trial counts); empty: the paper's single search
+    refine: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_REFINE))
+    vr_distance_classes: tuple[str, ...] = ("PC",)  #: refined classes whose refinement is scored by the VR-normalised distance, not the kernel distance
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
     progress: bool = True
@@ -48,7 +59,7 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
-        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes"):
+        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes"):
             bad = [c for c in getattr(self, name) if c not in CLASSES]
             if bad:
                 raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(getattr(self, name))}")
@@ -61,11 +72,25 @@ class FitConfig:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:
             raise ValueError("kernel_ms must be > 0")
-        if not np.isfinite(self.count_weight) or self.count_weight < 0:
-            raise ValueError("count_weight must be >= 0")
+        bad = [c for c in self.refine if c not in CLASSES]
+        if bad:
+            raise ValueError(f"refine names unknown classes {bad}; expected a subset of {list(CLASSES)}")
+        if not all(np.isfinite(w) and w >= 0 for w in (self.count_weight, *self.refine.values())):
+            raise ValueError("count_weight and refine's count weights must be >= 0")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
+
+    def refined(self) -> tuple[str, ...]:
+        """The fitted classes that are refined after their search."""
+        return tuple(c for c in self.classes if c in self.refine)
+
+    def objective_of(self, key: str) -> ObjectiveConfig:
+        """The objective of a class's search (``key`` = the class) or of its refinement
+        (``key`` = class + :data:`REFINE_SUFFIX`: the refinement's count weight)."""
+        cls, _, stage = key.partition(":")
+        weight = self.refine[cls] if stage else self.count_weight
+        return ObjectiveConfig(**{**self.objective.__dict__, "count_weight": float(weight)})
 
     def window_of(self, cls: str) -> float:
         """Causal PVDF window (ms) class ``cls`` is fitted at."""

@@ -35,13 +35,14 @@ class FitSource:
 
 @dataclass
 class FitState:
-    """What evaluating a candidate needs: per class its search space, references and preprocessed
-    training trials; the objective; the search's alignment ``lag_s`` (s; spikes compared at stamp minus it)."""
+    """What evaluating a candidate needs: per state key (a class for its search, the class +
+    ``:refine`` for its refinement) the search space, references, preprocessed training trials and
+    objective; the search's alignment ``lag_s`` (s; spikes compared at stamp minus it)."""
 
     spaces: dict[str, ParamSpace]
     refs: dict[str, ReferenceSet]
     train: dict[str, TrialSet]
-    objective: ObjectiveConfig
+    objectives: dict[str, ObjectiveConfig]
     lag_s: float
 
 
@@ -55,7 +56,7 @@ def losses(state: FitState, cls: str, xs: np.ndarray) -> Losses:
     trains = simulate(tset.trials, [space.decode(x) for x in xs], state.lag_s)
     out = []
     for tr in trains:
-        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], state.objective)
+        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], state.objectives[cls])
         total = terms.total if np.isfinite(terms.total) else 1e6
         out.append((float(total), terms.as_dict()))
     return out

@@ -43,10 +43,10 @@ import numpy as np
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
 from .calibration import calibrate_pvdf
-from .config import FitConfig
+from .config import REFINE_SUFFIX, FitConfig
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
-from .objective import evaluate_loss
-from .search import ClassFit, fit_class
+from .objective import ReferenceSet, evaluate_loss
+from .search import ClassFit, search_and_refine
 from .space import INITIAL_WEIGHTS, ParamSpace, touchsim_class_defaults
 # fitted_on_every_trial and params_split_seed: the evaluation and the decoders read a file's split through this module
 from .split import FIT_PROTOCOLS, NO_SPLIT_METHOD, SPLIT_METHOD, fitted_on_every_trial, params_split_seed, split_repeats  # noqa: F401
@@ -123,14 +123,24 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     log(f"preprocessed at {windows} ms in {timings['preprocess_s']:.1f} s; channel scale "
         f"{np.round(channel_scale(first.trials), 4).tolist()}; rig lag {rig_lag_ms:.1f} ms (SingleTact rise after the commanded onset)")
 
-    tau_s = cfg.objective.kernel_tau_s
     spaces = {}
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
-    refs = {c: train[c].reference_set(c, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, c in cfg.segmented_count_classes) for c in cfg.classes}
-    state = FitState(spaces=spaces, refs=refs, train=train, objective=cfg.objective, lag_s=lag_s)
+    for c in cfg.refined():  # a refinement evaluates on its class's trials and space
+        spaces[c + REFINE_SUFFIX], train[c + REFINE_SUFFIX] = spaces[c], train[c]
+    refs = {key: _references(train[key], key, cfg) for key in train}
+    state = FitState(spaces=spaces, refs=refs, train=train, objectives={key: cfg.objective_of(key) for key in refs}, lag_s=lag_s)
     return Prepared(ds, train_e, val_e, pre, len(segments), state, rig_lag_ms, timings)
+
+
+def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
+    """The reference set of a class's search (``key`` = the class: its segmented count if listed) or
+    of its refinement (the class + REFINE_SUFFIX: whole-trial counts, its VR-normalised distance if listed)."""
+    cls, _, stage = key.partition(":")
+    return tset.reference_set(cls, cfg.objective.kernel_tau_s, cfg.max_refs_per_condition, cfg.sine_weight,
+                              segmented_count=not stage and cls in cfg.segmented_count_classes,
+                              vr_normalised=bool(stage) and cls in cfg.vr_distance_classes)
 
 
 def fit_dataset(
@@ -150,7 +160,7 @@ def fit_dataset(
     prep = prepare(source, log)
     ds, val_e, pre, timings, rig_lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.rig_lag_ms
     name = str(ds.manifest.get("name", ""))
-    spaces, refs, train, lag_s, tau_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s, cfg.objective.kernel_tau_s
+    spaces, refs, train, lag_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s
     first = train[min(cfg.classes, key=cfg.window_of)]  # the smallest window's trial set (counts are the same in all)
     t = time.perf_counter()
     evaluator = (executor or LocalExecutor.factory(cfg.workers))(source, prep.state)
@@ -168,22 +178,23 @@ def fit_dataset(
         jobs[cls] = (cls, sp, evaluator, cfg, starts, d0, position)
     try:  # every class searches at once, so the workers never wait for one class's next generation
         with ThreadPoolExecutor(len(jobs), thread_name_prefix="fit") as pool:
-            futures = {cls: pool.submit(fit_class, *job) for cls, job in jobs.items()}
+            futures = {cls: pool.submit(search_and_refine, *job) for cls, job in jobs.items()}
             fits: dict[str, ClassFit] = {cls: f.result() for cls, f in futures.items()}
     finally:
         evaluator.close()
 
     t = time.perf_counter()
     val: dict[float, TrialSet] = {}
-    for cls, f in fits.items():
+    for cls, f in fits.items():  # scored on the objective of the class's last stage
+        key = cls + REFINE_SUFFIX if f.search is not None else cls
         f.params = f.params.model_copy(update={"window_ms": None if cfg.window_of(cls) == pre.window_ms else cfg.window_of(cls)})
-        f.train = evaluate_loss(simulate(train[cls].trials, [f.params], lag_s)[0], train[cls].cond_index, refs[cls], cfg.objective)
+        f.train = evaluate_loss(simulate(train[cls].trials, [f.params], lag_s)[0], train[cls].cond_index, refs[key], cfg.objective_of(key))
         if val_e:
             w = cfg.window_of(cls)
             if w not in val:
                 val[w] = build_trial_set(ds, val_e, pre.model_copy(update={"window_ms": w}), cfg.classes)
-            vref = val[w].reference_set(cls, tau_s, cfg.max_refs_per_condition, cfg.sine_weight, cls in cfg.segmented_count_classes)
-            f.validation = evaluate_loss(simulate(val[w].trials, [f.params], lag_s)[0], val[w].cond_index, vref, cfg.objective)
+            f.validation = evaluate_loss(simulate(val[w].trials, [f.params], lag_s)[0], val[w].cond_index, _references(val[w], key, cfg),
+                                         cfg.objective_of(key))
     timings["score_s"] = time.perf_counter() - t
     seconds = time.perf_counter() - t_all
 
@@ -223,6 +234,8 @@ def fit_dataset(
             "sine_weight": cfg.sine_weight,
             "count_weight": cfg.count_weight,
             "segmented_count_classes": list(cfg.segmented_count_classes),
+            "refine": {c: cfg.refine[c] for c in cfg.refined()},
+            "vr_distance_classes": [c for c in cfg.refined() if c in cfg.vr_distance_classes],
             "input_stage_classes": list(cfg.input_stage_classes),
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
@@ -239,6 +252,10 @@ def fit_dataset(
                 "evaluations": f.evaluations,
                 "runs": [r.as_dict() for r in f.runs],
                 "seconds": round(f.seconds, 1),
+                **({"search": {"start": round(f.search.start_loss, 5), "best": round(min([f.search.start_loss] + [r.best_loss for r in f.search.runs]), 5),
+                               "generations": f.search.generations, "evaluations": f.search.evaluations,
+                               "runs": [r.as_dict() for r in f.search.runs], "seconds": round(f.search.seconds, 1)}}
+                   if f.search is not None else {}),
             }
             for c, f in fits.items()
         },

@@ -6,7 +6,8 @@ they are independent of each other); the best point any of them evaluated wins. 
 its samples from a random stream of its own, so runs (and the classes of a fit) may interleave in
 any order and the result is still the same for a seed. A run ends at its generation budget or at
 ``cma``'s own stopping rules. There is no stop on stagnation: on rig-v1 a run's best loss stays flat
-for 20-30 generations and then falls by 0.1-0.4 (docs/fitting.md).
+for 20-30 generations and then falls by 0.1-0.4 (docs/fitting.md). :func:`search_and_refine` follows a
+class's search with its refinement (a second :func:`fit_class` on another objective) where the fit asks for one.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from ..params import ClassParams
 from ..settings import CLASSES
-from .config import FitConfig
+from .config import REFINE_SUFFIX, FitConfig
 from .executor import Executor
 from .objective import LossTerms
 from .space import DELAY_UNIT_MS, ParamSpace
@@ -59,11 +60,15 @@ class ClassFit:
     start_loss: float
     train: LossTerms | None = None
     validation: LossTerms | None = None
+    search: "ClassFit | None" = None  #: for a refinement: the class's search it started from
 
 
-def cma_seed(seed: int, cls: str, run: int = 0) -> int:
-    """The seed of run ``run`` of class ``cls`` in a fit seeded with ``seed``."""
-    return int(np.random.SeedSequence([int(seed), CLASSES.index(cls), run]).generate_state(1)[0] % (2**31 - 2)) + 1
+def cma_seed(seed: int, key: str, run: int = 0) -> int:
+    """The seed of run ``run`` of a class's search (``key`` = the class) or of its refinement (the
+    class + :data:`~.config.REFINE_SUFFIX`) in a fit seeded with ``seed``."""
+    cls, _, stage = key.partition(":")
+    entropy = [int(seed), CLASSES.index(cls), run] + ([1] if stage else [])
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0] % (2**31 - 2)) + 1
 
 
 def make_cma(space: ParamSpace, x0: np.ndarray, popsize: int, generations: int, seed: int):
@@ -176,3 +181,25 @@ def fit_class(
         runs=runs,
         start_loss=start_loss,
     )
+
+
+def search_and_refine(
+    cls: str,
+    space: ParamSpace,
+    evaluate: Executor,
+    cfg: FitConfig,
+    starts: Sequence[np.ndarray],
+    delay0_ms: float,
+    position: int = 0,
+) -> ClassFit:
+    """:func:`fit_class` on the class's objective; for a class of ``cfg.refine``, then its
+    refinement: :func:`fit_class` on the refinement's objective (state key ``cls`` +
+    :data:`~.config.REFINE_SUFFIX`) from the search's best point. That point is on the refinement's
+    start grid (gain 1, tau and delay unchanged), so the refinement never ends worse on its own
+    objective. Returns the refinement, with the search in ``.search``."""
+    first = fit_class(cls, space, evaluate, cfg, starts, delay0_ms, position)
+    if cls not in cfg.refine:
+        return first
+    refined = fit_class(cls + REFINE_SUFFIX, space, evaluate, cfg, [first.x], float(first.x[11]) * DELAY_UNIT_MS, position)
+    refined.cls, refined.search = cls, first
+    return refined

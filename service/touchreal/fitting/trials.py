@@ -40,11 +40,13 @@ class TrialSet:
     conditions: list[str]  # condition names, index = condition id
     cond_index: np.ndarray  # (n_trials,) condition id of each trial
 
-    def reference_set(self, cls: str, tau_s: float, max_refs: int, sine_weight: float = 1.0, segmented_count: bool = False) -> ReferenceSet:
+    def reference_set(self, cls: str, tau_s: float, max_refs: int, sine_weight: float = 1.0, segmented_count: bool = False,
+                      vr_normalised: bool = False) -> ReferenceSet:
         """Reference trains of ``cls`` per condition. At most ``max_refs`` per condition: every
         trial keeps its first r repeats (all models of each), r >= 1 chosen to fit the cap. With
         ``segmented_count`` a ramp condition's count loss is split at its trials' turning-point
-        windows (the commanded turning points are the same for every repeat)."""
+        windows (the commanded turning points are the same for every repeat); ``vr_normalised``:
+        conditions are scored by the VR-normalised distance (:class:`ReferenceSet`)."""
         members: list[list[TrialData]] = [[] for _ in self.conditions]
         for tr, c in zip(self.trials, self.cond_index):
             members[c].append(tr)
@@ -58,7 +60,7 @@ class TrialSet:
             groups.append([t for tr in trs for t in tr.reference[cls][: keep * tr.ref_models[cls]]])
         weights = [sine_weight if members[c][0].protocol == "sine" else 1.0 for c in range(len(self.conditions))]
         edges = [m[0].window_edges_s for m in members] if segmented_count else None
-        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights, segment_edges=edges)
+        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights, segment_edges=edges, vr_normalised=vr_normalised)
 
 
 def _trial_data(entry: dict[str, Any], trial: Trial, pre: PreprocessParams, classes: Sequence[str]) -> TrialData:
