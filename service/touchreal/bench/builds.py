@@ -5,7 +5,7 @@ counts (896 ramps, 100 sines: the calibration set of a real rig), ``touchreal fi
 defaults (train/held-out split by repeat), then ``touchreal evaluate`` on the held-out trials.
 Per class, the van Rossum ratio (inter / intra, tau 1 ms, the report's) and the mean count error over conditions,
 against the targets of a fit that transfers: count error <= 15 % for SA1 and RA and <= 25 % for PC,
-VR ratio <= 1.2 / 1.3 / 1.5. Each build takes a full fit (about 5 min on 2 idle cores).
+VR ratio <= 1.2 / 1.3 / 1.5. Each build takes a full fit (about 9 min on 2 idle cores).
 """
 
 from __future__ import annotations
