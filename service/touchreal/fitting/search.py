@@ -142,6 +142,7 @@ def fit_class(
     point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
     differ by up to 0.2 in loss, while restarting from a converged point does not move it.
+    ``cls`` is the state key the executor evaluates (a class, or a class's refinement);
     ``position``: the line of this class's progress bar."""
     from tqdm import tqdm
 
