@@ -26,6 +26,16 @@ DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
 
+def stage_key(cls: str, refinement: bool) -> str:
+    """The state key of class ``cls``'s search (the class) or of its refinement (``"PC:refine"``)."""
+    return cls + REFINE_SUFFIX if refinement else cls
+
+
+def parse_stage_key(key: str) -> tuple[str, bool]:
+    """(class, whether the key is its refinement's) of a state key."""
+    return (key[: -len(REFINE_SUFFIX)], True) if key.endswith(REFINE_SUFFIX) else (key, False)
+
+
 @dataclass
 class FitConfig:
     """What to fit and how (``touchreal fit``'s options); validated on construction."""
@@ -88,8 +98,8 @@ class FitConfig:
     def objective_of(self, key: str) -> ObjectiveConfig:
         """The objective of a class's search (``key`` = the class) or of its refinement
         (``key`` = class + :data:`REFINE_SUFFIX`: the refinement's count weight)."""
-        cls, _, stage = key.partition(":")
-        weight = self.refine[cls] if stage else self.count_weight
+        cls, refinement = parse_stage_key(key)
+        weight = self.refine[cls] if refinement else self.count_weight
         return ObjectiveConfig(**{**self.objective.__dict__, "count_weight": float(weight)})
 
     def window_of(self, cls: str) -> float:

@@ -43,7 +43,7 @@ import numpy as np
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
 from .calibration import calibrate_pvdf
-from .config import REFINE_SUFFIX, FitConfig
+from .config import FitConfig, parse_stage_key, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
 from .search import ClassFit, search_and_refine
@@ -128,7 +128,7 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
     for c in cfg.refined():  # a refinement evaluates on its class's trials and space
-        spaces[c + REFINE_SUFFIX], train[c + REFINE_SUFFIX] = spaces[c], train[c]
+        spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
     state = FitState(spaces=spaces, refs=refs, train=train, objectives={key: cfg.objective_of(key) for key in refs}, lag_s=lag_s)
     return Prepared(ds, train_e, val_e, pre, len(segments), state, rig_lag_ms, timings)
@@ -136,11 +136,11 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
 
 def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
     """The reference set of a class's search (``key`` = the class: its segmented count if listed) or
-    of its refinement (the class + REFINE_SUFFIX: whole-trial counts, its VR-normalised distance if listed)."""
-    cls, _, stage = key.partition(":")
+    of its refinement (whole-trial counts, its VR-normalised distance if listed)."""
+    cls, refinement = parse_stage_key(key)
     return tset.reference_set(cls, cfg.objective.kernel_tau_s, cfg.max_refs_per_condition, cfg.sine_weight,
-                              segmented_count=not stage and cls in cfg.segmented_count_classes,
-                              vr_normalised=bool(stage) and cls in cfg.vr_distance_classes)
+                              segmented_count=not refinement and cls in cfg.segmented_count_classes,
+                              vr_normalised=refinement and cls in cfg.vr_distance_classes)
 
 
 def fit_dataset(
@@ -186,7 +186,7 @@ def fit_dataset(
     t = time.perf_counter()
     val: dict[float, TrialSet] = {}
     for cls, f in fits.items():  # scored on the objective of the class's last stage
-        key = cls + REFINE_SUFFIX if f.search is not None else cls
+        key = stage_key(cls, f.search is not None)
         f.params = f.params.model_copy(update={"window_ms": None if cfg.window_of(cls) == pre.window_ms else cfg.window_of(cls)})
         f.train = evaluate_loss(simulate(train[cls].trials, [f.params], lag_s)[0], train[cls].cond_index, refs[key], cfg.objective_of(key))
         if val_e:
@@ -252,7 +252,7 @@ def fit_dataset(
                 "evaluations": f.evaluations,
                 "runs": [r.as_dict() for r in f.runs],
                 "seconds": round(f.seconds, 1),
-                **({"search": {"start": round(f.search.start_loss, 5), "best": round(min([f.search.start_loss] + [r.best_loss for r in f.search.runs]), 5),
+                **({"search": {"start": round(f.search.start_loss, 5), "best": round(f.search.best_loss, 5),
                                "generations": f.search.generations, "evaluations": f.search.evaluations,
                                "runs": [r.as_dict() for r in f.search.runs], "seconds": round(f.search.seconds, 1)}}
                    if f.search is not None else {}),

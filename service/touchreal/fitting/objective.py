@@ -168,9 +168,10 @@ def segment_counts(train: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, edge_off, inv_tau, eps, empty_pair, dsum, vsum, npairs, pcount, pseg, npred):  # pragma: no cover - compiled
-    """Accumulate, per condition, the sum of pair kernel distances and of pair VR distances, the
-    pair count, the predicted spike-count sum (also per segment) and the number of predicted trains."""
+def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, edge_off, inv_tau, eps, empty_pair, vr, dsum, npairs, pcount, pseg, npred):  # pragma: no cover - compiled
+    """Accumulate, per condition, the sum of pair distances (kernel distances, or VR distances when
+    ``vr``), the pair count, the predicted spike-count sum (also per segment) and the number of
+    predicted trains."""
     for p in range(poff.shape[0] - 1):
         c = pcond[p]
         x = pflat[poff[p] : poff[p + 1]]
@@ -187,8 +188,10 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, ed
         pseg[s0 + edge_off[c + 1] - edge_off[c]] += nx - prev
         for k in range(cond_off[c], cond_off[c + 1]):
             ny = roff[k + 1] - roff[k]
-            cxy = 0.0
-            if nx == 0 and ny == 0:
+            if vr:
+                cxy = _kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau) if nx and ny else 0.0
+                d = np.sqrt(max(ax + rauto[k] - 2.0 * cxy, 0.0))
+            elif nx == 0 and ny == 0:
                 d = empty_pair
             elif nx == 0 or ny == 0:
                 d = 1.0
@@ -196,7 +199,6 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, ed
                 cxy = _kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau)
                 d = 1.0 - cxy / (np.sqrt(ax * rauto[k]) + eps)
             dsum[c] += d
-            vsum[c] += np.sqrt(max(ax + rauto[k] - 2.0 * cxy, 0.0))
             npairs[c] += 1
 
 
@@ -235,17 +237,16 @@ def evaluate_loss(
     if pcond.size and (pcond.min() < 0 or pcond.max() >= n_c):
         raise ValueError("condition index out of range")
     dsum = np.zeros(n_c)
-    vsum = np.zeros(n_c)
     npairs = np.zeros(n_c)
     pcount = np.zeros(n_c)
     pseg = np.zeros(refs.n_t_seg.size)
     npred = np.zeros(n_c)
     _condition_stats(
         pflat, poff, pcond, refs.flat, refs.off, refs.auto, refs.cond_off, refs.edges, refs.edge_off,
-        1.0 / refs.tau_s, cfg.eps, cfg.empty_pair_distance, dsum, vsum, npairs, pcount, pseg, npred,
+        1.0 / refs.tau_s, cfg.eps, cfg.empty_pair_distance, refs.vr_norm is not None, dsum, npairs, pcount, pseg, npred,
     )
     if np.any(npred == 0):
         raise ValueError(f"conditions without predicted trains: {[refs.names[i] for i in np.flatnonzero(npred == 0)][:5]}")
     count_diff = np.bincount(refs.seg_cond, np.abs(pseg / npred[refs.seg_cond] - refs.n_t_seg), minlength=n_c)
-    dist = dsum / npairs if refs.vr_norm is None else vsum / npairs / refs.vr_norm
+    dist = dsum / npairs if refs.vr_norm is None else dsum / npairs / refs.vr_norm
     return terms_from_stats(dist, pcount / npred, refs.n_t, refs.weights, cfg, count_diff)

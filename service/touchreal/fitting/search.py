@@ -22,7 +22,7 @@ import numpy as np
 
 from ..params import ClassParams
 from ..settings import CLASSES
-from .config import REFINE_SUFFIX, FitConfig
+from .config import FitConfig, parse_stage_key, stage_key
 from .executor import Executor
 from .objective import LossTerms
 from .space import DELAY_UNIT_MS, ParamSpace
@@ -62,12 +62,17 @@ class ClassFit:
     validation: LossTerms | None = None
     search: "ClassFit | None" = None  #: for a refinement: the class's search it started from
 
+    @property
+    def best_loss(self) -> float:
+        """The best loss evaluated: the start grid's or a run's."""
+        return min([self.start_loss] + [r.best_loss for r in self.runs])
+
 
 def cma_seed(seed: int, key: str, run: int = 0) -> int:
     """The seed of run ``run`` of a class's search (``key`` = the class) or of its refinement (the
-    class + :data:`~.config.REFINE_SUFFIX`) in a fit seeded with ``seed``."""
-    cls, _, stage = key.partition(":")
-    entropy = [int(seed), CLASSES.index(cls), run] + ([1] if stage else [])
+    class's :func:`~.config.stage_key`) in a fit seeded with ``seed``."""
+    cls, refinement = parse_stage_key(key)
+    entropy = [int(seed), CLASSES.index(cls), run] + ([1] if refinement else [])
     return int(np.random.SeedSequence(entropy).generate_state(1)[0] % (2**31 - 2)) + 1
 
 
@@ -194,13 +199,13 @@ def search_and_refine(
     position: int = 0,
 ) -> ClassFit:
     """:func:`fit_class` on the class's objective; for a class of ``cfg.refine``, then its
-    refinement: :func:`fit_class` on the refinement's objective (state key ``cls`` +
-    :data:`~.config.REFINE_SUFFIX`) from the search's best point. That point is on the refinement's
-    start grid (gain 1, tau and delay unchanged), so the refinement never ends worse on its own
-    objective. Returns the refinement, with the search in ``.search``."""
+    refinement: :func:`fit_class` on the refinement's objective (its :func:`~.config.stage_key`)
+    from the search's best point. That point is on the refinement's start grid (gain 1, tau and
+    delay unchanged), so the refinement never ends worse on its own objective. Returns the
+    refinement, with the search in ``.search``."""
     first = fit_class(cls, space, evaluate, cfg, starts, delay0_ms, position)
     if cls not in cfg.refine:
         return first
-    refined = fit_class(cls + REFINE_SUFFIX, space, evaluate, cfg, [first.x], float(first.x[11]) * DELAY_UNIT_MS, position)
+    refined = fit_class(stage_key(cls, True), space, evaluate, cfg, [first.x], float(first.x[11]) * DELAY_UNIT_MS, position)
     refined.cls, refined.search = cls, first
     return refined
