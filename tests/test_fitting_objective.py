@@ -77,6 +77,20 @@ def test_condition_weights_change_only_the_means():
     assert t.l_mgd == pytest.approx(0.5)  # unweighted worst-m mean
 
 
+def test_count_weights_weigh_the_count_terms_and_leave_the_distance_on_weights():
+    # c0 fires 1 of 2 reference spikes, c1 none of 3 (an empty condition: L_empty too)
+    groups = [[np.array([0.1, 0.2])], [np.array([0.3, 0.4, 0.5])]]
+    preds, cond = [np.array([0.1]), np.array([])], [0, 1]
+    same = evaluate_loss(preds, cond, ReferenceSet.build(groups, TAU, weights=[1.0, 3.0]), CFG)
+    split = evaluate_loss(preds, cond, ReferenceSet.build(groups, TAU, weights=[1.0, 3.0], count_weights=[1.0, 1.0]), CFG)
+    assert split.d_basic == same.d_basic and split.l_mgd == same.l_mgd  # the distance keeps its weights
+    assert same.l_rel == pytest.approx((0.5 + 3 * 1.0) / 4)
+    assert split.l_rel == pytest.approx((0.5 + 1.0) / 2)  # the plain mean over conditions
+    assert split.l_empty == pytest.approx(CFG.lambda_e * 1.0 / 2)
+    with pytest.raises(ValueError, match="count_weights"):
+        ReferenceSet.build(groups, TAU, count_weights=[1.0])
+
+
 def test_count_weight_scales_only_the_relative_count_term():
     d = np.array([0.2, 0.8])
     n_t = np.array([2.0, 4.0])

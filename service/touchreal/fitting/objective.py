@@ -74,13 +74,14 @@ class ReferenceSet:
     cond_off: np.ndarray  # (n_conditions + 1,) int64
     auto: np.ndarray  # (n_refs,) A(S_gnd)
     n_t: np.ndarray  # (n_conditions,) mean reference spike count N_T
-    weights: np.ndarray  # (n_conditions,) condition weights (1 = the paper's plain mean)
+    weights: np.ndarray  # (n_conditions,) condition weights of the distance and count terms (1 = the paper's plain mean)
     tau_s: float
     edges: np.ndarray  # (total inner edges,) s; condition c's are edges[edge_off[c]:edge_off[c+1]]
     edge_off: np.ndarray  # (n_conditions + 1,) int64; condition c has edge_off[c+1] - edge_off[c] + 1 segments
     n_t_seg: np.ndarray  # (total segments,) mean reference count per segment; condition c's start at edge_off[c] + c
     seg_cond: np.ndarray  # (total segments,) int64 condition of each segment
     vr_norm: np.ndarray | None = None  # (n_conditions,) mean reference-reference VR distance (floored); None: the paper's kernel distance
+    count_weights: np.ndarray | None = None  # (n_conditions,) condition weights of the count terms alone; None: ``weights``
 
     @classmethod
     def build(
@@ -91,11 +92,13 @@ class ReferenceSet:
         weights: Sequence[float] | None = None,
         segment_edges: Sequence[np.ndarray | None] | None = None,
         vr_normalised: bool = False,
+        count_weights: Sequence[float] | None = None,
     ) -> "ReferenceSet":
         """``groups[c]`` = the reference trains of condition c (each condition needs >= 1);
         ``segment_edges[c]`` = increasing inner edges (s) that split condition c into segments for
         the count loss (None or empty: one segment); ``vr_normalised``: score conditions by the
-        VR-normalised distance (module docstring) instead of the kernel distance."""
+        VR-normalised distance (module docstring) instead of the kernel distance; ``count_weights``:
+        condition weights of the count terms (L_rel, L_empty) where they differ from ``weights``."""
         if any(len(g) == 0 for g in groups):
             raise ValueError("every condition needs at least one reference train")
         if segment_edges is not None and len(segment_edges) != len(groups):
@@ -116,9 +119,9 @@ class ReferenceSet:
         n_t_seg = np.concatenate(
             [np.mean([segment_counts(flat[off[k] : off[k + 1]], cuts[c]) for k in range(cond_off[c], cond_off[c + 1])], axis=0) for c in range(len(groups))]
         )
-        w = np.ones(len(groups)) if weights is None else np.asarray(weights, np.float64)
-        if w.shape != (len(groups),) or np.any(w < 0) or w.sum() <= 0:
-            raise ValueError("weights must be one non-negative value per condition, not all zero")
+        w, cw = (np.ones(len(groups)) if v is None else np.asarray(v, np.float64) for v in (weights, count_weights))
+        if any(v.shape != (len(groups),) or np.any(v < 0) or v.sum() <= 0 for v in (w, cw)):
+            raise ValueError("weights and count_weights must be one non-negative value per condition, not all zero")
         return cls(
             names=list(names) if names is not None else [str(i) for i in range(len(groups))],
             flat=flat,
@@ -133,6 +136,7 @@ class ReferenceSet:
             n_t_seg=n_t_seg,
             seg_cond=np.repeat(np.arange(len(groups)), np.diff(edge_off) + 1),
             vr_norm=np.array([_intra_distance(g, tau_s) for g in groups]) if vr_normalised else None,
+            count_weights=None if count_weights is None else cw,
         )
 
     @property
@@ -203,17 +207,20 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, ed
 
 
 def terms_from_stats(
-    d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, weights: np.ndarray, cfg: ObjectiveConfig, count_diff: np.ndarray | None = None
+    d_kernel: np.ndarray, n_s: np.ndarray, n_t: np.ndarray, weights: np.ndarray, cfg: ObjectiveConfig, count_diff: np.ndarray | None = None,
+    count_weights: np.ndarray | None = None,
 ) -> LossTerms:
     """Assemble eq. (1) from per-condition D_kernel^r, N_S and N_T; ``count_diff`` = the
-    per-condition count mismatch summed over segments (default ``|N_T - N_S|``, one segment)."""
+    per-condition count mismatch summed over segments (default ``|N_T - N_S|``, one segment);
+    ``count_weights`` = the condition weights of L_rel and L_empty (default ``weights``)."""
     w = weights / weights.sum()
+    wc = w if count_weights is None else count_weights / count_weights.sum()
     d_basic = float(np.dot(w, d_kernel))
     denom = np.where(n_t > 0, n_t + cfg.eps, 1.0)
     rel = (np.abs(n_t - n_s) if count_diff is None else count_diff) / denom
     empty = np.where((n_t >= cfg.thres_1) & (n_s <= cfg.thres_2), cfg.lambda_e * rel, 0.0)
-    l_rel = float(np.dot(w, rel))
-    l_empty = float(np.dot(w, empty))
+    l_rel = float(np.dot(wc, rel))
+    l_empty = float(np.dot(wc, empty))
     m = min(cfg.m_worst, d_kernel.size)
     l_mgd = float(np.mean(np.sort(d_kernel)[-m:])) if m > 0 else 0.0
     total = d_basic + cfg.count_weight * l_rel + l_empty + l_mgd
@@ -249,4 +256,4 @@ def evaluate_loss(
         raise ValueError(f"conditions without predicted trains: {[refs.names[i] for i in np.flatnonzero(npred == 0)][:5]}")
     count_diff = np.bincount(refs.seg_cond, np.abs(pseg / npred[refs.seg_cond] - refs.n_t_seg), minlength=n_c)
     dist = dsum / npairs if refs.vr_norm is None else dsum / npairs / refs.vr_norm
-    return terms_from_stats(dist, pcount / npred, refs.n_t, refs.weights, cfg, count_diff)
+    return terms_from_stats(dist, pcount / npred, refs.n_t, refs.weights, cfg, count_diff, refs.count_weights)

@@ -41,12 +41,13 @@ class TrialSet:
     cond_index: np.ndarray  # (n_trials,) condition id of each trial
 
     def reference_set(self, cls: str, tau_s: float, max_refs: int, sine_weight: float = 1.0, segmented_count: bool = False,
-                      vr_normalised: bool = False) -> ReferenceSet:
+                      vr_normalised: bool = False, sine_count_weight: float | None = None) -> ReferenceSet:
         """Reference trains of ``cls`` per condition. At most ``max_refs`` per condition: every
         trial keeps its first r repeats (all models of each), r >= 1 chosen to fit the cap. With
         ``segmented_count`` a ramp condition's count loss is split at its trials' turning-point
         windows (the commanded turning points are the same for every repeat); ``vr_normalised``:
-        conditions are scored by the VR-normalised distance (:class:`ReferenceSet`)."""
+        conditions are scored by the VR-normalised distance (:class:`ReferenceSet`). A sine condition
+        weighs ``sine_weight`` ramp conditions, in the count terms ``sine_count_weight`` if given."""
         members: list[list[TrialData]] = [[] for _ in self.conditions]
         for tr, c in zip(self.trials, self.cond_index):
             members[c].append(tr)
@@ -58,9 +59,12 @@ class TrialSet:
             n_models = trs[0].ref_models[cls]
             keep = max(1, max_refs // (len(trs) * n_models))
             groups.append([t for tr in trs for t in tr.reference[cls][: keep * tr.ref_models[cls]]])
-        weights = [sine_weight if members[c][0].protocol == "sine" else 1.0 for c in range(len(self.conditions))]
+        sine = [m[0].protocol == "sine" for m in members]
+        weights = [sine_weight if s else 1.0 for s in sine]
+        count_weights = None if sine_count_weight is None else [sine_count_weight if s else 1.0 for s in sine]
         edges = [m[0].window_edges_s for m in members] if segmented_count else None
-        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights, segment_edges=edges, vr_normalised=vr_normalised)
+        return ReferenceSet.build(groups, tau_s, names=self.conditions, weights=weights, segment_edges=edges, vr_normalised=vr_normalised,
+                                  count_weights=count_weights)
 
 
 def _trial_data(entry: dict[str, Any], trial: Trial, pre: PreprocessParams, classes: Sequence[str]) -> TrialData:
