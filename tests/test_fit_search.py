@@ -4,7 +4,6 @@ without changing a seeded fit."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from touchreal.fitting import search as S
 from touchreal.fitting.config import FitConfig

@@ -22,7 +22,6 @@ from touchreal.sensing.mcu_emulator import STALL_JITTERS, Faults, Link, PtyPort,
 from touchreal.sensing.raw import RawChunk
 from touchreal.sensing.serial_frame import Channel, Frame, FrameParser, encode_frame
 from touchreal.sensing.serial_source import SampleCollector, SerialSource
-from touchreal.settings import CLASSES
 from touchreal.stream import StreamEncoder, encode_trial
 
 SPEED = 6.0  # playback speed: a 1.5 s trial streams in 0.25 s
