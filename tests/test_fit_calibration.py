@@ -3,13 +3,14 @@ mains (the real simulator, `touchreal simulate --build`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from touchreal.cli import main
 from touchreal.fitting.calibration import calibrate_pvdf, mains_residual
 from touchreal.fitting.trials import baseline_segments
 from touchreal.params import PreprocessParams
-from touchreal.preprocess.gate import calibrate
+from touchreal.preprocess.gate import calibrate, gate_thresholds
 from touchreal.recording import Dataset
 
 
@@ -34,3 +35,13 @@ def test_a_50_hz_build_keeps_the_50_hz_calibration(tmp_path, given):
     seg = _baselines(tmp_path, "nominal")
     pre = calibrate_pvdf(seg, PreprocessParams(mains_hz=given))
     assert pre == calibrate(seg, PreprocessParams(mains_hz=50.0))  # what the fit calibrated before, whatever it was told
+
+
+def test_the_gate_factor_scales_only_the_gate_threshold(tmp_path):
+    seg = _baselines(tmp_path, "noisy-amplifier")
+    kept = calibrate_pvdf(seg, PreprocessParams())  # the product's factor
+    fit = calibrate_pvdf(seg, PreprocessParams(), gate_factor=2.0)
+    assert kept.gate.factor == 3.0 and fit.gate.factor == 2.0
+    assert fit.model_copy(update={"gate": kept.gate}) == kept and fit.gate.noise_asd == kept.gate.noise_asd
+    w = np.hanning(256)
+    np.testing.assert_allclose(gate_thresholds(fit.gate, w, 2000.0), gate_thresholds(kept.gate, w, 2000.0) * 2.0 / 3.0)

@@ -227,10 +227,14 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     objective = json.loads(out.read_text())["provenance"]["objective"]
     assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
     assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
+    assert objective["refine_sine_count_weights"] == {}  # RA's refinement weighs its sines as its search does
+    assert json.loads(out.read_text())["provenance"]["gate_factor"] == 2.0 == q.preprocess.gate.factor  # the fit's default gate
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3"]) == 0
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3",
+                 "--refine-sine-count-weights", "PC=30", "--gate-factor", "3"]) == 0
     objective = json.loads(out.read_text())["provenance"]["objective"]
-    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0}
+    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 30.0}
+    assert EncoderParams.load(out).preprocess.gate.factor == 3.0
     assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
@@ -252,6 +256,12 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         FitConfig(refine={"PC": float("nan")})
     with pytest.raises(ValueError, match="refine names unknown"):
         FitConfig(refine={"SA2": 1.0})
+    with pytest.raises(ValueError, match="refine_sine_count_weights must"):
+        FitConfig(refine_sine_count_weights={"PC": float("inf")})
+    with pytest.raises(ValueError, match="refine_sine_count_weights names"):
+        FitConfig(refine_sine_count_weights={"SA2": 1.0})
+    with pytest.raises(ValueError, match="gate_factor"):
+        FitConfig(gate_factor=0.0)
     cfg = FitConfig(count_weight=2.0)
     assert cfg.objective_of("PC").count_weight == 2.0 and cfg.objective_of("PC:refine").count_weight == 5.0
     assert cfg.refined() == ("RA", "PC") and FitConfig(classes=("SA1", "PC")).refined() == ("PC",)
@@ -279,6 +289,21 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     assert set(n_seg.tolist()) <= {1, 3, 4} and (n_seg > 1).any()
     # the segments of a condition add up to its whole-trial reference count
     np.testing.assert_allclose(np.bincount(np.repeat(np.arange(seg.n_conditions), n_seg), seg.n_t_seg), whole.n_t)
+    # the fit's reference sets: the search's (segmented, sine weight in distance and count) and PC's
+    # refinement's (whole trials, VR-normalised, a sine weighs 10 ramp conditions in the count, 30 in the distance)
+    cfg = FitConfig(sine_weight=30.0)
+    sine = np.zeros(len(tset.conditions), dtype=bool)
+    sine[tset.cond_index] = [t.protocol == "sine" for t in tset.trials]
+    assert sine.any() and (~sine).any()
+    search, refine = F._references(tset, "PC", cfg), F._references(tset, "PC:refine", cfg)
+    np.testing.assert_array_equal(search.weights, np.where(sine, 30.0, 1.0))
+    assert search.count_weights is None and search.vr_norm is None and search.edges.size > 0
+    np.testing.assert_array_equal(refine.weights, search.weights)
+    np.testing.assert_array_equal(refine.count_weights, np.where(sine, 10.0, 1.0))
+    assert refine.vr_norm is not None and refine.edges.size == 0
+    custom = F._references(tset, "PC:refine", FitConfig(sine_weight=30.0, refine_sine_count_weights={"PC": 4.0}))
+    np.testing.assert_array_equal(custom.count_weights, np.where(sine, 4.0, 1.0))
+    assert F._references(tset, "PC:refine", FitConfig(refine_sine_count_weights={})).count_weights is None  # the distance's weights
 
 
 @pytest.mark.shared

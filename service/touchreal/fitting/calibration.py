@@ -30,9 +30,10 @@ def mains_residual(pre: PreprocessParams, max_hz: float = 1000.0) -> float:
     return float(np.mean(np.log(at / np.median(asd))))
 
 
-def calibrate_pvdf(baselines: Sequence[np.ndarray], base: PreprocessParams) -> PreprocessParams:
+def calibrate_pvdf(baselines: Sequence[np.ndarray], base: PreprocessParams, gate_factor: float | None = None) -> PreprocessParams:
     """``base`` calibrated on the contact-free PVDF ``baselines`` (V) at the mains frequency of
-    :data:`MAINS_CANDIDATES_HZ` that leaves the flattest gate floor (``base.mains_hz`` on a tie)."""
+    :data:`MAINS_CANDIDATES_HZ` that leaves the flattest gate floor (``base.mains_hz`` on a tie),
+    its gate keeping bins above ``gate_factor`` x the noise (default: ``base``'s factor)."""
     order = sorted(MAINS_CANDIDATES_HZ, key=lambda m: m != base.mains_hz)  # the given frequency first: it wins ties
-    cals = [calibrate(baselines, base.model_copy(update={"mains_hz": m})) for m in order]
+    cals = [calibrate(baselines, base.model_copy(update={"mains_hz": m}), factor=gate_factor) for m in order]
     return min(cals, key=mains_residual)

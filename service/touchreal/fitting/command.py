@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import DEFAULT_REFINE
+    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, DEFAULT_REFINE_SINE_COUNT_WEIGHTS
 
     p = sub.add_parser(
         "fit",
@@ -55,6 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="classes refined after their search by a second CMA-ES run from its best point, each with the count "
                    f"weight K of the refinement's objective (whole-trial counts), or 'none' for the paper's single search "
                    f"(default {_weights_text(DEFAULT_REFINE)})")
+    p.add_argument("--refine-sine-count-weights", type=parse_refine, default=None, metavar="CLS=W,...|none",
+                   help="refined classes whose refinement's count term weighs one sine condition W (1: the plain mean over "
+                   "conditions the held-out report reads), or 'none'; the others, and every distance, keep --sine-weight "
+                   f"(default {_weights_text(DEFAULT_REFINE_SINE_COUNT_WEIGHTS)})")
+    p.add_argument("--gate-factor", type=float, default=None, help="the PVDF spectral gate keeps bins above this multiple of "
+                   f"the noise calibrated on the baselines (default {DEFAULT_GATE_FACTOR:g})")
     p.add_argument("--vr-distance-classes", default=None,
                    help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
                    "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")
@@ -86,12 +92,12 @@ def parse_windows(text: str) -> tuple[float, dict[str, float]]:
 
 
 def parse_refine(text: str) -> dict[str, float]:
-    """``"RA=3,PC=4"`` -> {class: count weight of its refinement}; ``"none"`` -> {}."""
+    """``"RA=3,PC=4"`` -> {class: a weight of its refinement}; ``"none"`` -> {}."""
     if text.strip().lower() == "none":
         return {}
     default, per_class = _per_class_values(text, None, "K", "")
     if default is not None:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected CLS=K,... (a count weight per refined class) or none")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected CLS=K,... (a weight per refined class) or none")
     return per_class
 
 
@@ -127,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
     if args.window_ms is not None:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
-                       ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v

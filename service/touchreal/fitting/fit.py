@@ -104,10 +104,10 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     loaded = {e["id"]: ds.load(e) for e in train_e}
     base = init.preprocess if init is not None else PreprocessParams()
     segments = baseline_segments(ds, train_e, loaded=loaded)
-    pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}))
+    pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}), cfg.gate_factor)
     timings["calibrate_s"] = time.perf_counter() - t
     log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}, "
-        f"gate on {len(pre.gate.freqs_hz) if pre.gate else 0} bins")
+        f"gate on {len(pre.gate.freqs_hz) if pre.gate else 0} bins at {cfg.gate_factor:g} x the noise")
 
     t = time.perf_counter()
     windows = sorted({cfg.window_of(c) for c in cfg.classes})
@@ -140,7 +140,8 @@ def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
     cls, refinement = parse_stage_key(key)
     return tset.reference_set(cls, cfg.objective.kernel_tau_s, cfg.max_refs_per_condition, cfg.sine_weight,
                               segmented_count=not refinement and cls in cfg.segmented_count_classes,
-                              vr_normalised=refinement and cls in cfg.vr_distance_classes)
+                              vr_normalised=refinement and cls in cfg.vr_distance_classes,
+                              sine_count_weight=cfg.refine_sine_count_weights.get(cls) if refinement else None)
 
 
 def fit_dataset(
@@ -225,6 +226,7 @@ def fit_dataset(
         "rig_lag_ms": rig_lag_ms,
         "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
         "calibration_baselines": prep.n_baselines,
+        "gate_factor": cfg.gate_factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
             "lambda_e": cfg.objective.lambda_e,
@@ -235,6 +237,7 @@ def fit_dataset(
             "count_weight": cfg.count_weight,
             "segmented_count_classes": list(cfg.segmented_count_classes),
             "refine": {c: cfg.refine[c] for c in cfg.refined()},
+            "refine_sine_count_weights": {c: cfg.refine_sine_count_weights[c] for c in cfg.refined() if c in cfg.refine_sine_count_weights},
             "vr_distance_classes": [c for c in cfg.refined() if c in cfg.vr_distance_classes],
             "input_stage_classes": list(cfg.input_stage_classes),
             "no_pvdf_classes": list(cfg.no_pvdf_classes),

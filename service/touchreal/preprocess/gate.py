@@ -75,14 +75,17 @@ def detect_harmonics(freqs: np.ndarray, psd: np.ndarray, mains_hz: float, fs_hz:
     return found
 
 
-def calibrate(pvdf_baselines: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float = 2000.0) -> PreprocessParams:
-    """Return ``params`` with ``notch_harmonics`` and ``gate`` measured on baseline PVDF segments (V)."""
+def calibrate(pvdf_baselines: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float = 2000.0,
+              factor: float | None = None) -> PreprocessParams:
+    """Return ``params`` with ``notch_harmonics`` and ``gate`` measured on baseline PVDF segments (V);
+    the gate keeps ``factor`` (default: that of ``params.gate``, else :class:`GateCalibration`'s)."""
     lp_only = _filtered(pvdf_baselines, params, fs_hz, notch=False)
     freqs, psd = _welch(lp_only, fs_hz)
     harmonics = detect_harmonics(freqs, psd, params.mains_hz, fs_hz)
     notched_params = params.model_copy(update={"notch_harmonics": harmonics})
     freqs, psd = _welch(_filtered(pvdf_baselines, notched_params, fs_hz, notch=True), fs_hz)
-    factor = params.gate.factor if params.gate else GateCalibration.model_fields["factor"].default
+    if factor is None:
+        factor = params.gate.factor if params.gate else GateCalibration.model_fields["factor"].default
     attenuation = params.gate.attenuation if params.gate else GateCalibration.model_fields["attenuation"].default
     gate = GateCalibration(
         freqs_hz=[float(f) for f in freqs],
