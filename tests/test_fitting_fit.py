@@ -227,14 +227,14 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     objective = json.loads(out.read_text())["provenance"]["objective"]
     assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
     assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
-    assert objective["refine_sine_count_weights"] == {}  # RA's refinement weighs its sines as its search does
-    assert json.loads(out.read_text())["provenance"]["gate_factor"] == 2.0 == q.preprocess.gate.factor  # the fit's default gate
+    assert objective["refine_sine_count_weights"] == {}  # the default: every count term weighs the sines as its distance
+    assert json.loads(out.read_text())["provenance"]["gate_factor"] == 3.0 == q.preprocess.gate.factor  # the --init file's
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3",
-                 "--refine-sine-count-weights", "PC=30", "--gate-factor", "3"]) == 0
+                 "--refine-sine-count-weights", "PC=10", "--gate-factor", "2"]) == 0
     objective = json.loads(out.read_text())["provenance"]["objective"]
-    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 30.0}
-    assert EncoderParams.load(out).preprocess.gate.factor == 3.0
+    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
+    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == json.loads(out.read_text())["provenance"]["gate_factor"]
     assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
@@ -290,7 +290,7 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     # the segments of a condition add up to its whole-trial reference count
     np.testing.assert_allclose(np.bincount(np.repeat(np.arange(seg.n_conditions), n_seg), seg.n_t_seg), whole.n_t)
     # the fit's reference sets: the search's (segmented, sine weight in distance and count) and PC's
-    # refinement's (whole trials, VR-normalised, a sine weighs 10 ramp conditions in the count, 30 in the distance)
+    # refinement's (whole trials, VR-normalised; a sine may weigh less in its count than in its distance)
     cfg = FitConfig(sine_weight=30.0)
     sine = np.zeros(len(tset.conditions), dtype=bool)
     sine[tset.cond_index] = [t.protocol == "sine" for t in tset.trials]
@@ -299,11 +299,12 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     np.testing.assert_array_equal(search.weights, np.where(sine, 30.0, 1.0))
     assert search.count_weights is None and search.vr_norm is None and search.edges.size > 0
     np.testing.assert_array_equal(refine.weights, search.weights)
-    np.testing.assert_array_equal(refine.count_weights, np.where(sine, 10.0, 1.0))
+    assert refine.count_weights is None  # by default the count terms weigh as the distance
     assert refine.vr_norm is not None and refine.edges.size == 0
-    custom = F._references(tset, "PC:refine", FitConfig(sine_weight=30.0, refine_sine_count_weights={"PC": 4.0}))
-    np.testing.assert_array_equal(custom.count_weights, np.where(sine, 4.0, 1.0))
-    assert F._references(tset, "PC:refine", FitConfig(refine_sine_count_weights={})).count_weights is None  # the distance's weights
+    custom = F._references(tset, "PC:refine", FitConfig(sine_weight=30.0, refine_sine_count_weights={"PC": 10.0}))
+    np.testing.assert_array_equal(custom.count_weights, np.where(sine, 10.0, 1.0))
+    np.testing.assert_array_equal(custom.weights, search.weights)
+    assert F._references(tset, "PC", FitConfig(refine_sine_count_weights={"PC": 10.0})).count_weights is None  # the search's stay
 
 
 @pytest.mark.shared

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, DEFAULT_REFINE_SINE_COUNT_WEIGHTS
+    from .config import DEFAULT_REFINE
 
     p = sub.add_parser(
         "fit",
@@ -57,10 +57,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    f"(default {_weights_text(DEFAULT_REFINE)})")
     p.add_argument("--refine-sine-count-weights", type=parse_refine, default=None, metavar="CLS=W,...|none",
                    help="refined classes whose refinement's count term weighs one sine condition W (1: the plain mean over "
-                   "conditions the held-out report reads), or 'none'; the others, and every distance, keep --sine-weight "
-                   f"(default {_weights_text(DEFAULT_REFINE_SINE_COUNT_WEIGHTS)})")
+                   "conditions the held-out report reads), or 'none' (the default); the others, and every distance, keep "
+                   "--sine-weight")
     p.add_argument("--gate-factor", type=float, default=None, help="the PVDF spectral gate keeps bins above this multiple of "
-                   f"the noise calibrated on the baselines (default {DEFAULT_GATE_FACTOR:g})")
+                   "the noise calibrated on the baselines (default: the --init file's, else 3)")
     p.add_argument("--vr-distance-classes", default=None,
                    help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
                    "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")

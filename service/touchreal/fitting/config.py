@@ -23,15 +23,6 @@ def shipped_windows_ms() -> dict[str, float]:
 #: target other sensor builds miss first, and PC, refined on the VR-normalised distance (docs/fitting.md)
 DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
 
-#: refined classes whose refinement's count term weighs a sine condition less than ``sine_weight``: PC
-#: (10 ramp conditions, not 30), whose ramp counts a low-SNR build otherwise trades for its 10 Hz sine
-#: (docs/fitting.md)
-DEFAULT_REFINE_SINE_COUNT_WEIGHTS = {"PC": 10.0}
-
-#: the fit's PVDF gate factor (the product's calibration keeps 3): a lower threshold keeps the weak
-#: contact transients of a noisy amplifier, and the classes' fitted thresholds reject the noise it passes
-DEFAULT_GATE_FACTOR = 2.0
-
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
 
@@ -63,15 +54,17 @@ class FitConfig:
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
-    gate_factor: float = DEFAULT_GATE_FACTOR  #: the PVDF spectral gate keeps bins above this multiple of the calibrated noise
+    #: the PVDF spectral gate keeps bins above this multiple of the calibrated noise (None: the ``init``
+    #: file's factor, else the schema's 3; the noisy-amplifier build fits within its targets at 2, docs/fitting.md)
+    gate_factor: float | None = None
     count_weight: float = 1.0  #: multiplier of L_rel in the objective of the search (paper: 1)
     segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window in the search (paper eq. 7: none)
     #: classes refined after their search (a second CMA-ES run from its best point), each with the
     #: count weight of its refinement's objective (whole-trial counts); empty: the paper's single search
     refine: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_REFINE))
     #: refined classes whose refinement's count term weighs a sine condition this much (1: the plain mean
-    #: over conditions the held-out report reads; other classes: ``sine_weight``); distances keep ``sine_weight``
-    refine_sine_count_weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_REFINE_SINE_COUNT_WEIGHTS))
+    #: over conditions the held-out report reads); the others, and every distance, use ``sine_weight``
+    refine_sine_count_weights: dict[str, float] = field(default_factory=dict)
     vr_distance_classes: tuple[str, ...] = ("PC",)  #: refined classes whose refinement is scored by the VR-normalised distance, not the kernel distance
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
@@ -105,7 +98,7 @@ class FitConfig:
             raise ValueError(f"refine_sine_count_weights names unknown classes {bad}; expected a subset of {list(CLASSES)}")
         if not all(np.isfinite(w) and w >= 0 for w in self.refine_sine_count_weights.values()):
             raise ValueError("refine_sine_count_weights must be >= 0")
-        if not (np.isfinite(self.gate_factor) and 0 < self.gate_factor <= 100):
+        if self.gate_factor is not None and not (np.isfinite(self.gate_factor) and 0 < self.gate_factor <= 100):
             raise ValueError("gate_factor must be in (0, 100]")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}

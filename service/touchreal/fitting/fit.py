@@ -107,7 +107,7 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}), cfg.gate_factor)
     timings["calibrate_s"] = time.perf_counter() - t
     log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}, "
-        f"gate on {len(pre.gate.freqs_hz) if pre.gate else 0} bins at {cfg.gate_factor:g} x the noise")
+        f"gate on {len(pre.gate.freqs_hz)} bins at {pre.gate.factor:g} x the noise")
 
     t = time.perf_counter()
     windows = sorted({cfg.window_of(c) for c in cfg.classes})
@@ -226,7 +226,7 @@ def fit_dataset(
         "rig_lag_ms": rig_lag_ms,
         "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
         "calibration_baselines": prep.n_baselines,
-        "gate_factor": cfg.gate_factor,
+        "gate_factor": pre.gate.factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
             "lambda_e": cfg.objective.lambda_e,
