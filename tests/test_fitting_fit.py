@@ -252,13 +252,13 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert prov["optimizer"]["restarts"] == 1
     with pytest.raises(ValueError):
         FitConfig(count_weight=-1.0)
-    with pytest.raises(ValueError, match="count weights"):
+    with pytest.raises(ValueError, match="weights of refine"):
         FitConfig(refine={"PC": float("nan")})
-    with pytest.raises(ValueError, match="refine names unknown"):
+    with pytest.raises(ValueError, match="refine must be a subset"):
         FitConfig(refine={"SA2": 1.0})
-    with pytest.raises(ValueError, match="refine_sine_count_weights must"):
+    with pytest.raises(ValueError, match="refine_sine_count_weights must be >= 0"):
         FitConfig(refine_sine_count_weights={"PC": float("inf")})
-    with pytest.raises(ValueError, match="refine_sine_count_weights names"):
+    with pytest.raises(ValueError, match="refine_sine_count_weights must be a subset"):
         FitConfig(refine_sine_count_weights={"SA2": 1.0})
     with pytest.raises(ValueError, match="gate_factor"):
         FitConfig(gate_factor=0.0)
@@ -358,19 +358,19 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
 def test_window_option_per_class():
     import argparse
 
-    from touchreal.fitting.command import parse_refine, parse_windows
+    from touchreal.fitting.command import parse_class_weights, parse_windows
 
     assert parse_windows("64") == (64.0, {})
     assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
     assert parse_windows("32, SA1=16") == (32.0, {"SA1": 16.0})
-    assert parse_refine("PC=4,RA=2") == {"PC": 4.0, "RA": 2.0} and parse_refine("none") == {}
+    assert parse_class_weights("PC=4,RA=2") == {"PC": 4.0, "RA": 2.0} and parse_class_weights("none") == {}
     for bad in ("SA2=16", "SA1=fast", "x"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_windows(bad)
         with pytest.raises(argparse.ArgumentTypeError):
-            parse_refine(bad)
-    with pytest.raises(argparse.ArgumentTypeError, match="per refined class"):
-        parse_refine("3")
+            parse_class_weights(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match="a weight per class"):
+        parse_class_weights("3")
     with pytest.raises(ValueError, match="window_ms"):
         FitConfig(class_window_ms={"RA": 2.0})
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0

@@ -51,11 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segmented-count-classes", default=None,
                    help="comma-separated classes whose ramp count loss is taken per turning-point window, or 'none' for "
                    "the paper's whole-trial count, in the search (default: PC)")
-    p.add_argument("--refine", type=parse_refine, default=None, metavar="CLS=K,...|none",
+    p.add_argument("--refine", type=parse_class_weights, default=None, metavar="CLS=K,...|none",
                    help="classes refined after their search by a second CMA-ES run from its best point, each with the count "
                    f"weight K of the refinement's objective (whole-trial counts), or 'none' for the paper's single search "
                    f"(default {_weights_text(DEFAULT_REFINE)})")
-    p.add_argument("--refine-sine-count-weights", type=parse_refine, default=None, metavar="CLS=W,...|none",
+    p.add_argument("--refine-sine-count-weights", type=parse_class_weights, default=None, metavar="CLS=W,...|none",
                    help="refined classes whose refinement's count term weighs one sine condition W (1: the plain mean over "
                    "conditions the held-out report reads), or 'none' (the default); the others, and every distance, keep "
                    "--sine-weight")
@@ -91,13 +91,13 @@ def parse_windows(text: str) -> tuple[float, dict[str, float]]:
     return _per_class_values(text, DEFAULT_WINDOW_MS, "W", " in ms")
 
 
-def parse_refine(text: str) -> dict[str, float]:
-    """``"RA=3,PC=4"`` -> {class: a weight of its refinement}; ``"none"`` -> {}."""
+def parse_class_weights(text: str) -> dict[str, float]:
+    """``"RA=3,PC=4"`` -> {class: weight} (``--refine``, ``--refine-sine-count-weights``); ``"none"`` -> {}."""
     if text.strip().lower() == "none":
         return {}
     default, per_class = _per_class_values(text, None, "K", "")
     if default is not None:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected CLS=K,... (a weight per refined class) or none")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected CLS=K,... (a weight per class) or none")
     return per_class
 
 

@@ -75,29 +75,19 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
-        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes"):
+        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes",
+                     "class_window_ms", "refine", "refine_sine_count_weights"):  # a dict's classes are its keys
             bad = [c for c in getattr(self, name) if c not in CLASSES]
             if bad:
                 raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(getattr(self, name))}")
-        bad = [c for c in self.class_window_ms if c not in CLASSES]
-        if bad:
-            raise ValueError(f"class_window_ms names unknown classes {bad}; expected a subset of {list(CLASSES)}")
         if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:
             raise ValueError("kernel_ms must be > 0")
-        bad = [c for c in self.refine if c not in CLASSES]
-        if bad:
-            raise ValueError(f"refine names unknown classes {bad}; expected a subset of {list(CLASSES)}")
-        if not all(np.isfinite(w) and w >= 0 for w in (self.count_weight, *self.refine.values())):
-            raise ValueError("count_weight and refine's count weights must be >= 0")
-        bad = [c for c in self.refine_sine_count_weights if c not in CLASSES]
-        if bad:
-            raise ValueError(f"refine_sine_count_weights names unknown classes {bad}; expected a subset of {list(CLASSES)}")
-        if not all(np.isfinite(w) and w >= 0 for w in self.refine_sine_count_weights.values()):
-            raise ValueError("refine_sine_count_weights must be >= 0")
+        if not all(np.isfinite(w) and w >= 0 for w in (self.count_weight, *self.refine.values(), *self.refine_sine_count_weights.values())):
+            raise ValueError("count_weight and the weights of refine and refine_sine_count_weights must be >= 0")
         if self.gate_factor is not None and not (np.isfinite(self.gate_factor) and 0 < self.gate_factor <= 100):
             raise ValueError("gate_factor must be in (0, 100]")
         self.objective = ObjectiveConfig(
