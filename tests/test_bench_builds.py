@@ -18,11 +18,12 @@ def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, c
     for build, cells in rows.items():
         manifest = json.loads((tmp_path / build / "manifest.json").read_text())
         assert manifest["simulator"]["build"]["name"] == build  # each build simulated as itself
-        fitted = json.loads((tmp_path / f"{build}.json").read_text())
-        assert fitted  # its own parameter file
+        prov = json.loads((tmp_path / f"{build}.json").read_text())["provenance"]  # its own parameter file
+        assert cells[2] == f"{prov['contact_snr']:.0f}" + ("*" if build == "noisy-amplifier" else "")  # the fit's SNR
+        assert prov["gate_factor"] == (2.0 if build == "noisy-amplifier" else 3.0)  # the noisy one fitted as weak-signal
         metrics = json.loads((tmp_path / f"{build}-report" / "metrics.json").read_text())
         for i, c in enumerate(CLASSES):
             s = metrics["mapping"][c]["all"]
-            count, vr = cells[2 + 2 * i], cells[3 + 2 * i]
+            count, vr = cells[3 + 2 * i], cells[4 + 2 * i]
             assert count == f"{s['count_error_mean']:.1%}" and vr == f"{s['ratio_inter_intra']:.2f}", (build, c)
     assert "every build within the targets:" in out

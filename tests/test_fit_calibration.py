@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from touchreal.cli import main
-from touchreal.fitting.calibration import calibrate_pvdf, mains_residual
+from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms
+from touchreal.fitting.config import FitConfig
 from touchreal.fitting.trials import baseline_segments
 from touchreal.params import PreprocessParams
-from touchreal.preprocess.gate import calibrate, gate_thresholds
+from touchreal.preprocess.gate import calibrate, filter_segments
 from touchreal.recording import Dataset
 
 
@@ -37,11 +38,27 @@ def test_a_50_hz_build_keeps_the_50_hz_calibration(tmp_path, given):
     assert pre == calibrate(seg, PreprocessParams(mains_hz=50.0))  # what the fit calibrated before, whatever it was told
 
 
-def test_the_gate_factor_scales_only_the_gate_threshold(tmp_path):
-    seg = _baselines(tmp_path, "noisy-amplifier")
-    kept = calibrate_pvdf(seg, PreprocessParams())  # the product's factor
-    fit = calibrate_pvdf(seg, PreprocessParams(), gate_factor=2.0)
-    assert kept.gate.factor == 3.0 and fit.gate.factor == 2.0
-    assert fit.model_copy(update={"gate": kept.gate}) == kept and fit.gate.noise_asd == kept.gate.noise_asd
-    w = np.hanning(256)
-    np.testing.assert_allclose(gate_thresholds(fit.gate, w, 2000.0), gate_thresholds(kept.gate, w, 2000.0) * 2.0 / 3.0)
+def _contact_snr(tmp_path, build: str) -> float:
+    out = tmp_path / build
+    assert main(["simulate", "ramp", "--trials", "ramp=12", "--seed", "3", "--build", build, "--out", str(out), "--quiet"]) == 0
+    ds = Dataset.open(out)
+    entries = list(ds.entries())
+    pre = calibrate_pvdf(baseline_segments(ds, entries), PreprocessParams())
+    trials = [ds.load(e) for e in entries]
+    return contact_snr([t.pvdf for t in trials], [int(np.searchsorted(t.pvdf_t, e["onset_s"])) for t, e in zip(trials, entries)], pre)
+
+
+def test_the_contact_snr_tells_a_noisy_amplifier_from_the_nominal_build(tmp_path):
+    nominal, noisy = _contact_snr(tmp_path, "nominal"), _contact_snr(tmp_path, "noisy-amplifier")
+    assert 2.0 < nominal / noisy < 4.5  # the noisy build has 3x the PVDF noise, the same film
+    cfg = FitConfig()
+    assert not cfg.weak_signal(nominal) and cfg.weak_signal(noisy)
+    assert contact_snr([np.zeros(4000)], [4000], calibrate_pvdf([np.random.default_rng(0).normal(0, 1e-3, 4000)], PreprocessParams())) is None
+
+
+def test_the_noise_rms_is_that_of_the_filtered_baseline():
+    rng = np.random.default_rng(1)
+    seg = [rng.normal(0.0, 2e-3, 20000) for _ in range(4)]
+    pre = calibrate_pvdf(seg, PreprocessParams())
+    filtered = np.concatenate([y[2000:] for y in filter_segments(seg, pre, 2000.0)])  # past the filters' start
+    assert noise_rms(pre) == pytest.approx(float(np.std(filtered)), rel=0.05)

@@ -227,14 +227,23 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     objective = json.loads(out.read_text())["provenance"]["objective"]
     assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
     assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
-    assert objective["refine_sine_count_weights"] == {}  # the default: every count term weighs the sines as its distance
-    assert json.loads(out.read_text())["provenance"]["gate_factor"] == 3.0 == q.preprocess.gate.factor  # the --init file's
+    assert objective["refine_sine_count_weights"] == {}  # on this build every count term weighs the sines as its distance
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0  # rig-v1's film stands well out of its noise
+    assert prov["gate_factor"] == 3.0 == q.preprocess.gate.factor  # so the gate keeps its factor
+    # a build below --weak-signal-snr gets the weak-signal gate and PC sine count weight; given options win
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3",
-                 "--refine-sine-count-weights", "PC=10", "--gate-factor", "2"]) == 0
-    objective = json.loads(out.read_text())["provenance"]["objective"]
+                 "--weak-signal-snr", "1e6"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    objective = prov["objective"]
     assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
-    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == json.loads(out.read_text())["provenance"]["gate_factor"]
+    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--weak-signal-snr", "1e6",
+                 "--gate-factor", "2.5", "--refine-sine-count-weights", "none"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["gate_factor"] == 2.5 and prov["objective"]["refine_sine_count_weights"] == {}
     assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
@@ -262,6 +271,8 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         FitConfig(refine_sine_count_weights={"SA2": 1.0})
     with pytest.raises(ValueError, match="gate_factor"):
         FitConfig(gate_factor=0.0)
+    with pytest.raises(ValueError, match="weak_signal_snr"):
+        FitConfig(weak_signal_snr=float("nan"))
     cfg = FitConfig(count_weight=2.0)
     assert cfg.objective_of("PC").count_weight == 2.0 and cfg.objective_of("PC:refine").count_weight == 5.0
     assert cfg.refined() == ("RA", "PC") and FitConfig(classes=("SA1", "PC")).refined() == ("PC",)
@@ -381,3 +392,17 @@ def test_fit_config_refuses_unknown_classes_in_every_class_list(name):
     with pytest.raises(ValueError, match=f"{name} must be a subset"):
         FitConfig(**{name: ("PC", "SA9")})
     assert getattr(FitConfig(**{name: ("PC",)}), name) == ("PC",)
+
+
+def test_the_weak_signal_settings_apply_below_the_snr_threshold_where_not_given():
+    cfg = FitConfig()
+    assert not cfg.weak_signal(None) and not cfg.weak_signal(50.0) and cfg.weak_signal(49.9)
+    strong, weak = cfg.for_snr(107.0), cfg.for_snr(37.0)  # nominal and noisy-amplifier builds (docs/fitting.md)
+    assert (strong.gate_factor, strong.refine_sine_count_weights) == (3.0, {})
+    assert (weak.gate_factor, weak.refine_sine_count_weights) == (2.0, {"PC": 10.0})
+    assert cfg.for_snr(None) == strong and cfg.refine_sine_count_weights is None  # not measured: no change; cfg itself kept
+    given = FitConfig(gate_factor=2.5, refine_sine_count_weights={"RA": 5.0}).for_snr(37.0)
+    assert (given.gate_factor, given.refine_sine_count_weights) == (2.5, {"RA": 5.0})
+    never = FitConfig(weak_signal_snr=0.0).for_snr(1e-3)  # 0: no build is weak
+    assert (never.gate_factor, never.refine_sine_count_weights) == (3.0, {})
+    assert weak.objective_of("PC:refine") == cfg.objective_of("PC:refine")  # the rest is the same

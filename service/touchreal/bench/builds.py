@@ -2,7 +2,8 @@
 
 Per build (``data/builds.json``, or JSON files): ``touchreal simulate ramp sine`` with rig-v1's
 counts (896 ramps, 100 sines: the calibration set of a real rig), ``touchreal fit`` with its
-defaults (train/held-out split by repeat), then ``touchreal evaluate`` on the held-out trials.
+defaults (train/held-out split by repeat; the fit measures the build's PVDF contact SNR and picks
+its gate from it), then ``touchreal evaluate`` on the held-out trials.
 Per class, the van Rossum ratio (inter / intra, tau 1 ms, the report's) and the mean count error over conditions,
 against the targets of a fit that transfers: count error <= 15 % for SA1 and RA and <= 25 % for PC,
 VR ratio <= 1.2 / 1.3 / 1.5. Each build takes a full fit (about 9 min on 2 idle cores).
@@ -45,7 +46,7 @@ def _score(metrics: dict) -> dict[str, tuple[float, float]]:
     return out
 
 
-def _one(build: str, work: Path, args: argparse.Namespace) -> tuple[dict[str, tuple[float, float]], float]:
+def _one(build: str, work: Path, args: argparse.Namespace) -> tuple[dict[str, tuple[float, float]], float, dict]:
     from ..cli import main
 
     name = Path(build).stem
@@ -60,7 +61,15 @@ def _one(build: str, work: Path, args: argparse.Namespace) -> tuple[dict[str, tu
     if main(["evaluate", str(data), "--params", str(params), "--out", str(report), "--no-sweep", "--no-spatial",
              "--quiet"]) != 0:
         raise SystemExit(f"evaluate failed for build {build}")
-    return _score(json.loads((report / "metrics.json").read_text())), fit_s
+    return _score(json.loads((report / "metrics.json").read_text())), fit_s, json.loads(params.read_text())["provenance"]
+
+
+def _snr_cell(prov: dict) -> str:
+    """The fit's PVDF contact SNR, starred when the build was fitted with the weak-signal settings."""
+    snr = prov.get("contact_snr")
+    if snr is None:
+        return f"{'-':>6}"
+    return f"{snr:5.0f}{'*' if snr < prov['weak_signal_snr'] else ' '}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,13 +79,13 @@ def run(args: argparse.Namespace) -> int:
     print("targets: count error <= " + ", ".join(f"{c} {COUNT_MAX[c]:.0%}" for c in CLASSES)
           + "; VR ratio <= " + ", ".join(f"{c} {VR_MAX[c]:g}" for c in CLASSES))
     head = "  ".join(f"{c + ' count':>9}  {c + ' VR':>6}" for c in CLASSES)
-    print(f"\n   {'build':<22}  {'fit':>6}  {head}  targets")
+    print(f"\n   {'build':<22}  {'fit':>6}  {'SNR':>6}  {head}  targets")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         met_all = True
         for build in builds:
-            score, fit_s = _one(build, work, args)
+            score, fit_s, prov = _one(build, work, args)
             cells, met = [], []
             for c in CLASSES:
                 ce, vr = score[c]
@@ -85,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
                 cells.append(f"{ce:9.1%}  {vr:6.2f}")
             met_all &= all(met)
             missed = [c for c, ok in zip(CLASSES, met) if not ok]
-            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {'  '.join(cells)}  "
+            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {_snr_cell(prov)}  {'  '.join(cells)}  "
                   f"{'met' if not missed else 'missed: ' + ', '.join(missed)}", flush=True)
+    print("SNR: the fit's PVDF contact SNR; * below --weak-signal-snr: fitted with the weak-signal gate and sine count weights")
     print(f"\nevery build within the targets: {'yes' if met_all else 'no'}")
     return 0

@@ -5,6 +5,10 @@ and measures the gate's noise floor after the notches. A build on 60 Hz mains ca
 keeps its 60/120/180 Hz lines: they enter the gate's floor 10-60x above its median (weak-film-60hz),
 so the gate removes real PVDF signal at those bins, in RA's and PC's band. :func:`calibrate_pvdf`
 calibrates at 50 and at 60 Hz and keeps the one whose gate floor is flattest at the mains lines.
+
+:func:`contact_snr` measures how far the contact signal stands out of that floor: a build whose
+film is weakly coupled or whose amplifier is noisy (a low SNR) loses PC's weak ramp transients to a
+gate at 3 x the noise, so the fit lowers its gate there (:class:`~.config.FitConfig`).
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from ..params import PreprocessParams
-from ..preprocess.gate import calibrate
+from ..preprocess.gate import calibrate, filter_segments
 
 MAINS_CANDIDATES_HZ = (50.0, 60.0)  #: mains frequencies a build may run on
 RESIDUAL_HARMONICS = 9  #: harmonics (of every candidate) at which the residual floor is read
@@ -30,10 +34,28 @@ def mains_residual(pre: PreprocessParams, max_hz: float = 1000.0) -> float:
     return float(np.mean(np.log(at / np.median(asd))))
 
 
-def calibrate_pvdf(baselines: Sequence[np.ndarray], base: PreprocessParams, gate_factor: float | None = None) -> PreprocessParams:
+def calibrate_pvdf(baselines: Sequence[np.ndarray], base: PreprocessParams) -> PreprocessParams:
     """``base`` calibrated on the contact-free PVDF ``baselines`` (V) at the mains frequency of
-    :data:`MAINS_CANDIDATES_HZ` that leaves the flattest gate floor (``base.mains_hz`` on a tie),
-    its gate keeping bins above ``gate_factor`` x the noise (default: ``base``'s factor)."""
+    :data:`MAINS_CANDIDATES_HZ` that leaves the flattest gate floor (``base.mains_hz`` on a tie)."""
     order = sorted(MAINS_CANDIDATES_HZ, key=lambda m: m != base.mains_hz)  # the given frequency first: it wins ties
-    cals = [calibrate(baselines, base.model_copy(update={"mains_hz": m}), factor=gate_factor) for m in order]
+    cals = [calibrate(baselines, base.model_copy(update={"mains_hz": m})) for m in order]
     return min(cals, key=mains_residual)
+
+
+def noise_rms(pre: PreprocessParams) -> float:
+    """RMS (V) of the calibrated PVDF noise after the low-pass and notches: the gate's noise floor
+    summed over its evenly spaced bins."""
+    f = np.asarray(pre.gate.freqs_hz)
+    return float(np.sqrt(np.sum(np.asarray(pre.gate.noise_asd) ** 2) * (f[1] - f[0])))
+
+
+def contact_snr(pvdf: Sequence[np.ndarray], onsets: Sequence[int], pre: PreprocessParams, fs_hz: float = 2000.0) -> float | None:
+    """The PVDF contact signal over the calibrated noise: the 99th percentile of |PVDF| (after the
+    calibrated low-pass and notches) from each recording's contact onset (sample index) on, over the
+    noise RMS (:func:`noise_rms`). ``pvdf``: whole ramp recordings (V), filtered from their start as
+    the pipeline filters a stream. None without contact samples."""
+    contact = [y[i:] for y, i in zip(filter_segments(pvdf, pre, fs_hz), onsets)]
+    contact = [c for c in contact if c.size]
+    if not contact:
+        return None
+    return float(np.percentile(np.abs(np.concatenate(contact)), 99.0)) / noise_rms(pre)

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import DEFAULT_REFINE
+    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS, FitConfig
 
     p = sub.add_parser(
         "fit",
@@ -57,10 +57,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    f"(default {_weights_text(DEFAULT_REFINE)})")
     p.add_argument("--refine-sine-count-weights", type=parse_class_weights, default=None, metavar="CLS=W,...|none",
                    help="refined classes whose refinement's count term weighs one sine condition W (1: the plain mean over "
-                   "conditions the held-out report reads), or 'none' (the default); the others, and every distance, keep "
-                   "--sine-weight")
+                   "conditions the held-out report reads), or 'none'; the others, and every distance, keep --sine-weight "
+                   f"(default: none, or {_weights_text(WEAK_SIGNAL_SINE_COUNT_WEIGHTS)} on a weak-signal build)")
     p.add_argument("--gate-factor", type=float, default=None, help="the PVDF spectral gate keeps bins above this multiple of "
-                   "the noise calibrated on the baselines (default: the --init file's, else 3)")
+                   f"the noise calibrated on the baselines (default: {DEFAULT_GATE_FACTOR:g}, or {WEAK_SIGNAL_GATE_FACTOR:g} on a "
+                   "weak-signal build)")
+    p.add_argument("--weak-signal-snr", type=float, default=None, help="a build whose PVDF contact SNR (99th percentile of "
+                   "|PVDF| after the contact onsets of the training ramps over the baseline noise RMS) is below this is a "
+                   f"weak-signal build; 0: none is (default {FitConfig.weak_signal_snr:g})")
     p.add_argument("--vr-distance-classes", default=None,
                    help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
                    "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")
@@ -134,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v

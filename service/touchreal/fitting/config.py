@@ -3,11 +3,11 @@ budget, workers."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..params import default_params
+from ..params import GateCalibration, default_params
 from ..settings import CLASSES
 from .objective import ObjectiveConfig
 
@@ -22,6 +22,13 @@ def shipped_windows_ms() -> dict[str, float]:
 #: classes refined by default, each with the count weight of its refinement: RA, whose count is the
 #: target other sensor builds miss first, and PC, refined on the VR-normalised distance (docs/fitting.md)
 DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
+
+#: the gate factor (x the noise) and the refinements' sine count weights of a build whose PVDF contact
+#: SNR is below ``weak_signal_snr``: its gate at 3 x the noise removes PC's weak ramp transients, and
+#: PC's refinement then trades its ramp counts for the 10 Hz sine (docs/fitting.md)
+WEAK_SIGNAL_GATE_FACTOR = 2.0
+WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
+DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
@@ -54,9 +61,13 @@ class FitConfig:
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
     sine_weight: float = 30.0  #: weight of a sine condition relative to a ramp condition (paper: 1)
-    #: the PVDF spectral gate keeps bins above this multiple of the calibrated noise (None: the ``init``
-    #: file's factor, else the schema's 3; the noisy-amplifier build fits within its targets at 2, docs/fitting.md)
+    #: the PVDF spectral gate keeps bins above this multiple of the calibrated noise (None: chosen
+    #: from the build's contact SNR, :meth:`for_snr`)
     gate_factor: float | None = None
+    #: a build whose PVDF contact SNR (:func:`~.calibration.contact_snr`) is below this is fitted with
+    #: the weak-signal settings (:data:`WEAK_SIGNAL_GATE_FACTOR`, :data:`WEAK_SIGNAL_SINE_COUNT_WEIGHTS`)
+    #: where gate_factor and refine_sine_count_weights are not given; 0: never
+    weak_signal_snr: float = 50.0
     count_weight: float = 1.0  #: multiplier of L_rel in the objective of the search (paper: 1)
     segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window in the search (paper eq. 7: none)
     #: classes refined after their search (a second CMA-ES run from its best point), each with the
@@ -64,7 +75,8 @@ class FitConfig:
     refine: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_REFINE))
     #: refined classes whose refinement's count term weighs a sine condition this much (1: the plain mean
     #: over conditions the held-out report reads); the others, and every distance, use ``sine_weight``
-    refine_sine_count_weights: dict[str, float] = field(default_factory=dict)
+    #: (None: chosen from the build's contact SNR, :meth:`for_snr`)
+    refine_sine_count_weights: dict[str, float] | None = None
     vr_distance_classes: tuple[str, ...] = ("PC",)  #: refined classes whose refinement is scored by the VR-normalised distance, not the kernel distance
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
@@ -77,22 +89,39 @@ class FitConfig:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
         for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes",
                      "class_window_ms", "refine", "refine_sine_count_weights"):  # a dict's classes are its keys
-            bad = [c for c in getattr(self, name) if c not in CLASSES]
+            given = getattr(self, name) or ()
+            bad = [c for c in given if c not in CLASSES]
             if bad:
-                raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(getattr(self, name))}")
+                raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(given)}")
         if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:
             raise ValueError("kernel_ms must be > 0")
-        if not all(np.isfinite(w) and w >= 0 for w in (self.count_weight, *self.refine.values(), *self.refine_sine_count_weights.values())):
+        if not all(np.isfinite(w) and w >= 0 for w in (self.count_weight, *self.refine.values(), *(self.refine_sine_count_weights or {}).values())):
             raise ValueError("count_weight and the weights of refine and refine_sine_count_weights must be >= 0")
         if self.gate_factor is not None and not (np.isfinite(self.gate_factor) and 0 < self.gate_factor <= 100):
             raise ValueError("gate_factor must be in (0, 100]")
+        if not (np.isfinite(self.weak_signal_snr) and self.weak_signal_snr >= 0):
+            raise ValueError("weak_signal_snr must be >= 0")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
+
+    def weak_signal(self, snr: float | None) -> bool:
+        """Whether a build of PVDF contact SNR ``snr`` (None: not measured) gets the weak-signal settings."""
+        return snr is not None and snr < self.weak_signal_snr
+
+    def for_snr(self, snr: float | None) -> FitConfig:
+        """This configuration with the gate factor and the sine count weights that were not given
+        chosen for a build of PVDF contact SNR ``snr``: the weak-signal ones below ``weak_signal_snr``."""
+        weak = self.weak_signal(snr)
+        gate = self.gate_factor if self.gate_factor is not None else WEAK_SIGNAL_GATE_FACTOR if weak else DEFAULT_GATE_FACTOR
+        sines = self.refine_sine_count_weights
+        if sines is None:
+            sines = dict(WEAK_SIGNAL_SINE_COUNT_WEIGHTS) if weak else {}
+        return replace(self, gate_factor=gate, refine_sine_count_weights=sines)
 
     def refined(self) -> tuple[str, ...]:
         """The fitted classes that are refined after their search."""

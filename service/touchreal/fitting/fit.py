@@ -8,7 +8,9 @@ Steps of :func:`fit_dataset`:
    file's provenance so ``touchreal evaluate`` can use exactly the held-out trials. With
    ``holdout=False`` every trial trains and nothing is held out (for a separate test recording).
 2. **Calibrate** the PVDF stage (mains harmonics + spectral gate) on the contact-free baselines of
-   the training trials (PVDF samples before ``onset_s``).
+   the training trials (PVDF samples before ``onset_s``), and measure the build's contact SNR on the
+   training ramps: below ``cfg.weak_signal_snr`` the gate and the sine count weights not given are
+   the weak-signal ones (:meth:`FitConfig.for_snr`).
 3. **Preprocess** every trial once per distinct causal PVDF window of the fitted classes (:mod:`.trials`;
    channels do not depend on the class parameters; each class is fitted on its own window's
    channels) and keep the 5 kHz channels in memory.
@@ -42,7 +44,7 @@ import numpy as np
 
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
-from .calibration import calibrate_pvdf
+from .calibration import calibrate_pvdf, contact_snr
 from .config import FitConfig, parse_stage_key, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
@@ -75,8 +77,10 @@ class Prepared:
     ds: Dataset
     train_e: list[dict[str, Any]]
     val_e: list[dict[str, Any]]
+    cfg: FitConfig  #: the source's, with the gate factor and sine count weights chosen for the build
     pre: PreprocessParams
     n_baselines: int
+    contact_snr: float | None  #: the PVDF contact SNR of the training ramps (None without ramps)
     state: FitState
     rig_lag_ms: float  #: the SingleTact's rise after the commanded onset (the search runs at SEARCH_LAG_MS)
     timings: dict[str, float]
@@ -104,10 +108,16 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     loaded = {e["id"]: ds.load(e) for e in train_e}
     base = init.preprocess if init is not None else PreprocessParams()
     segments = baseline_segments(ds, train_e, loaded=loaded)
-    pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}), cfg.gate_factor)
+    pre = calibrate_pvdf(segments, base.model_copy(update={"window_ms": float(cfg.window_ms)}))
+    ramps = [(loaded[e["id"]], float(e["onset_s"])) for e in train_e if e["protocol"] == "ramp"]
+    snr = contact_snr([r.pvdf for r, _ in ramps], [int(np.searchsorted(r.pvdf_t, onset)) for r, onset in ramps], pre)
+    cfg = cfg.for_snr(snr)
+    pre = pre.model_copy(update={"gate": pre.gate.model_copy(update={"factor": cfg.gate_factor})})
     timings["calibrate_s"] = time.perf_counter() - t
-    log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}, "
-        f"gate on {len(pre.gate.freqs_hz)} bins at {pre.gate.factor:g} x the noise")
+    log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}; "
+        f"contact SNR {'-' if snr is None else f'{snr:.0f}'}" + (f" < {cfg.weak_signal_snr:g} (weak signal)" if cfg.weak_signal(snr) else "")
+        + f": gate on {len(pre.gate.freqs_hz)} bins at {pre.gate.factor:g} x the noise"
+        + (f", refinement sine count weights {cfg.refine_sine_count_weights}" if cfg.refine_sine_count_weights else ""))
 
     t = time.perf_counter()
     windows = sorted({cfg.window_of(c) for c in cfg.classes})
@@ -131,7 +141,7 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
     state = FitState(spaces=spaces, refs=refs, train=train, objectives={key: cfg.objective_of(key) for key in refs}, lag_s=lag_s)
-    return Prepared(ds, train_e, val_e, pre, len(segments), state, rig_lag_ms, timings)
+    return Prepared(ds, train_e, val_e, cfg, pre, len(segments), snr, state, rig_lag_ms, timings)
 
 
 def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
@@ -141,7 +151,7 @@ def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
     return tset.reference_set(cls, cfg.objective.kernel_tau_s, cfg.max_refs_per_condition, cfg.sine_weight,
                               segmented_count=not refinement and cls in cfg.segmented_count_classes,
                               vr_normalised=refinement and cls in cfg.vr_distance_classes,
-                              sine_count_weight=cfg.refine_sine_count_weights.get(cls) if refinement else None)
+                              sine_count_weight=(cfg.refine_sine_count_weights or {}).get(cls) if refinement else None)
 
 
 def fit_dataset(
@@ -159,6 +169,7 @@ def fit_dataset(
     t_all = time.perf_counter()
     source = FitSource(str(dataset_dir), cfg, init)
     prep = prepare(source, log)
+    cfg = prep.cfg
     ds, val_e, pre, timings, rig_lag_ms = prep.ds, prep.val_e, prep.pre, prep.timings, prep.rig_lag_ms
     name = str(ds.manifest.get("name", ""))
     spaces, refs, train, lag_s = prep.state.spaces, prep.state.refs, prep.state.train, prep.state.lag_s
@@ -226,6 +237,8 @@ def fit_dataset(
         "rig_lag_ms": rig_lag_ms,
         "class_window_ms": {c: cfg.window_of(c) for c in cfg.classes},
         "calibration_baselines": prep.n_baselines,
+        "contact_snr": None if prep.contact_snr is None else round(prep.contact_snr, 2),
+        "weak_signal_snr": cfg.weak_signal_snr,
         "gate_factor": pre.gate.factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,

@@ -47,9 +47,9 @@ def pvdf_filter(params: PreprocessParams, fs_hz: float, n_taxels: int = 1, dtype
     return filt.then(mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz, n_taxels, dtype))
 
 
-def _filtered(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float, notch: bool) -> list[np.ndarray]:
-    """Each segment through the pipeline's PVDF filters (with the notches or not), primed as the
-    pipeline primes them at stream start."""
+def filter_segments(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float, notch: bool = True) -> list[np.ndarray]:
+    """Each PVDF segment (V) through the pipeline's PVDF filters (with the notches or not), primed
+    as the pipeline primes them at stream start."""
     out = []
     n_prime = int(round(HUM_PRIME_S * fs_hz))
     hum = mains_frequencies(params.mains_hz, params.notch_harmonics, fs_hz) if notch else []
@@ -75,17 +75,14 @@ def detect_harmonics(freqs: np.ndarray, psd: np.ndarray, mains_hz: float, fs_hz:
     return found
 
 
-def calibrate(pvdf_baselines: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float = 2000.0,
-              factor: float | None = None) -> PreprocessParams:
-    """Return ``params`` with ``notch_harmonics`` and ``gate`` measured on baseline PVDF segments (V);
-    the gate keeps ``factor`` (default: that of ``params.gate``, else :class:`GateCalibration`'s)."""
-    lp_only = _filtered(pvdf_baselines, params, fs_hz, notch=False)
+def calibrate(pvdf_baselines: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float = 2000.0) -> PreprocessParams:
+    """Return ``params`` with ``notch_harmonics`` and ``gate`` measured on baseline PVDF segments (V)."""
+    lp_only = filter_segments(pvdf_baselines, params, fs_hz, notch=False)
     freqs, psd = _welch(lp_only, fs_hz)
     harmonics = detect_harmonics(freqs, psd, params.mains_hz, fs_hz)
     notched_params = params.model_copy(update={"notch_harmonics": harmonics})
-    freqs, psd = _welch(_filtered(pvdf_baselines, notched_params, fs_hz, notch=True), fs_hz)
-    if factor is None:
-        factor = params.gate.factor if params.gate else GateCalibration.model_fields["factor"].default
+    freqs, psd = _welch(filter_segments(pvdf_baselines, notched_params, fs_hz, notch=True), fs_hz)
+    factor = params.gate.factor if params.gate else GateCalibration.model_fields["factor"].default
     attenuation = params.gate.attenuation if params.gate else GateCalibration.model_fields["attenuation"].default
     gate = GateCalibration(
         freqs_hz=[float(f) for f in freqs],
