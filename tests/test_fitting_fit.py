@@ -229,7 +229,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
     assert objective["refine_sine_count_weights"] == {}  # on this build every count term weighs the sines as its distance
     prov = json.loads(out.read_text())["provenance"]
-    assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0  # rig-v1's film stands well out of its noise
+    assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0 and not prov["weak_signal"]  # rig-v1's film stands well out of its noise
     assert prov["gate_factor"] == 3.0 == q.preprocess.gate.factor  # so the gate keeps its factor
     # a build below --weak-signal-snr gets the weak-signal gate and PC sine count weight; given options win
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
@@ -238,7 +238,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     prov = json.loads(out.read_text())["provenance"]
     objective = prov["objective"]
     assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
-    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6
+    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6 and prov["weak_signal"]
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--weak-signal-snr", "1e6",
                  "--gate-factor", "2.5", "--refine-sine-count-weights", "none"]) == 0

@@ -69,7 +69,7 @@ def _snr_cell(prov: dict) -> str:
     snr = prov.get("contact_snr")
     if snr is None:
         return f"{'-':>6}"
-    return f"{snr:5.0f}{'*' if snr < prov['weak_signal_snr'] else ' '}"
+    return f"{snr:5.0f}{'*' if prov['weak_signal'] else ' '}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -239,6 +239,7 @@ def fit_dataset(
         "calibration_baselines": prep.n_baselines,
         "contact_snr": None if prep.contact_snr is None else round(prep.contact_snr, 2),
         "weak_signal_snr": cfg.weak_signal_snr,
+        "weak_signal": cfg.weak_signal(prep.contact_snr),
         "gate_factor": pre.gate.factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
