@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from touchreal.analysis.turning_points import turning_points
+from touchreal.cli import main
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
-from touchreal.fitting.config import FitConfig
+from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig
+from touchreal.fitting.fit import signal_limited_message
 from touchreal.fitting.executor import FitState, LocalExecutor
 from touchreal.fitting.split import split_repeats
 from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
@@ -211,8 +213,6 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     for c in CLASSES:
         assert res2.params.classes[c] == p.classes[c]
     # the CLI writes a loadable file; --classes keeps the others from --init
-    from touchreal.cli import main
-
     out = tmp_path / "p.json"
     p.save(tmp_path / "init.json")
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA", "--generations", "1", "--popsize", "4",
@@ -406,3 +406,24 @@ def test_the_weak_signal_settings_apply_below_the_snr_threshold_where_not_given(
     never = FitConfig(weak_signal_snr=0.0).for_snr(1e-3)  # 0: no build is weak
     assert (never.gate_factor, never.refine_sine_count_weights) == (3.0, {})
     assert weak.objective_of("PC:refine") == cfg.objective_of("PC:refine")  # the rest is the same
+
+
+def test_pc_is_signal_limited_below_its_snr_floor_only_when_fitted():
+    assert FitConfig().signal_limited(SIGNAL_LIMITED_SNR - 0.1) and not FitConfig().signal_limited(SIGNAL_LIMITED_SNR)
+    assert not FitConfig().signal_limited(None)  # not measured
+    assert not FitConfig(classes=("SA1", "RA")).signal_limited(1.0)  # the SingleTact classes do not need the film
+
+
+def test_a_fit_on_the_corner_build_warns_that_pc_is_signal_limited(tmp_path, capsys):
+    build = tmp_path / "weak-noisy-film.json"  # the corner of the documented ranges (docs/fitting.md, "The limit")
+    build.write_text(json.dumps({"name": "weak-noisy-film", "pvdf_coupling": 0.5, "pvdf_noise": 3.0, "st_noise": 3.0, "rig_lag_ms": 120.0}))
+    assert main(["simulate", "ramp", "--trials", "ramp=16", "--seed", "3", "--build", str(build), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
+    out = tmp_path / "pc.json"
+    capsys.readouterr()
+    assert main(["fit", str(tmp_path / "ds"), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--refine", "none", "--quiet", "--workers", "1"]) == 0
+    prov = EncoderParams.load(out).provenance
+    assert prov["contact_snr"] < SIGNAL_LIMITED_SNR and prov["signal_limited"] and prov["weak_signal"]
+    said = capsys.readouterr()
+    message = f"warning: {signal_limited_message(prov['contact_snr'])}"
+    assert message in said.err.splitlines() and message in said.out.splitlines()  # in the log as it happens, and in the summary

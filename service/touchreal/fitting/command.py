@@ -225,3 +225,8 @@ def _summary(res: FitResult, out: Path) -> None:
             print(f"  {c}: search loss start {s.start_loss:.4f} ({s.generations} generations, {s.evaluations} evaluations, {s.seconds:.0f} s), then")
         print(f"  {c}: {'refinement ' if f.search is not None else ''}loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
+    prov = res.params.provenance
+    if prov.get("signal_limited"):
+        from .fit import signal_limited_message
+
+        print(f"warning: {signal_limited_message(prov['contact_snr'])}")

@@ -30,6 +30,11 @@ WEAK_SIGNAL_GATE_FACTOR = 2.0
 WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
 DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
+#: below this contact SNR the project's fits missed PC's targets (count error <= 25 %, VR ratio <= 1.5)
+#: on every build it tried (SNR 32, 26, 19; none of its settings helped at 19) and met them at 37 and
+#: above: the sensor limits PC, and the fit says so (docs/fitting.md, "The limit")
+SIGNAL_LIMITED_SNR = 35.0
+
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
 
@@ -112,6 +117,10 @@ class FitConfig:
     def weak_signal(self, snr: float | None) -> bool:
         """Whether a build of PVDF contact SNR ``snr`` (None: not measured) gets the weak-signal settings."""
         return snr is not None and snr < self.weak_signal_snr
+
+    def signal_limited(self, snr: float | None) -> bool:
+        """Whether PC is fitted on a build of PVDF contact SNR ``snr`` below :data:`SIGNAL_LIMITED_SNR`."""
+        return "PC" in self.classes and snr is not None and snr < SIGNAL_LIMITED_SNR
 
     def for_snr(self, snr: float | None) -> FitConfig:
         """This configuration with the gate factor and the sine count weights that were not given

@@ -10,7 +10,8 @@ Steps of :func:`fit_dataset`:
 2. **Calibrate** the PVDF stage (mains harmonics + spectral gate) on the contact-free baselines of
    the training trials (PVDF samples before ``onset_s``), and measure the build's contact SNR on the
    training ramps: below ``cfg.weak_signal_snr`` the gate and the sine count weights not given are
-   the weak-signal ones (:meth:`FitConfig.for_snr`).
+   the weak-signal ones (:meth:`FitConfig.for_snr`); below :data:`~.config.SIGNAL_LIMITED_SNR` the
+   log warns that PC is limited by the sensor (:meth:`FitConfig.signal_limited`).
 3. **Preprocess** every trial once per distinct causal PVDF window of the fitted classes (:mod:`.trials`;
    channels do not depend on the class parameters; each class is fitted on its own window's
    channels) and keep the 5 kHz channels in memory.
@@ -45,7 +46,7 @@ import numpy as np
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
 from .calibration import calibrate_pvdf, contact_snr
-from .config import FitConfig, parse_stage_key, stage_key
+from .config import SIGNAL_LIMITED_SNR, FitConfig, parse_stage_key, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
 from .search import ClassFit, search_and_refine
@@ -86,6 +87,13 @@ class Prepared:
     timings: dict[str, float]
 
 
+def signal_limited_message(snr: float) -> str:
+    """What a user of a build whose PVDF contact SNR is below :data:`SIGNAL_LIMITED_SNR` should know."""
+    return (f"PVDF contact SNR {snr:.0f} < {SIGNAL_LIMITED_SNR:g}: PC's fidelity is limited by the sensor, not the fit "
+            "(its count or VR ratio missed its target on every such build tried); a stronger film coupling or a "
+            "quieter PVDF amplifier raises it (docs/fitting.md, 'The limit')")
+
+
 def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prepared:
     """Split, calibrate, preprocess and align (steps 1-3 of the fit); deterministic, so every Dask
     worker that runs it on the same source holds the same state as the driver."""
@@ -118,6 +126,8 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         f"contact SNR {'-' if snr is None else f'{snr:.0f}'}" + (f" < {cfg.weak_signal_snr:g} (weak signal)" if cfg.weak_signal(snr) else "")
         + f": gate on {len(pre.gate.freqs_hz)} bins at {pre.gate.factor:g} x the noise"
         + (f", refinement sine count weights {cfg.refine_sine_count_weights}" if cfg.refine_sine_count_weights else ""))
+    if cfg.signal_limited(snr):
+        log(f"warning: {signal_limited_message(snr)}")
 
     t = time.perf_counter()
     windows = sorted({cfg.window_of(c) for c in cfg.classes})
@@ -240,6 +250,7 @@ def fit_dataset(
         "contact_snr": None if prep.contact_snr is None else round(prep.contact_snr, 2),
         "weak_signal_snr": cfg.weak_signal_snr,
         "weak_signal": cfg.weak_signal(prep.contact_snr),
+        "signal_limited": cfg.signal_limited(prep.contact_snr),
         "gate_factor": pre.gate.factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
