@@ -4,6 +4,7 @@ without changing a seeded fit."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from touchreal.fitting import search as S
 from touchreal.fitting.config import FitConfig
@@ -89,3 +90,22 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
     assert plain.search is None
     # the refinement draws from streams of its own
     assert S.cma_seed(4, "RA:refine") != S.cma_seed(4, "RA") == S.cma_seed(4, "RA", 0)
+
+
+
+def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
+    sa1 = ParamSpace.for_class("SA1", [8.0, 60.0, 0.2, 200.0])
+    starts = [sa1.initial(100.0, v) for v in range(2)]
+    own, saturated = S.start_grid(sa1, starts, 100.0), S.start_grid(sa1, starts, 100.0, -2.0)
+    assert np.all(own[:, 12] == 3.0) and np.all(saturated[:, 12] == -2.0)  # each start's own i_sat (e^3), and e^-2
+    np.testing.assert_array_equal(np.delete(own, 12, axis=1), np.delete(saturated, 12, axis=1))  # the same points otherwise
+    cfg = FitConfig(classes=("SA1",), popsize=6, max_generations=10, restarts=1, seed=4, progress=False)
+    fit = S.fit_class("SA1", sa1, _sphere, cfg, starts, 100.0)
+    assert [(r.popsize, r.budget) for r in fit.runs] == [(6, 10), (12, 5), (6, 10)]  # the search, its restart, the saturated run
+    x_sat = saturated[int(np.argmin([f for f, _ in _sphere("SA1", saturated)]))]
+    alone = S.run_cma("SA1", sa1, _sphere, x_sat, 6, 10, S.cma_seed(4, "SA1", 2))
+    assert alone.history == fit.runs[2].history  # from the best saturated grid point, on a stream of its own
+    assert fit.evaluations == len(own) + len(saturated) + 6 * 10 + 12 * 5 + 6 * 10
+    assert min(r.best_loss for r in fit.runs) == pytest.approx(float(np.sum((fit.x - 0.3) ** 2)))  # the best run wins
+    ra = S.fit_class("RA", SPACE, _sphere, FitConfig(classes=("RA",), popsize=6, max_generations=4, progress=False), [SPACE.initial(100.0)], 100.0)
+    assert len(ra.runs) == 1  # the other classes search as they did

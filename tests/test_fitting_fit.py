@@ -175,7 +175,10 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     l_fit = loss(fit.x)
     assert l_fit < 0.4 * l_start
     assert l_fit < l_true + 0.15
-    assert fit.params.delay_ms == pytest.approx(true.delay_ms, abs=6.0)
+    # the run from the generic start lands near the generating delay; SA1's run from a saturated start
+    # (search.SATURATED_STARTS) may end lower elsewhere, as the jittered references do not pin the delay
+    assert space.decode(fit.runs[0].best_x).delay_ms == pytest.approx(true.delay_ms, abs=6.0)
+    assert l_fit <= min(r.best_loss for r in fit.runs) + 1e-12
     # identifiable behaviour: spike counts per condition match the references' (tau and the
     # weights trade off against each other, so they are not compared one by one)
     terms = evaluate_loss(simulate(trials, [fit.params])[0], tset.cond_index, refs, cfg.objective)
@@ -198,12 +201,14 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert res.n_train > 0 and res.n_validation > 0
     for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # search: start grid (directions x 81) + 2 generations of 6; RA and PC (the default) are then refined
-        # from the search's best point: a grid of 81 around it + 2 generations of 6
+        # search: start grid (directions x 81, for SA1 at its saturated start too) + 2 generations of 6 per run
+        # (SA1: two runs); RA and PC (the default) are then refined from the search's best point: a grid of 81
+        # around it + 2 generations of 6
         search = f.search if c in ("RA", "PC") else f
         assert (f.search is not None) == (c in ("RA", "PC"))
-        grid = len(INITIAL_WEIGHTS[c]) * 81
-        assert grid < search.evaluations <= grid + 2 * 6 and search.generations <= 2
+        runs = 1 + len(S.SATURATED_STARTS.get(c, ()))
+        grid = len(INITIAL_WEIGHTS[c]) * 81 * runs
+        assert len(search.runs) == runs and grid < search.evaluations <= grid + runs * 2 * 6 and search.generations <= runs * 2
         if f.search is not None:
             assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
         # the input stage is fitted for RA and PC only (FitConfig default)

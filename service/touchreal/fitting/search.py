@@ -2,7 +2,8 @@
 
 :func:`fit_class` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
 restarts side by side from the grid's best point (each from the same point with its own seed, so
-they are independent of each other); the best point any of them evaluated wins. Every run draws
+they are independent of each other), and for SA1 one more run from the best strongly saturated
+start (:data:`SATURATED_STARTS`); the best point any of them evaluated wins. Every run draws
 its samples from a random stream of its own, so runs (and the classes of a fit) may interleave in
 any order and the result is still the same for a seed. A run ends at its generation budget or at
 ``cma``'s own stopping rules. There is no stop on stagnation: on rig-v1 a run's best loss stays flat
@@ -30,6 +31,11 @@ from .space import DELAY_UNIT_MS, ParamSpace
 GRID_GAINS = 2.0 ** np.arange(-4, 5)  #: overall weight gains of the start grid
 GRID_LOG_TAU = (-1.4, 0.0, 1.4)  #: tau multipliers exp(.) of the start grid (x0.25, x1, x4)
 GRID_DELAYS_MS = (-20.0, 0.0, 20.0)  #: delay offsets of the start grid (clipped to delays >= 0)
+#: input saturations (log i_sat) a class's search also starts from, each with a CMA-ES run of its own
+#: beside the runs from the starts' own saturation: SA1's count grows with the force (about
+#: depth^1.5) faster than TouchSim's with depth, a strongly saturated SA1 follows TouchSim's, and
+#: from the mildly saturated starts CMA-ES seldom reaches it (docs/fitting.md)
+SATURATED_STARTS = {"SA1": (-2.0,)}
 
 
 @dataclass
@@ -98,10 +104,14 @@ def make_cma(space: ParamSpace, x0: np.ndarray, popsize: int, generations: int, 
     return cma.CMAEvolutionStrategy(list(x0), 1.0, opts)
 
 
-def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float) -> np.ndarray:
-    """Every start x gain x tau multiplier x delay offset (deterministic)."""
+def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float, log_isat: float | None = None) -> np.ndarray:
+    """Every start x gain x tau multiplier x delay offset (deterministic), at each start's own input
+    saturation or at ``log_isat``."""
     out = []
-    for x in starts:
+    for x0 in starts:
+        x = np.array(x0, np.float64)
+        if log_isat is not None:
+            x[12] = log_isat
         for g in GRID_GAINS:
             for lt in GRID_LOG_TAU:
                 for dd in GRID_DELAYS_MS:
@@ -143,8 +153,9 @@ def fit_class(
 ) -> ClassFit:
     """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with
     ``cfg.restarts`` IPOP restarts (population doubled, generations halved each time, so every run
-    costs about the same) run side by side with the first run, each with its own seed; the best
-    point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
+    costs about the same) run side by side with the first run, each with its own seed; for a class
+    of :data:`SATURATED_STARTS`, one more run from the best grid point at each of its saturations.
+    The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
     differ by up to 0.2 in loss, while restarting from a converged point does not move it.
     ``cls`` is the state key the executor evaluates (a class, or a class's refinement);
@@ -152,13 +163,18 @@ def fit_class(
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    grid = start_grid(space, starts, delay0_ms)
-    losses = [r[0] for r in evaluate(cls, grid)]
+    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *SATURATED_STARTS.get(parse_stage_key(cls)[0], ()))]
+    grid = np.concatenate(grids)
+    losses = np.array([r[0] for r in evaluate(cls, grid)])
+    edges = np.cumsum([0] + [len(g) for g in grids])
+    x0s = [grid[a + int(np.argmin(losses[a:b]))] for a, b in zip(edges[:-1], edges[1:])]  # each saturation's best
     best = int(np.argmin(losses))
-    x0 = grid[best]
     start_loss = float(losses[best])
-    plan = [(cfg.popsize * 2**k, max(1, cfg.max_generations // 2**k)) for k in range(cfg.restarts + 1)]
-    bar = tqdm(total=sum(g for _, g in plan), desc=f"fit {cls}", unit="gen", disable=not cfg.progress,
+    # (start, population, generations): the first run and its restarts from the best point at the
+    # starts' own saturation, then one run from the best point at each saturated start's
+    plan = [(x0s[0], cfg.popsize * 2**k, max(1, cfg.max_generations // 2**k)) for k in range(cfg.restarts + 1)]
+    plan += [(x, cfg.popsize, cfg.max_generations) for x in x0s[1:]]
+    bar = tqdm(total=sum(g for _, _, g in plan), desc=f"fit {cls}", unit="gen", disable=not cfg.progress,
                dynamic_ncols=True, position=position, leave=True)
     lock = threading.Lock()
 
@@ -168,12 +184,12 @@ def fit_class(
 
     try:
         with ThreadPoolExecutor(len(plan), thread_name_prefix=f"fit-{cls}") as pool:
-            futures = [pool.submit(run_cma, cls, space, evaluate, x0, p, g, cma_seed(cfg.seed, cls, k), progress)
-                       for k, (p, g) in enumerate(plan)]
+            futures = [pool.submit(run_cma, cls, space, evaluate, x, p, g, cma_seed(cfg.seed, cls, k), progress)
+                       for k, (x, p, g) in enumerate(plan)]
             runs = [f.result() for f in futures]
     finally:
         bar.close()
-    best_x, best_f = x0.copy(), start_loss
+    best_x, best_f = grid[best].copy(), start_loss
     for r in runs:  # in run order: the earlier run wins a tie
         if r.best_loss < best_f:
             best_x, best_f = r.best_x, r.best_loss
