@@ -47,6 +47,21 @@ def conformance(shared: Path):
     return root, json.loads((root / "manifest.json").read_text())["stimuli"]
 
 
+#: the corner of the documented build ranges (docs/fitting.md, "The limit"): half the film's coupling
+#: on a 3x-noisy amplifier and SingleTact, the longest rig lag
+CORNER_BUILD = {"name": "weak-noisy-film", "pvdf_coupling": 0.5, "pvdf_noise": 3.0, "st_noise": 3.0, "rig_lag_ms": 120.0}
+
+
+@pytest.fixture
+def corner_build(tmp_path: Path) -> Path:
+    """A build file (``touchreal simulate --build FILE``) of :data:`CORNER_BUILD`."""
+    import json
+
+    path = tmp_path / f"{CORNER_BUILD['name']}.json"
+    path.write_text(json.dumps(CORNER_BUILD))
+    return path
+
+
 # -- leaving the test process ------------------------------------------------------------------------
 # Servers under test run on daemon threads with native libraries loaded (onnxruntime, liblsl through
 # pylsl, numba/LLVM). Now and then one of their C++ threads is still alive when the interpreter

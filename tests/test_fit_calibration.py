@@ -3,7 +3,6 @@ mains (the real simulator, `touchreal simulate --build`)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -51,15 +50,12 @@ def _contact_snr(tmp_path, build: str) -> float:
     return contact_snr([t.pvdf for t in trials], [int(np.searchsorted(t.pvdf_t, e["onset_s"])) for t, e in zip(trials, entries)], pre)
 
 
-def test_the_contact_snr_tells_a_noisy_amplifier_from_the_nominal_build(tmp_path):
+def test_the_contact_snr_tells_a_noisy_amplifier_from_the_nominal_build(tmp_path, corner_build):
     nominal, noisy = _contact_snr(tmp_path, "nominal"), _contact_snr(tmp_path, "noisy-amplifier")
     assert 2.0 < nominal / noisy < 4.5  # the noisy build has 3x the PVDF noise, the same film
     cfg = FitConfig()
     assert not cfg.weak_signal(nominal) and cfg.weak_signal(noisy)
-    # the corner of the documented ranges (docs/fitting.md, "The limit"): half the coupling on the noisy amplifier
-    corner = tmp_path / "weak-noisy-film.json"
-    corner.write_text(json.dumps({"name": "weak-noisy-film", "pvdf_coupling": 0.5, "pvdf_noise": 3.0, "st_noise": 3.0, "rig_lag_ms": 120.0}))
-    weakest = _contact_snr(tmp_path, str(corner))
+    weakest = _contact_snr(tmp_path, str(corner_build))  # half the coupling on the noisy amplifier
     assert 1.5 < noisy / weakest < 2.5  # half the film's signal over the same noise
     assert cfg.signal_limited(weakest) and not cfg.signal_limited(noisy)  # the fit warns of PC on the corner only
     assert contact_snr([np.zeros(4000)], [4000], calibrate_pvdf([np.random.default_rng(0).normal(0, 1e-3, 4000)], PreprocessParams())) is None

@@ -92,7 +92,6 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
     assert S.cma_seed(4, "RA:refine") != S.cma_seed(4, "RA") == S.cma_seed(4, "RA", 0)
 
 
-
 def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     sa1 = ParamSpace.for_class("SA1", [8.0, 60.0, 0.2, 200.0])
     starts = [sa1.initial(100.0, v) for v in range(2)]

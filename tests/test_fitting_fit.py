@@ -13,8 +13,7 @@ from touchreal.cli import main
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
-from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig
-from touchreal.fitting.fit import signal_limited_message
+from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig, signal_limited_message
 from touchreal.fitting.executor import FitState, LocalExecutor
 from touchreal.fitting.split import split_repeats
 from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
@@ -419,10 +418,8 @@ def test_pc_is_signal_limited_below_its_snr_floor_only_when_fitted():
     assert not FitConfig(classes=("SA1", "RA")).signal_limited(1.0)  # the SingleTact classes do not need the film
 
 
-def test_a_fit_on_the_corner_build_warns_that_pc_is_signal_limited(tmp_path, capsys):
-    build = tmp_path / "weak-noisy-film.json"  # the corner of the documented ranges (docs/fitting.md, "The limit")
-    build.write_text(json.dumps({"name": "weak-noisy-film", "pvdf_coupling": 0.5, "pvdf_noise": 3.0, "st_noise": 3.0, "rig_lag_ms": 120.0}))
-    assert main(["simulate", "ramp", "--trials", "ramp=16", "--seed", "3", "--build", str(build), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
+def test_a_fit_on_the_corner_build_warns_that_pc_is_signal_limited(tmp_path, corner_build, capsys):
+    assert main(["simulate", "ramp", "--trials", "ramp=16", "--seed", "3", "--build", str(corner_build), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
     out = tmp_path / "pc.json"
     capsys.readouterr()
     assert main(["fit", str(tmp_path / "ds"), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",

@@ -227,6 +227,6 @@ def _summary(res: FitResult, out: Path) -> None:
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
     prov = res.params.provenance
     if prov.get("signal_limited"):
-        from .fit import signal_limited_message
+        from .config import signal_limited_message
 
         print(f"warning: {signal_limited_message(prov['contact_snr'])}")

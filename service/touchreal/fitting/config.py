@@ -35,6 +35,13 @@ DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: 
 #: above: the sensor limits PC, and the fit says so (docs/fitting.md, "The limit")
 SIGNAL_LIMITED_SNR = 35.0
 
+
+def signal_limited_message(snr: float) -> str:
+    """What a user of a build whose PVDF contact SNR is below :data:`SIGNAL_LIMITED_SNR` should know."""
+    return (f"PVDF contact SNR {snr:.0f} < {SIGNAL_LIMITED_SNR:g}: PC's fidelity is limited by the sensor, not the fit "
+            "(its count or VR ratio missed its target on every such build tried); a stronger film coupling or a "
+            "quieter PVDF amplifier raises it (docs/fitting.md, 'The limit')")
+
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
 

@@ -46,7 +46,7 @@ import numpy as np
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
 from .calibration import calibrate_pvdf, contact_snr
-from .config import SIGNAL_LIMITED_SNR, FitConfig, parse_stage_key, stage_key
+from .config import FitConfig, parse_stage_key, signal_limited_message, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
 from .search import ClassFit, search_and_refine
@@ -85,13 +85,6 @@ class Prepared:
     state: FitState
     rig_lag_ms: float  #: the SingleTact's rise after the commanded onset (the search runs at SEARCH_LAG_MS)
     timings: dict[str, float]
-
-
-def signal_limited_message(snr: float) -> str:
-    """What a user of a build whose PVDF contact SNR is below :data:`SIGNAL_LIMITED_SNR` should know."""
-    return (f"PVDF contact SNR {snr:.0f} < {SIGNAL_LIMITED_SNR:g}: PC's fidelity is limited by the sensor, not the fit "
-            "(its count or VR ratio missed its target on every such build tried); a stronger film coupling or a "
-            "quieter PVDF amplifier raises it (docs/fitting.md, 'The limit')")
 
 
 def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prepared:
