@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 
 from touchreal.cli import main
-from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms, singletact_noise
-from touchreal.fitting.config import NOISY_ST_ESTIMATOR, FitConfig
+from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms
+from touchreal.fitting.config import FitConfig
 from touchreal.fitting.trials import baseline_segments
 from touchreal.params import PreprocessParams
-from touchreal.preprocess.filters import AlphaBeta
 from touchreal.preprocess.gate import calibrate, filter_segments
 from touchreal.recording import Dataset
 
@@ -68,34 +67,3 @@ def test_the_noise_rms_is_that_of_the_filtered_baseline():
     pre = calibrate_pvdf(seg, PreprocessParams())
     filtered = np.concatenate([y[2000:] for y in filter_segments(seg, pre, 2000.0)])  # past the filters' start
     assert noise_rms(pre) == pytest.approx(float(np.std(filtered)), rel=0.05)
-
-
-def _singletact_noise(tmp_path, build: str) -> float:
-    out = tmp_path / Path(build).stem
-    assert main(["simulate", "ramp", "--trials", "ramp=12", "--seed", "3", "--build", build, "--out", str(out), "--quiet"]) == 0
-    ds = Dataset.open(out)
-    return singletact_noise(baseline_segments(ds, list(ds.entries()), channel="st"))
-
-
-def test_the_singletact_noise_tells_a_noisy_singletact_from_the_nominal_build(tmp_path, corner_build):
-    nominal, noisy = _singletact_noise(tmp_path, "nominal"), _singletact_noise(tmp_path, str(corner_build))
-    assert 0.003 < nominal < 0.007 and 2.0 < noisy / nominal < 3.0  # 3x the SingleTact's noise over a common floor
-    cfg = FitConfig()
-    assert not cfg.noisy_singletact(nominal) and cfg.noisy_singletact(noisy)
-
-
-def test_the_singletact_noise_is_the_sample_noise_whatever_the_drift():
-    rng = np.random.default_rng(2)
-    drift = np.linspace(0.0, 0.5, 300)  # 0.5 N over 3 s: far slower than the noise
-    seg = [drift + rng.normal(0.0, 0.01, 300) for _ in range(8)]
-    assert singletact_noise(seg) == pytest.approx(0.01, rel=0.1)
-    assert np.std(seg[0]) > 0.1  # the drift alone would dominate a plain RMS
-    assert singletact_noise([np.zeros(2)]) is None and singletact_noise([]) is None
-
-
-def test_the_noisy_singletact_estimator_passes_less_noise_to_the_force_rate():
-    noise = np.random.default_rng(3).normal(0.0, 0.012, (3000, 1))  # a resting 3x-noisy SingleTact at 100 Hz
-    default = AlphaBeta(0.5, 0.1, 100.0).process(noise)[1][100:]
-    smooth = AlphaBeta(NOISY_ST_ESTIMATOR["st_alpha"], NOISY_ST_ESTIMATOR["st_beta"], 100.0).process(noise)[1][100:]
-    assert np.std(smooth) < 0.6 * np.std(default)
-    assert FitConfig.noisy_st_noise_n == 0.010 and PreprocessParams(**NOISY_ST_ESTIMATOR).st_alpha == 0.3  # a valid, stable estimator

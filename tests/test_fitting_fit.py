@@ -13,7 +13,7 @@ from touchreal.cli import main
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
-from touchreal.fitting.config import NOISY_ST_ESTIMATOR, SIGNAL_LIMITED_SNR, FitConfig, signal_limited_message
+from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig, signal_limited_message
 from touchreal.fitting.executor import FitState, LocalExecutor
 from touchreal.fitting.split import split_repeats
 from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
@@ -235,15 +235,11 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     prov = json.loads(out.read_text())["provenance"]
     assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0 and not prov["weak_signal"]  # rig-v1's film stands well out of its noise
     assert prov["gate_factor"] == 3.0 == q.preprocess.gate.factor  # so the gate keeps its factor
-    assert 0.003 < prov["st_noise_n"] < prov["noisy_st_noise_n"] == 0.01 and not prov["noisy_singletact"]  # rig-v1's SingleTact: 5 mN
-    assert (q.preprocess.st_alpha, q.preprocess.st_beta) == (0.5, 0.1)  # so it keeps the default estimator
     # a build below --weak-signal-snr gets the weak-signal gate and PC sine count weight; given options win
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3",
-                 "--weak-signal-snr", "1e6", "--noisy-st-noise", "1e-4"]) == 0
+                 "--weak-signal-snr", "1e6"]) == 0
     prov = json.loads(out.read_text())["provenance"]
-    assert prov["noisy_singletact"] and prov["noisy_st_noise_n"] == 1e-4  # a build above --noisy-st-noise gets the smoother estimator
-    assert EncoderParams.load(out).preprocess.model_dump(include=set(NOISY_ST_ESTIMATOR)) == NOISY_ST_ESTIMATOR
     objective = prov["objective"]
     assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
     assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6 and prov["weak_signal"]
@@ -416,15 +412,6 @@ def test_the_weak_signal_settings_apply_below_the_snr_threshold_where_not_given(
     assert weak.objective_of("PC:refine") == cfg.objective_of("PC:refine")  # the rest is the same
 
 
-def test_a_noisy_singletact_is_one_above_the_noise_threshold():
-    cfg = FitConfig()
-    assert cfg.noisy_singletact(0.012) and not cfg.noisy_singletact(0.005) and not cfg.noisy_singletact(0.0084)  # 3x; nominal; 2x (noisy-amplifier)
-    assert not cfg.noisy_singletact(cfg.noisy_st_noise_n) and not cfg.noisy_singletact(None)
-    for bad in (0.0, -1.0, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="noisy_st_noise_n"):
-            FitConfig(noisy_st_noise_n=bad)
-
-
 def test_pc_is_signal_limited_below_its_snr_floor_only_when_fitted():
     assert FitConfig().signal_limited(SIGNAL_LIMITED_SNR - 0.1) and not FitConfig().signal_limited(SIGNAL_LIMITED_SNR)
     assert not FitConfig().signal_limited(None)  # not measured
@@ -439,9 +426,6 @@ def test_a_fit_on_the_corner_build_warns_that_pc_is_signal_limited(tmp_path, cor
                  "--refine", "none", "--quiet", "--workers", "1"]) == 0
     prov = EncoderParams.load(out).provenance
     assert prov["contact_snr"] < SIGNAL_LIMITED_SNR and prov["signal_limited"] and prov["weak_signal"]
-    assert prov["st_noise_n"] > prov["noisy_st_noise_n"] and prov["noisy_singletact"]  # its SingleTact is 3x as noisy too
-    assert EncoderParams.load(out).preprocess.model_dump(include=set(NOISY_ST_ESTIMATOR)) == NOISY_ST_ESTIMATOR
     said = capsys.readouterr()
-    assert f"estimator gains {NOISY_ST_ESTIMATOR}" in said.err
     message = f"warning: {signal_limited_message(prov['contact_snr'])}"
     assert message in said.err.splitlines() and message in said.out.splitlines()  # in the log as it happens, and in the summary

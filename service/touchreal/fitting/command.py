@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, NOISY_ST_ESTIMATOR, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS, FitConfig
+    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS, FitConfig
 
     p = sub.add_parser(
         "fit",
@@ -65,9 +65,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weak-signal-snr", type=float, default=None, help="a build whose PVDF contact SNR (99th percentile of "
                    "|PVDF| after the contact onsets of the training ramps over the baseline noise RMS) is below this is a "
                    f"weak-signal build; 0: none is (default {FitConfig.weak_signal_snr:g})")
-    p.add_argument("--noisy-st-noise", type=float, default=None, metavar="N", help="a build whose SingleTact sample noise "
-                   "(N RMS on the contact-free baselines) is above this gets the smoother force estimator "
-                   f"{_weights_text(NOISY_ST_ESTIMATOR)} (default {FitConfig.noisy_st_noise_n:g})")
     p.add_argument("--vr-distance-classes", default=None,
                    help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
                    "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")
@@ -141,8 +138,7 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
-                       ("noisy_st_noise", "noisy_st_noise_n"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v

@@ -30,11 +30,6 @@ WEAK_SIGNAL_GATE_FACTOR = 2.0
 WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
 DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
-#: the SingleTact estimator gains of a build whose SingleTact noise is above ``noisy_st_noise_n``
-#: (a smoother force and force rate than the defaults 0.5 / 0.1): with 3x the nominal noise RA's count
-#: error fell from 16.2 to 13.0 % (docs/fitting.md)
-NOISY_ST_ESTIMATOR = {"st_alpha": 0.3, "st_beta": 0.04}
-
 #: below this contact SNR the project's fits missed PC's targets (count error <= 25 %, VR ratio <= 1.5)
 #: on every build it tried (SNR 32, 26, 19; none of its settings helped at 19) and met them at 37 and
 #: above: the sensor limits PC, and the fit says so (docs/fitting.md, "The limit")
@@ -85,9 +80,6 @@ class FitConfig:
     #: the weak-signal settings (:data:`WEAK_SIGNAL_GATE_FACTOR`, :data:`WEAK_SIGNAL_SINE_COUNT_WEIGHTS`)
     #: where gate_factor and refine_sine_count_weights are not given; 0: never
     weak_signal_snr: float = 50.0
-    #: a build whose SingleTact sample noise (N RMS, :func:`~.calibration.singletact_noise`) is above
-    #: this is fitted with :data:`NOISY_ST_ESTIMATOR` (nominal noise: 0.005 N, 2x: 0.008 N, 3x: 0.012 N)
-    noisy_st_noise_n: float = 0.010
     count_weight: float = 1.0  #: multiplier of L_rel in the objective of the search (paper: 1)
     segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window in the search (paper eq. 7: none)
     #: classes refined after their search (a second CMA-ES run from its best point), each with the
@@ -125,8 +117,6 @@ class FitConfig:
             raise ValueError("gate_factor must be in (0, 100]")
         if not (np.isfinite(self.weak_signal_snr) and self.weak_signal_snr >= 0):
             raise ValueError("weak_signal_snr must be >= 0")
-        if not (np.isfinite(self.noisy_st_noise_n) and self.noisy_st_noise_n > 0):
-            raise ValueError("noisy_st_noise_n must be > 0")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
@@ -134,10 +124,6 @@ class FitConfig:
     def weak_signal(self, snr: float | None) -> bool:
         """Whether a build of PVDF contact SNR ``snr`` (None: not measured) gets the weak-signal settings."""
         return snr is not None and snr < self.weak_signal_snr
-
-    def noisy_singletact(self, noise_n: float | None) -> bool:
-        """Whether a build of SingleTact noise ``noise_n`` (N RMS; None: not measured) gets :data:`NOISY_ST_ESTIMATOR`."""
-        return noise_n is not None and noise_n > self.noisy_st_noise_n
 
     def signal_limited(self, snr: float | None) -> bool:
         """Whether PC is fitted on a build of PVDF contact SNR ``snr`` below :data:`SIGNAL_LIMITED_SNR`."""
