@@ -307,10 +307,12 @@ def test_updates_an_overloaded_loop_drops_are_seq_gaps_every_client_sees(tmp_pat
         lost = int(svc.metrics.overload._value.get())
     assert lost > 0
     seqs, updates = np.array([f.header.seq for f in frames]), np.array([f.header.update for f in frames])
-    jumps = np.flatnonzero(np.diff(seqs) != 1)
-    assert len(jumps) == 1 and seqs[jumps[0] + 1] - seqs[jumps[0]] == lost + 1  # one gap, exactly the loss
-    assert updates[jumps[0] + 1] - updates[jumps[0]] == lost + 1  # where the lost updates were
-    assert frames[jumps[0]].header.dropped == 0 and frames[-1].header.dropped == lost
+    dropped = np.array([f.header.dropped for f in frames])
+    gaps = np.diff(seqs) - 1
+    at = np.flatnonzero(gaps)  # the stall's gap (a loaded machine may add an overload of its own)
+    assert len(at) >= 1 and np.all(gaps >= 0) and gaps.sum() == lost  # the gaps are exactly the loss
+    assert np.array_equal(np.diff(updates)[at] - 1, gaps[at])  # where the lost updates were
+    assert dropped[0] == 0 and np.array_equal(dropped[at + 1] - dropped[at], gaps[at]) and dropped[-1] == lost
 
 
 def test_many_subscribers_lose_nothing(tmp_path):
