@@ -106,5 +106,7 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     assert alone.history == fit.runs[2].history  # from the best saturated grid point, on a stream of its own
     assert fit.evaluations == len(own) + len(saturated) + 6 * 10 + 12 * 5 + 6 * 10
     assert min(r.best_loss for r in fit.runs) == pytest.approx(float(np.sum((fit.x - 0.3) ** 2)))  # the best run wins
+    refined = S.fit_class("SA1:refine", sa1, _sphere, cfg, [fit.x], 100.0)
+    assert [(r.popsize, r.budget) for r in refined.runs] == [(6, 10), (12, 5)]  # a refinement keeps the search's saturation
     ra = S.fit_class("RA", SPACE, _sphere, FitConfig(classes=("RA",), popsize=6, max_generations=4, progress=False), [SPACE.initial(100.0)], 100.0)
     assert len(ra.runs) == 1  # the other classes search as they did

@@ -153,8 +153,9 @@ def fit_class(
 ) -> ClassFit:
     """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with
     ``cfg.restarts`` IPOP restarts (population doubled, generations halved each time, so every run
-    costs about the same) run side by side with the first run, each with its own seed; for a class
-    of :data:`SATURATED_STARTS`, one more run from the best grid point at each of its saturations.
+    costs about the same) run side by side with the first run, each with its own seed; for the search
+    of a class of :data:`SATURATED_STARTS`, one more run from the best grid point at each of its
+    saturations (not for its refinement, which starts from the saturation the search chose).
     The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
     differ by up to 0.2 in loss, while restarting from a converged point does not move it.
@@ -163,7 +164,8 @@ def fit_class(
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *SATURATED_STARTS.get(parse_stage_key(cls)[0], ()))]
+    # a class's search only: its refinement starts from the saturation the search chose
+    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *SATURATED_STARTS.get(cls, ()))]
     grid = np.concatenate(grids)
     losses = np.array([r[0] for r in evaluate(cls, grid)])
     edges = np.cumsum([0] + [len(g) for g in grids])
