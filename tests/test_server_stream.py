@@ -305,14 +305,17 @@ def test_updates_an_overloaded_loop_drops_are_seq_gaps_every_client_sees(tmp_pat
 
         frames = run(go())
         lost = int(svc.metrics.overload._value.get())
+        # every frame dropped for the one client, whatever the reason (the overload's, or on a loaded machine
+        # a frame its own queue dropped as stale)
+        client = int(sum(x.value for m in svc.metrics.drops.collect() for x in m.samples if x.name.endswith("_total")))
     assert lost > 0
     seqs, updates = np.array([f.header.seq for f in frames]), np.array([f.header.update for f in frames])
     dropped = np.array([f.header.dropped for f in frames])
     gaps = np.diff(seqs) - 1
-    at = np.flatnonzero(gaps)  # the stall's gap (a loaded machine may add an overload of its own)
-    assert len(at) >= 1 and np.all(gaps >= 0) and gaps.sum() == lost  # the gaps are exactly the loss
+    at = np.flatnonzero(gaps)  # the stall's gap (a loaded machine may add one of its own)
+    assert len(at) >= 1 and np.all(gaps >= 0) and gaps.sum() == client >= lost  # the gaps are exactly the losses
     assert np.array_equal(np.diff(updates)[at] - 1, gaps[at])  # where the lost updates were
-    assert dropped[0] == 0 and np.array_equal(dropped[at + 1] - dropped[at], gaps[at]) and dropped[-1] == lost
+    assert dropped[0] == 0 and np.array_equal(dropped[at + 1] - dropped[at], gaps[at]) and dropped[-1] == client
 
 
 def test_many_subscribers_lose_nothing(tmp_path):
