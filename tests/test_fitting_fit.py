@@ -3,6 +3,7 @@ must lower the loss substantially, and a tiny end-to-end fit on rig-v1 trials.""
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -13,6 +14,7 @@ from touchreal.cli import main
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
+from touchreal.fitting.command import parse_restarts
 from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig, signal_limited_message
 from touchreal.fitting.executor import FitState, LocalExecutor
 from touchreal.fitting.split import split_repeats
@@ -200,14 +202,16 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert res.n_train > 0 and res.n_validation > 0
     for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # search: start grid (directions x 81, for SA1 at its saturated start too) + 2 generations of 6 per run
-        # (SA1: two runs); RA and PC (the default) are then refined from the search's best point: a grid of 81
-        # around it + 2 generations of 6
+        # search: start grid (directions x 81, for SA1 at its saturated start too) + 2 generations of 6 per run;
+        # SA1 also restarts by default (1 generation of 12) and runs from its saturated start; RA and PC (the
+        # default) are then refined from the search's best point: a grid of 81 around it + 2 generations of 6
         search = f.search if c in ("RA", "PC") else f
         assert (f.search is not None) == (c in ("RA", "PC"))
-        runs = 1 + len(S.SATURATED_STARTS.get(c, ()))
-        grid = len(INITIAL_WEIGHTS[c]) * 81 * runs
-        assert len(search.runs) == runs and grid < search.evaluations <= grid + runs * 2 * 6 and search.generations <= runs * 2
+        saturated = len(S.SATURATED_STARTS.get(c, ()))
+        plan = [(6, 2)] + [(12, 1)] * cfg.restarts_of(c) + [(6, 2)] * saturated
+        grid = len(INITIAL_WEIGHTS[c]) * 81 * (1 + saturated)
+        assert [(r.popsize, r.budget) for r in search.runs] == plan
+        assert grid < search.evaluations <= grid + sum(p * g for p, g in plan) and search.generations <= sum(g for _, g in plan)
         if f.search is not None:
             assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
         # the input stage is fitted for RA and PC only (FitConfig default)
@@ -242,6 +246,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     prov = json.loads(out.read_text())["provenance"]
     objective = prov["objective"]
     assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
+    assert prov["optimizer"]["restarts"] == {"PC": 0}  # only SA1 restarts by default
     assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6 and prov["weak_signal"]
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--weak-signal-snr", "1e6",
@@ -262,7 +267,17 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     for stage in (prov["loss"]["PC"], prov["loss"]["PC"]["search"]):  # the refinement, and the search it started from
         assert [(r["popsize"], r["generations"], r["stop"]) for r in stage["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
         assert stage["generations"] == 3
-    assert prov["optimizer"]["restarts"] == 1
+    assert prov["optimizer"]["restarts"] == {"PC": 1}
+    assert parse_restarts("2") == {"SA1": 2, "RA": 2, "PC": 2}  # every class
+    assert parse_restarts("PC=2") == {"SA1": 1, "PC": 2}  # the named ones; the others keep the default (SA1 1)
+    assert parse_restarts("0,PC=1") == {"SA1": 0, "RA": 0, "PC": 1}  # a bare number: the classes not named
+    for bad in ("1.5", "-1", "9", "SA2=1"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_restarts(bad)
+    assert FitConfig(restarts=2).restarts == {"SA1": 2, "RA": 2, "PC": 2} and FitConfig().restarts_of("SA1") == 1
+    assert FitConfig().restarts_of("RA:refine") == 0 and FitConfig(restarts={"RA": 1}).restarts_of("RA:refine") == 1
+    with pytest.raises(ValueError, match="restarts must be integers"):
+        FitConfig(restarts={"PC": 1.5})
     with pytest.raises(ValueError):
         FitConfig(count_weight=-1.0)
     with pytest.raises(ValueError, match="weights of refine"):

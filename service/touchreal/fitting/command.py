@@ -17,7 +17,8 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import DEFAULT_GATE_FACTOR, DEFAULT_REFINE, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS, FitConfig
+    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_REFINE, DEFAULT_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
+                         FitConfig)
 
     p = sub.add_parser(
         "fit",
@@ -43,7 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
     p.add_argument("--generations", type=int, default=None, help="CMA-ES generations of the first run per class (default 250)")
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
-    p.add_argument("--restarts", type=int, default=None, help="independent IPOP restarts beside the first run (same start, own seed, population x2, generations /2; default 0)")
+    p.add_argument("--restarts", type=parse_restarts, default=None, metavar="N|CLS=N,...",
+                   help="independent IPOP restarts beside a class's first run (same start, own seed, population x2, "
+                   "generations /2): N for every class, or per class (a bare N in the list sets the classes not named; "
+                   f"else they keep the default, {_weights_text(DEFAULT_RESTARTS)}, none for the others)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
@@ -93,6 +97,18 @@ def parse_windows(text: str) -> tuple[float, dict[str, float]]:
     """``"128"`` or ``"SA1=16,RA=16,PC=128"`` (a bare number in the list sets the default) ->
     (default window, per-class windows) in ms."""
     return _per_class_values(text, DEFAULT_WINDOW_MS, "W", " in ms")
+
+
+def parse_restarts(text: str) -> dict[str, int]:
+    """``"2"`` -> every class 2; ``"SA1=1,PC=2"`` -> those, the other classes as :data:`~.config.DEFAULT_RESTARTS`;
+    ``"0,PC=1"`` -> PC 1, the others 0."""
+    from .config import DEFAULT_RESTARTS
+
+    default, per_class = _per_class_values(text, None, "N", "")
+    counts = {**({c: default for c in CLASSES} if default is not None else DEFAULT_RESTARTS), **per_class}
+    if not all(float(n).is_integer() and 0 <= n <= 8 for n in counts.values()):
+        raise argparse.ArgumentTypeError(f"{text!r}: restarts are whole numbers from 0 to 8")
+    return {c: int(n) for c, n in counts.items()}
 
 
 def parse_class_weights(text: str) -> dict[str, float]:

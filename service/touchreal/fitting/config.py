@@ -28,6 +28,9 @@ DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
 #: PC's refinement then trades its ramp counts for the 10 Hz sine (docs/fitting.md)
 WEAK_SIGNAL_GATE_FACTOR = 2.0
 WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
+#: IPOP restarts per class beside its first run: SA1's optimum on a noisy SingleTact depends on the run
+#: (docs/fitting.md, "Across sensor builds"); the other classes' restarts seldom won and cost fit time
+DEFAULT_RESTARTS = {"SA1": 1}
 DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
 #: below this contact SNR the project's fits missed PC's targets (count error <= 25 %, VR ratio <= 1.5)
@@ -68,7 +71,9 @@ class FitConfig:
     kernel_ms: float = 10.0  #: kernel tau of the objective's D_kernel (eqs. 2-3)
     popsize: int = 12
     max_generations: int = 250  #: generations of the first CMA-ES run
-    restarts: int = 0  #: IPOP restarts (population x2, generations /2 each), side by side with the first run
+    #: IPOP restarts (population x2, generations /2 each) per class, side by side with its first run
+    #: (a class not named: none); an int gives every class that many
+    restarts: dict[str, int] | int = field(default_factory=lambda: dict(DEFAULT_RESTARTS))
     workers: int | None = None  #: None = all cores
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
@@ -96,17 +101,21 @@ class FitConfig:
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
     def __post_init__(self) -> None:
+        if isinstance(self.restarts, int):
+            self.restarts = {c: self.restarts for c in CLASSES}
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
         for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes",
-                     "class_window_ms", "refine", "refine_sine_count_weights"):  # a dict's classes are its keys
+                     "class_window_ms", "refine", "refine_sine_count_weights", "restarts"):  # a dict's classes are its keys
             given = getattr(self, name) or ()
             bad = [c for c in given if c not in CLASSES]
             if bad:
                 raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(given)}")
         if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
+        if not all(isinstance(n, int) and 0 <= n <= 8 for n in self.restarts.values()):
+            raise ValueError("restarts must be integers in [0, 8]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:
@@ -138,6 +147,10 @@ class FitConfig:
         if sines is None:
             sines = dict(WEAK_SIGNAL_SINE_COUNT_WEIGHTS) if weak else {}
         return replace(self, gate_factor=gate, refine_sine_count_weights=sines)
+
+    def restarts_of(self, key: str) -> int:
+        """IPOP restarts of a class's search and of its refinement (``key``: a :func:`stage_key`)."""
+        return self.restarts.get(parse_stage_key(key)[0], 0)
 
     def refined(self) -> tuple[str, ...]:
         """The fitted classes that are refined after their search."""

@@ -261,7 +261,7 @@ def fit_dataset(
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
-        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": cfg.restarts},
+        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": {c: cfg.restarts_of(c) for c in fits}},
         "fit_seconds": round(seconds, 1),
         "fitted_classes": list(fits),
         "loss": {

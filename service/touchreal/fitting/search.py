@@ -151,9 +151,10 @@ def fit_class(
     delay0_ms: float,
     position: int = 0,
 ) -> ClassFit:
-    """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with
-    ``cfg.restarts`` IPOP restarts (population doubled, generations halved each time, so every run
-    costs about the same) run side by side with the first run, each with its own seed; for the search
+    """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with the
+    class's IPOP restarts (:meth:`~.config.FitConfig.restarts_of`; population doubled, generations
+    halved each time, so every run costs about the same) run side by side with the first run, each
+    with its own seed; for the search
     of a class of :data:`SATURATED_STARTS`, one more run from the best grid point at each of its
     saturations (not for its refinement, which starts from the saturation the search chose).
     The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
@@ -174,7 +175,7 @@ def fit_class(
     start_loss = float(losses[best])
     # (start, population, generations): the first run and its restarts from the best point at the
     # starts' own saturation, then one run from the best point at each saturated start's
-    plan = [(x0s[0], cfg.popsize * 2**k, max(1, cfg.max_generations // 2**k)) for k in range(cfg.restarts + 1)]
+    plan = [(x0s[0], cfg.popsize * 2**k, max(1, cfg.max_generations // 2**k)) for k in range(cfg.restarts_of(cls) + 1)]
     plan += [(x, cfg.popsize, cfg.max_generations) for x in x0s[1:]]
     bar = tqdm(total=sum(g for _, _, g in plan), desc=f"fit {cls}", unit="gen", disable=not cfg.progress,
                dynamic_ncols=True, position=position, leave=True)
