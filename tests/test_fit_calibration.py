@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from touchreal.cli import main
-from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms
+from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms, singletact_noise
 from touchreal.fitting.config import FitConfig
 from touchreal.fitting.trials import baseline_segments
 from touchreal.params import PreprocessParams
@@ -67,3 +67,29 @@ def test_the_noise_rms_is_that_of_the_filtered_baseline():
     pre = calibrate_pvdf(seg, PreprocessParams())
     filtered = np.concatenate([y[2000:] for y in filter_segments(seg, pre, 2000.0)])  # past the filters' start
     assert noise_rms(pre) == pytest.approx(float(np.std(filtered)), rel=0.05)
+
+
+def _singletact_noise(tmp_path, build: str) -> float:
+    out = tmp_path / Path(build).stem
+    assert main(["simulate", "ramp", "--trials", "ramp=12", "--seed", "3", "--build", build, "--out", str(out), "--quiet"]) == 0
+    ds = Dataset.open(out)
+    return singletact_noise(baseline_segments(ds, list(ds.entries()), channel="st"))
+
+
+def test_the_singletact_noise_tells_the_noisy_singletacts_from_the_quiet_ones(tmp_path, corner_build):
+    quiet = [_singletact_noise(tmp_path, b) for b in ("nominal", "stiff-film-slow-rig")]  # 1x and 0.5x the noise
+    noisy = [_singletact_noise(tmp_path, b) for b in ("noisy-amplifier", str(corner_build))]  # 2x and 3x
+    assert 0.002 < quiet[1] < quiet[0] < 0.007 and quiet[0] < noisy[0] < noisy[1] < 0.02
+    cfg = FitConfig()
+    assert [cfg.noisy_singletact(n) for n in quiet + noisy] == [False, False, True, True]
+    assert [cfg.for_singletact(n).restarts for n in quiet + noisy] == [{}, {}, {"SA1": 1}, {"SA1": 1}]
+    assert [cfg.for_singletact(n).saturated_classes for n in quiet + noisy] == [(), (), ("SA1",), ("SA1",)]
+
+
+def test_the_singletact_noise_is_the_sample_noise_whatever_the_drift():
+    rng = np.random.default_rng(2)
+    drift = np.linspace(0.0, 0.5, 300)  # 0.5 N over 3 s: far slower than the noise
+    seg = [drift + rng.normal(0.0, 0.01, 300) for _ in range(8)]
+    assert singletact_noise(seg) == pytest.approx(0.01, rel=0.1)
+    assert np.std(seg[0]) > 0.1  # the drift alone would dominate a plain RMS
+    assert singletact_noise([np.zeros(2)]) is None and singletact_noise([]) is None

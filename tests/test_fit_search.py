@@ -98,7 +98,7 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     own, saturated = S.start_grid(sa1, starts, 100.0), S.start_grid(sa1, starts, 100.0, -2.0)
     assert np.all(own[:, 12] == 3.0) and np.all(saturated[:, 12] == -2.0)  # each start's own i_sat (e^3), and e^-2
     np.testing.assert_array_equal(np.delete(own, 12, axis=1), np.delete(saturated, 12, axis=1))  # the same points otherwise
-    cfg = FitConfig(classes=("SA1",), popsize=6, max_generations=10, restarts=1, seed=4, progress=False)
+    cfg = FitConfig(classes=("SA1",), popsize=6, max_generations=10, restarts=1, saturated_classes=("SA1",), seed=4, progress=False)
     fit = S.fit_class("SA1", sa1, _sphere, cfg, starts, 100.0)
     assert [(r.popsize, r.budget) for r in fit.runs] == [(6, 10), (12, 5), (6, 10)]  # the search, its restart, the saturated run
     x_sat = saturated[int(np.argmin([f for f, _ in _sphere("SA1", saturated)]))]
@@ -110,3 +110,7 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     assert [(r.popsize, r.budget) for r in refined.runs] == [(6, 10), (12, 5)]  # a refinement keeps the search's saturation
     ra = S.fit_class("RA", SPACE, _sphere, FitConfig(classes=("RA",), popsize=6, max_generations=4, progress=False), [SPACE.initial(100.0)], 100.0)
     assert len(ra.runs) == 1  # the other classes search as they did
+    quiet = S.fit_class("SA1", sa1, _sphere, FitConfig(classes=("SA1",), popsize=6, max_generations=4, progress=False), starts, 100.0)
+    assert len(quiet.runs) == 1 and quiet.evaluations == len(own) + 6 * 4  # not asked for (a quiet SingleTact): one run from its own grid
+    with pytest.raises(ValueError, match="saturated_classes"):
+        FitConfig(saturated_classes=("PC",))  # PC has no saturated start

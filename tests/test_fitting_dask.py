@@ -16,7 +16,8 @@ from touchreal.fitting import fit as F  # noqa: E402
 from touchreal.params import EncoderParams  # noqa: E402
 from touchreal.sensing.simulate import simulate_dataset  # noqa: E402
 
-CFG = dict(classes=("SA1", "RA"), popsize=6, max_generations=3, restarts=0, progress=False, seed=1, input_stage_classes=("RA",), holdout=False)
+CFG = dict(classes=("SA1", "RA"), popsize=6, max_generations=3, restarts=0, saturated_classes=("SA1",), progress=False, seed=1,
+           input_stage_classes=("RA",), holdout=False)  # SA1 from its saturated start too: two runs side by side
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +127,7 @@ def test_cli_fits_several_datasets_on_one_cluster(client, datasets, local_fits, 
     from touchreal.cli import main
 
     # SA1 alone: a class's fit does not depend on the other classes fitted with it
-    args = ["--classes", "SA1", "--popsize", "6", "--generations", "3", "--restarts", "0", "--seed", "1",
+    args = ["--classes", "SA1", "--popsize", "6", "--generations", "3", "--restarts", "0", "--saturated-classes", "SA1", "--seed", "1",
             "--input-stage-classes", "RA", "--no-holdout", "--quiet", "--scheduler", client.scheduler.address]
     assert main(["fit", *map(str, datasets), "--out", str(tmp_path), *args]) == 0
     for d, local in zip(datasets, local_fits):

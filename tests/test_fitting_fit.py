@@ -176,8 +176,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     l_fit = loss(fit.x)
     assert l_fit < 0.4 * l_start
     assert l_fit < l_true + 0.15
-    # the run from the generic start lands near the generating delay; SA1's run from a saturated start
-    # (search.SATURATED_STARTS) may end lower elsewhere, as the jittered references do not pin the delay
+    # the run from the generic start lands near the generating delay
     assert space.decode(fit.runs[0].best_x).delay_ms == pytest.approx(true.delay_ms, abs=6.0)
     assert l_fit <= min(r.best_loss for r in fit.runs) + 1e-12
     # identifiable behaviour: spike counts per condition match the references' (tau and the
@@ -199,16 +198,19 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     assert p.preprocess.gate is not None  # calibrated from the baselines
     prov = p.provenance
     assert prov["dataset"] == "rig-v1-tiny" and prov["split_seed"] == 1
+    assert 0.004 < prov["st_noise_n"] < prov["noisy_st_noise_n"] == 0.0065 and not prov["noisy_singletact"]  # rig-v1's: 5 mN
+    assert prov["optimizer"]["restarts"] == {"SA1": 0, "RA": 0, "PC": 0}  # a quiet SingleTact: no restart
+    assert prov["optimizer"]["saturated_classes"] == []  # nor a saturated start
     assert res.n_train > 0 and res.n_validation > 0
     for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # search: start grid (directions x 81, for SA1 at its saturated start too) + 2 generations of 6 per run;
-        # SA1 also restarts by default (1 generation of 12) and runs from its saturated start; RA and PC (the
-        # default) are then refined from the search's best point: a grid of 81 around it + 2 generations of 6
+        # search: start grid (directions x 81) + 2 generations of 6 per run (on a noisy SingleTact SA1 also
+        # restarts, 1 generation of 12, and runs from its saturated grid); RA and PC (the default) are then
+        # refined from the search's best point: a grid of 81 around it + 2 generations of 6
         search = f.search if c in ("RA", "PC") else f
         assert (f.search is not None) == (c in ("RA", "PC"))
-        saturated = len(S.SATURATED_STARTS.get(c, ()))
-        plan = [(6, 2)] + [(12, 1)] * cfg.restarts_of(c) + [(6, 2)] * saturated
+        saturated = len(S.SATURATED_STARTS.get(c, ())) if c in prov["optimizer"]["saturated_classes"] else 0
+        plan = [(6, 2)] + [(12, 1)] * prov["optimizer"]["restarts"][c] + [(6, 2)] * saturated
         grid = len(INITIAL_WEIGHTS[c]) * 81 * (1 + saturated)
         assert [(r.popsize, r.budget) for r in search.runs] == plan
         assert grid < search.evaluations <= grid + sum(p * g for p, g in plan) and search.generations <= sum(g for _, g in plan)
@@ -246,7 +248,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     prov = json.loads(out.read_text())["provenance"]
     objective = prov["objective"]
     assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
-    assert prov["optimizer"]["restarts"] == {"PC": 0}  # only SA1 restarts by default
+    assert prov["optimizer"]["restarts"] == {"PC": 0}  # only SA1 restarts, and only on a noisy SingleTact
     assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6 and prov["weak_signal"]
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--weak-signal-snr", "1e6",
@@ -269,13 +271,21 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert stage["generations"] == 3
     assert prov["optimizer"]["restarts"] == {"PC": 1}
     assert parse_restarts("2") == {"SA1": 2, "RA": 2, "PC": 2}  # every class
-    assert parse_restarts("PC=2") == {"SA1": 1, "PC": 2}  # the named ones; the others keep the default (SA1 1)
-    assert parse_restarts("0,PC=1") == {"SA1": 0, "RA": 0, "PC": 1}  # a bare number: the classes not named
+    assert parse_restarts("PC=2") == {"PC": 2}  # the named ones; the others none
+    assert parse_restarts("1,PC=2") == {"SA1": 1, "RA": 1, "PC": 2}  # a bare number: the classes not named
     for bad in ("1.5", "-1", "9", "SA2=1"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_restarts(bad)
-    assert FitConfig(restarts=2).restarts == {"SA1": 2, "RA": 2, "PC": 2} and FitConfig().restarts_of("SA1") == 1
-    assert FitConfig().restarts_of("RA:refine") == 0 and FitConfig(restarts={"RA": 1}).restarts_of("RA:refine") == 1
+    assert FitConfig(restarts=2).restarts == {"SA1": 2, "RA": 2, "PC": 2} and FitConfig().restarts is None
+    noisy, quiet = FitConfig().for_singletact(0.012), FitConfig().for_singletact(0.005)  # 3x and 1x the nominal noise
+    assert noisy.restarts_of("SA1") == 1 and noisy.restarts_of("RA:refine") == 0 and quiet.restarts == {}
+    assert FitConfig().for_singletact(None).restarts == {}  # not measured: none
+    assert FitConfig(restarts={"RA": 1}).for_singletact(0.012).restarts_of("RA:refine") == 1  # given: kept
+    assert FitConfig(noisy_st_noise_n=0.02).for_singletact(0.012).restarts == {}
+    assert noisy.saturated("SA1") and not noisy.saturated("SA1:refine") and not quiet.saturated("SA1")
+    assert FitConfig(saturated_classes=()).for_singletact(0.012).saturated_classes == ()  # given: kept
+    with pytest.raises(ValueError, match="noisy_st_noise_n"):
+        FitConfig(noisy_st_noise_n=float("nan"))
     with pytest.raises(ValueError, match="restarts must be integers"):
         FitConfig(restarts={"PC": 1.5})
     with pytest.raises(ValueError):

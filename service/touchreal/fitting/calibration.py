@@ -9,6 +9,9 @@ calibrates at 50 and at 60 Hz and keeps the one whose gate floor is flattest at 
 :func:`contact_snr` measures how far the contact signal stands out of that floor: a build whose
 film is weakly coupled or whose amplifier is noisy (a low SNR) loses PC's weak ramp transients to a
 gate at 3 x the noise, so the fit lowers its gate there (:class:`~.config.FitConfig`).
+
+:func:`singletact_noise` measures the SingleTact's own noise on the same baselines: on a noisy one
+SA1's optimum depends on the CMA-ES run, so SA1 restarts there (:class:`~.config.FitConfig`).
 """
 
 from __future__ import annotations
@@ -59,3 +62,11 @@ def contact_snr(pvdf: Sequence[np.ndarray], onsets: Sequence[int], pre: Preproce
     if not contact:
         return None
     return float(np.percentile(np.abs(np.concatenate(contact)), 99.0)) / noise_rms(pre)
+
+
+def singletact_noise(baselines: Sequence[np.ndarray]) -> float | None:
+    """The SingleTact's sample noise (N RMS) on contact-free baselines (N): per baseline the RMS of
+    successive differences over sqrt(2) (blind to a slow drift), the median over baselines. None
+    without a baseline of at least three samples."""
+    rms = [np.sqrt(np.mean(np.diff(b) ** 2) / 2.0) for b in baselines if b.size >= 3]
+    return float(np.median(rms)) if rms else None

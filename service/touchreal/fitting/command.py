@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_REFINE, DEFAULT_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
+    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_REFINE, NOISY_ST_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
                          FitConfig)
 
     p = sub.add_parser(
@@ -46,8 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--popsize", type=int, default=None, help="CMA-ES population size (default 12)")
     p.add_argument("--restarts", type=parse_restarts, default=None, metavar="N|CLS=N,...",
                    help="independent IPOP restarts beside a class's first run (same start, own seed, population x2, "
-                   "generations /2): N for every class, or per class (a bare N in the list sets the classes not named; "
-                   f"else they keep the default, {_weights_text(DEFAULT_RESTARTS)}, none for the others)")
+                   "generations /2): N for every class, or per class (a bare N in the list sets the classes not named, "
+                   f"else they have none) (default: {_weights_text(NOISY_ST_RESTARTS)} on a build whose SingleTact noise "
+                   "is above --noisy-st-noise, else none)")
     p.add_argument("--kernel-ms", type=float, default=None, help="kernel time constant of the objective (default 10 ms)")
     p.add_argument("--sine-weight", type=float, default=None, help="weight of one sine condition relative to one ramp condition")
     p.add_argument("--count-weight", type=float, default=None,
@@ -69,6 +70,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weak-signal-snr", type=float, default=None, help="a build whose PVDF contact SNR (99th percentile of "
                    "|PVDF| after the contact onsets of the training ramps over the baseline noise RMS) is below this is a "
                    f"weak-signal build; 0: none is (default {FitConfig.weak_signal_snr:g})")
+    p.add_argument("--saturated-classes", default=None, help="comma-separated classes whose search also runs from a strongly "
+                   "saturated start, or 'none' (default: SA1 on a build whose SingleTact noise is above --noisy-st-noise, else none)")
+    p.add_argument("--noisy-st-noise", type=float, default=None, metavar="N", help="a build whose SingleTact sample noise "
+                   "(N RMS on the contact-free baselines, from successive differences) is above this gets the noisy-SingleTact "
+                   f"search (SA1's saturated start and restart) where not told otherwise (default {FitConfig.noisy_st_noise_n:g})")
     p.add_argument("--vr-distance-classes", default=None,
                    help="refined classes whose refinement is scored by the van Rossum distance normalised by TouchSim's own "
                    "variability (the held-out report's measure) instead of the paper's kernel distance, or 'none' (default: PC)")
@@ -100,12 +106,10 @@ def parse_windows(text: str) -> tuple[float, dict[str, float]]:
 
 
 def parse_restarts(text: str) -> dict[str, int]:
-    """``"2"`` -> every class 2; ``"SA1=1,PC=2"`` -> those, the other classes as :data:`~.config.DEFAULT_RESTARTS`;
-    ``"0,PC=1"`` -> PC 1, the others 0."""
-    from .config import DEFAULT_RESTARTS
-
+    """``"2"`` -> every class 2; ``"SA1=1,PC=2"`` -> those (the other classes none); ``"1,PC=2"`` ->
+    PC 2, the others 1."""
     default, per_class = _per_class_values(text, None, "N", "")
-    counts = {**({c: default for c in CLASSES} if default is not None else DEFAULT_RESTARTS), **per_class}
+    counts = {**({c: default for c in CLASSES} if default is not None else {}), **per_class}
     if not all(float(n).is_integer() and 0 <= n <= 8 for n in counts.values()):
         raise argparse.ArgumentTypeError(f"{text!r}: restarts are whole numbers from 0 to 8")
     return {c: int(n) for c, n in counts.items()}
@@ -154,11 +158,12 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
+                       ("noisy_st_noise", "noisy_st_noise_n"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v
-    for name in ("input_stage_classes", "segmented_count_classes", "vr_distance_classes"):
+    for name in ("input_stage_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes"):
         v = getattr(args, name)
         if v is not None:
             kw[name] = _classes(v)

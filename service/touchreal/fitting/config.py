@@ -28,9 +28,12 @@ DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
 #: PC's refinement then trades its ramp counts for the 10 Hz sine (docs/fitting.md)
 WEAK_SIGNAL_GATE_FACTOR = 2.0
 WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
-#: IPOP restarts per class beside its first run: SA1's optimum on a noisy SingleTact depends on the run
-#: (docs/fitting.md, "Across sensor builds"); the other classes' restarts seldom won and cost fit time
-DEFAULT_RESTARTS = {"SA1": 1}
+#: the search of a build whose SingleTact is noisy (sample noise above ``noisy_st_noise_n``): SA1 also
+#: runs from a saturated start (:data:`~.search.SATURATED_STARTS`) and restarts once, as its optimum
+#: depends on the run there (docs/fitting.md, "Across sensor builds"); on a quiet SingleTact neither
+#: run won, and together they cost about 3 min of fit time
+NOISY_ST_RESTARTS = {"SA1": 1}
+NOISY_ST_SATURATED_CLASSES = ("SA1",)
 DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
 #: below this contact SNR the project's fits missed PC's targets (count error <= 25 %, VR ratio <= 1.5)
@@ -72,8 +75,12 @@ class FitConfig:
     popsize: int = 12
     max_generations: int = 250  #: generations of the first CMA-ES run
     #: IPOP restarts (population x2, generations /2 each) per class, side by side with its first run
-    #: (a class not named: none); an int gives every class that many
-    restarts: dict[str, int] | int = field(default_factory=lambda: dict(DEFAULT_RESTARTS))
+    #: (a class not named: none); an int gives every class that many (None: chosen from the build's
+    #: SingleTact noise, :meth:`for_singletact`)
+    restarts: dict[str, int] | int | None = None
+    #: classes whose search also runs from their saturated start (:data:`~.search.SATURATED_STARTS`)
+    #: (None: chosen from the build's SingleTact noise, :meth:`for_singletact`)
+    saturated_classes: tuple[str, ...] | None = None
     workers: int | None = None  #: None = all cores
     max_ramp_conditions: int | None = None  #: seeded subsample of ramp conditions (None = all)
     max_refs_per_condition: int = 80  #: reference trains kept per condition (whole repeats)
@@ -85,6 +92,10 @@ class FitConfig:
     #: the weak-signal settings (:data:`WEAK_SIGNAL_GATE_FACTOR`, :data:`WEAK_SIGNAL_SINE_COUNT_WEIGHTS`)
     #: where gate_factor and refine_sine_count_weights are not given; 0: never
     weak_signal_snr: float = 50.0
+    #: a build whose SingleTact sample noise (N RMS, :func:`~.calibration.singletact_noise`) is above this
+    #: gets :data:`NOISY_ST_RESTARTS` and :data:`NOISY_ST_SATURATED_CLASSES` where not given (measured on the builds of
+    #: docs/fitting.md: 3.1-5.0 mN at 0.5-1x the nominal noise, rig-v1 5.0, 8.4 mN at 2x, 11.9 mN at 3x)
+    noisy_st_noise_n: float = 0.0065
     count_weight: float = 1.0  #: multiplier of L_rel in the objective of the search (paper: 1)
     segmented_count_classes: tuple[str, ...] = ("PC",)  #: classes whose ramp count loss is taken per turning-point window in the search (paper eq. 7: none)
     #: classes refined after their search (a second CMA-ES run from its best point), each with the
@@ -106,7 +117,7 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
-        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes",
+        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes",
                      "class_window_ms", "refine", "refine_sine_count_weights", "restarts"):  # a dict's classes are its keys
             given = getattr(self, name) or ()
             bad = [c for c in given if c not in CLASSES]
@@ -114,7 +125,11 @@ class FitConfig:
                 raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(given)}")
         if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
-        if not all(isinstance(n, int) and 0 <= n <= 8 for n in self.restarts.values()):
+        from .search import SATURATED_STARTS
+
+        if not set(self.saturated_classes or ()) <= set(SATURATED_STARTS):
+            raise ValueError(f"saturated_classes must be a subset of {list(SATURATED_STARTS)} (the classes with a saturated start)")
+        if not all(isinstance(n, int) and 0 <= n <= 8 for n in (self.restarts or {}).values()):
             raise ValueError("restarts must be integers in [0, 8]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
@@ -126,6 +141,8 @@ class FitConfig:
             raise ValueError("gate_factor must be in (0, 100]")
         if not (np.isfinite(self.weak_signal_snr) and self.weak_signal_snr >= 0):
             raise ValueError("weak_signal_snr must be >= 0")
+        if not (np.isfinite(self.noisy_st_noise_n) and self.noisy_st_noise_n > 0):
+            raise ValueError("noisy_st_noise_n must be > 0")
         self.objective = ObjectiveConfig(
             **{**self.objective.__dict__, "kernel_tau_s": self.kernel_ms / 1000.0, "count_weight": float(self.count_weight)}
         )
@@ -148,9 +165,28 @@ class FitConfig:
             sines = dict(WEAK_SIGNAL_SINE_COUNT_WEIGHTS) if weak else {}
         return replace(self, gate_factor=gate, refine_sine_count_weights=sines)
 
+    def noisy_singletact(self, noise_n: float | None) -> bool:
+        """Whether a build of SingleTact sample noise ``noise_n`` (N RMS; None: not measured) is noisy."""
+        return noise_n is not None and noise_n > self.noisy_st_noise_n
+
+    def for_singletact(self, noise_n: float | None) -> FitConfig:
+        """This configuration with the restarts and saturated classes that were not given chosen for a
+        build of SingleTact sample noise ``noise_n``: :data:`NOISY_ST_RESTARTS` and
+        :data:`NOISY_ST_SATURATED_CLASSES` on a noisy one, else none."""
+        noisy = self.noisy_singletact(noise_n)
+        restarts = self.restarts if self.restarts is not None else dict(NOISY_ST_RESTARTS) if noisy else {}
+        saturated = self.saturated_classes if self.saturated_classes is not None else NOISY_ST_SATURATED_CLASSES if noisy else ()
+        return replace(self, restarts=restarts, saturated_classes=saturated)
+
     def restarts_of(self, key: str) -> int:
         """IPOP restarts of a class's search and of its refinement (``key``: a :func:`stage_key`)."""
-        return self.restarts.get(parse_stage_key(key)[0], 0)
+        return (self.restarts or {}).get(parse_stage_key(key)[0], 0)
+
+    def saturated(self, key: str) -> bool:
+        """Whether a search (``key``: a class) also runs from its class's saturated start; never a refinement,
+        which starts from the saturation the search chose."""
+        cls, refinement = parse_stage_key(key)
+        return not refinement and cls in (self.saturated_classes or ())
 
     def refined(self) -> tuple[str, ...]:
         """The fitted classes that are refined after their search."""

@@ -11,7 +11,9 @@ Steps of :func:`fit_dataset`:
    the training trials (PVDF samples before ``onset_s``), and measure the build's contact SNR on the
    training ramps: below ``cfg.weak_signal_snr`` the gate and the sine count weights not given are
    the weak-signal ones (:meth:`FitConfig.for_snr`); below :data:`~.config.SIGNAL_LIMITED_SNR` the
-   log warns that PC is limited by the sensor (:meth:`FitConfig.signal_limited`).
+   log warns that PC is limited by the sensor (:meth:`FitConfig.signal_limited`). Measure the
+   SingleTact's noise on the same baselines: above ``cfg.noisy_st_noise_n`` SA1 also searches from
+   its saturated start and restarts, where not told otherwise (:meth:`FitConfig.for_singletact`).
 3. **Preprocess** every trial once per distinct causal PVDF window of the fitted classes (:mod:`.trials`;
    channels do not depend on the class parameters; each class is fitted on its own window's
    channels) and keep the 5 kHz channels in memory.
@@ -45,7 +47,7 @@ import numpy as np
 
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
-from .calibration import calibrate_pvdf, contact_snr
+from .calibration import calibrate_pvdf, contact_snr, singletact_noise
 from .config import FitConfig, parse_stage_key, signal_limited_message, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
@@ -82,6 +84,7 @@ class Prepared:
     pre: PreprocessParams
     n_baselines: int
     contact_snr: float | None  #: the PVDF contact SNR of the training ramps (None without ramps)
+    st_noise_n: float | None  #: the SingleTact's sample noise (N RMS) on the baselines (None without them)
     state: FitState
     rig_lag_ms: float  #: the SingleTact's rise after the commanded onset (the search runs at SEARCH_LAG_MS)
     timings: dict[str, float]
@@ -121,6 +124,12 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         + (f", refinement sine count weights {cfg.refine_sine_count_weights}" if cfg.refine_sine_count_weights else ""))
     if cfg.signal_limited(snr):
         log(f"warning: {signal_limited_message(snr)}")
+    st_noise = singletact_noise(baseline_segments(ds, train_e, loaded=loaded, channel="st"))
+    cfg = cfg.for_singletact(st_noise)
+    log(f"SingleTact noise {'-' if st_noise is None else f'{1000.0 * st_noise:.1f} mN'}"
+        + (f" > {1000.0 * cfg.noisy_st_noise_n:g} mN (noisy)" if cfg.noisy_singletact(st_noise) else "")
+        + f": restarts {({c: cfg.restarts_of(c) for c in cfg.classes if cfg.restarts_of(c)}) or 'none'}, saturated start "
+        + (",".join(c for c in cfg.classes if cfg.saturated(c)) or "none"))
 
     t = time.perf_counter()
     windows = sorted({cfg.window_of(c) for c in cfg.classes})
@@ -144,7 +153,7 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
         spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
     state = FitState(spaces=spaces, refs=refs, train=train, objectives={key: cfg.objective_of(key) for key in refs}, lag_s=lag_s)
-    return Prepared(ds, train_e, val_e, cfg, pre, len(segments), snr, state, rig_lag_ms, timings)
+    return Prepared(ds, train_e, val_e, cfg, pre, len(segments), snr, st_noise, state, rig_lag_ms, timings)
 
 
 def _references(tset: TrialSet, key: str, cfg: FitConfig) -> ReferenceSet:
@@ -244,6 +253,9 @@ def fit_dataset(
         "weak_signal_snr": cfg.weak_signal_snr,
         "weak_signal": cfg.weak_signal(prep.contact_snr),
         "signal_limited": cfg.signal_limited(prep.contact_snr),
+        "st_noise_n": None if prep.st_noise_n is None else round(prep.st_noise_n, 6),
+        "noisy_st_noise_n": cfg.noisy_st_noise_n,
+        "noisy_singletact": cfg.noisy_singletact(prep.st_noise_n),
         "gate_factor": pre.gate.factor,
         "objective": {
             "kernel_tau_ms": cfg.kernel_ms,
@@ -261,7 +273,8 @@ def fit_dataset(
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
-        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": {c: cfg.restarts_of(c) for c in fits}},
+        "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": {c: cfg.restarts_of(c) for c in fits},
+                      "saturated_classes": [c for c in fits if cfg.saturated(c)]},
         "fit_seconds": round(seconds, 1),
         "fitted_classes": list(fits),
         "loss": {

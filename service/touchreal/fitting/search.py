@@ -2,8 +2,9 @@
 
 :func:`fit_class` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
 restarts side by side from the grid's best point (each from the same point with its own seed, so
-they are independent of each other), and for SA1 one more run from the best strongly saturated
-start (:data:`SATURATED_STARTS`); the best point any of them evaluated wins. Every run draws
+they are independent of each other), and where the fit asks for it (SA1 on a noisy SingleTact) one
+more run from the best strongly saturated start (:data:`SATURATED_STARTS`); the best point any of
+them evaluated wins. Every run draws
 its samples from a random stream of its own, so runs (and the classes of a fit) may interleave in
 any order and the result is still the same for a seed. A run ends at its generation budget or at
 ``cma``'s own stopping rules. There is no stop on stagnation: on rig-v1 a run's best loss stays flat
@@ -31,8 +32,9 @@ from .space import DELAY_UNIT_MS, ParamSpace
 GRID_GAINS = 2.0 ** np.arange(-4, 5)  #: overall weight gains of the start grid
 GRID_LOG_TAU = (-1.4, 0.0, 1.4)  #: tau multipliers exp(.) of the start grid (x0.25, x1, x4)
 GRID_DELAYS_MS = (-20.0, 0.0, 20.0)  #: delay offsets of the start grid (clipped to delays >= 0)
-#: input saturations (log i_sat) a class's search also starts from, each with a CMA-ES run of its own
-#: beside the runs from the starts' own saturation: SA1's count grows with the force (about
+#: input saturations (log i_sat) a class's search also starts from where the fit asks for it (SA1 on
+#: a noisy SingleTact, :attr:`~.config.FitConfig.saturated_classes`), each with a CMA-ES run of its
+#: own beside the runs from the starts' own saturation: SA1's count grows with the force (about
 #: depth^1.5) faster than TouchSim's with depth, a strongly saturated SA1 follows TouchSim's, and
 #: from the mildly saturated starts CMA-ES seldom reaches it (docs/fitting.md)
 SATURATED_STARTS = {"SA1": (-2.0,)}
@@ -154,9 +156,9 @@ def fit_class(
     """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with the
     class's IPOP restarts (:meth:`~.config.FitConfig.restarts_of`; population doubled, generations
     halved each time, so every run costs about the same) run side by side with the first run, each
-    with its own seed; for the search
-    of a class of :data:`SATURATED_STARTS`, one more run from the best grid point at each of its
-    saturations (not for its refinement, which starts from the saturation the search chose).
+    with its own seed; for a search the configuration saturates (:meth:`~.config.FitConfig.saturated`),
+    one more run from the best grid point at each of its class's :data:`SATURATED_STARTS` (not for
+    its refinement, which starts from the saturation the search chose).
     The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
     differ by up to 0.2 in loss, while restarting from a converged point does not move it.
@@ -165,8 +167,8 @@ def fit_class(
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    # a class's search only: its refinement starts from the saturation the search chose
-    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *SATURATED_STARTS.get(cls, ()))]
+    saturations = SATURATED_STARTS.get(cls, ()) if cfg.saturated(cls) else ()
+    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *saturations)]
     grid = np.concatenate(grids)
     losses = np.array([r[0] for r in evaluate(cls, grid)])
     edges = np.cumsum([0] + [len(g) for g in grids])

@@ -5,7 +5,7 @@ and the fast simulation of many parameter sets on them (the product encoder's po
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import numpy as np
 
@@ -96,16 +96,18 @@ CONTACT_FREE_PROTOCOLS = ("ramp", "texture")  #: protocols whose pre-onset basel
 
 
 def baseline_segments(
-    ds: Dataset, entries: Sequence[dict[str, Any]], margin_s: float = 0.02, loaded: dict[str, Trial] | None = None
+    ds: Dataset, entries: Sequence[dict[str, Any]], margin_s: float = 0.02, loaded: dict[str, Trial] | None = None,
+    channel: Literal["pvdf", "st"] = "pvdf",
 ) -> list[np.ndarray]:
-    """Contact-free PVDF (V): samples before ``onset_s - margin_s`` of the ramp/texture entries
-    (the sine probe rests on the skin; its vibration-free baselines are used only without ramps)."""
+    """Contact-free samples of ``channel`` (PVDF in V, SingleTact in N) before ``onset_s - margin_s``
+    of the ramp/texture entries (the sine probe rests on the skin; its vibration-free baselines are
+    used only without ramps)."""
     loaded = loaded or {}
     free = [e for e in entries if e["protocol"] in CONTACT_FREE_PROTOCOLS] or list(entries)
     out = []
     for e in free:
         tr = loaded[e["id"]] if e["id"] in loaded else ds.load(e)
-        seg = np.asarray(tr.pvdf[tr.pvdf_t < float(e["onset_s"]) - margin_s], np.float64)
+        seg = np.asarray(getattr(tr, channel)[getattr(tr, channel + "_t") < float(e["onset_s"]) - margin_s], np.float64)
         if seg.size:
             out.append(seg)
     return out
