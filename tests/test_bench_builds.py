@@ -21,9 +21,12 @@ def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, c
         prov = json.loads((tmp_path / f"{build}.json").read_text())["provenance"]  # its own parameter file
         assert cells[2] == f"{prov['contact_snr']:.0f}" + ("*" if build == "noisy-amplifier" else "")  # the fit's SNR
         assert prov["gate_factor"] == (2.0 if build == "noisy-amplifier" else 3.0)  # the noisy one fitted as weak-signal
+        noisy = build == "noisy-amplifier"  # 2x the SingleTact noise: SA1's noisy-SingleTact search
+        assert cells[3] == f"{1000 * prov['st_noise_n']:.1f}" + ("*" if noisy else "") and prov["noisy_singletact"] == noisy
+        assert prov["optimizer"]["saturated_classes"] == (["SA1"] if noisy else [])
         metrics = json.loads((tmp_path / f"{build}-report" / "metrics.json").read_text())
         for i, c in enumerate(CLASSES):
             s = metrics["mapping"][c]["all"]
-            count, vr = cells[3 + 2 * i], cells[4 + 2 * i]
+            count, vr = cells[4 + 2 * i], cells[5 + 2 * i]
             assert count == f"{s['count_error_mean']:.1%}" and vr == f"{s['ratio_inter_intra']:.2f}", (build, c)
     assert "every build within the targets:" in out

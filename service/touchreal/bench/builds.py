@@ -74,6 +74,12 @@ def _snr_cell(prov: dict) -> str:
     return f"{snr:4.0f}{'*' if prov['weak_signal'] else ' '}{'!' if prov.get('signal_limited') else ' '}"
 
 
+def _st_cell(prov: dict) -> str:
+    """The fit's SingleTact sample noise (mN), starred when SA1 got the noisy-SingleTact search."""
+    noise = prov.get("st_noise_n")
+    return f"{'-':>6}" if noise is None else f"{1000.0 * noise:5.1f}{'*' if prov.get('noisy_singletact') else ' '}"
+
+
 def run(args: argparse.Namespace) -> int:
     builds = [b for b in args.builds.split(",") if b]
     print(f"Fit fidelity across sensor builds: simulate ({args.trials}), `touchreal fit` "
@@ -81,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     print("targets: count error <= " + ", ".join(f"{c} {COUNT_MAX[c]:.0%}" for c in CLASSES)
           + "; VR ratio <= " + ", ".join(f"{c} {VR_MAX[c]:g}" for c in CLASSES))
     head = "  ".join(f"{c + ' count':>9}  {c + ' VR':>6}" for c in CLASSES)
-    print(f"\n   {'build':<22}  {'fit':>6}  {'SNR':>6}  {head}  targets")
+    print(f"\n   {'build':<22}  {'fit':>6}  {'SNR':>6}  {'ST mN':>6}  {head}  targets")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -96,9 +102,10 @@ def run(args: argparse.Namespace) -> int:
                 cells.append(f"{ce:9.1%}  {vr:6.2f}")
             met_all &= all(met)
             missed = [c for c, ok in zip(CLASSES, met) if not ok]
-            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {_snr_cell(prov)}  {'  '.join(cells)}  "
+            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {_snr_cell(prov)}  {_st_cell(prov)}  {'  '.join(cells)}  "
                   f"{'met' if not missed else 'missed: ' + ', '.join(missed)}", flush=True)
     print("SNR: the fit's PVDF contact SNR; * below --weak-signal-snr: fitted with the weak-signal gate and sine count weights; "
-          f"! below {SIGNAL_LIMITED_SNR:g}: PC signal-limited (docs/fitting.md, 'The limit')")
+          f"! below {SIGNAL_LIMITED_SNR:g}: PC signal-limited (docs/fitting.md, 'The limit'); ST mN: the SingleTact's sample "
+          "noise, * above --noisy-st-noise: SA1 searched from its saturated start too and restarted")
     print(f"\nevery build within the targets: {'yes' if met_all else 'no'}")
     return 0
