@@ -138,3 +138,11 @@ def test_windows_group_classes():
     d["classes"]["SA1"]["window_ms"] = 16.0
     d["classes"]["RA"]["window_ms"] = 16.0
     assert EncoderParams.parse(d).windows_ms() == {16.0: ["SA1", "RA"], d["preprocess"]["window_ms"]: ["PC"]}
+
+
+def test_the_provenance_keeps_booleans_and_nulls_as_json_wrote_them():
+    d = json.loads(default_params().to_json())
+    d["provenance"] = {"weak_signal": False, "noisy_singletact": True, "contact_snr": None, "n": 3, "x": 0.5}
+    p = EncoderParams.parse(d)
+    assert p.provenance == d["provenance"] and type(p.provenance["weak_signal"]) is bool  # not 0.0
+    assert json.loads(p.to_json())["provenance"] == d["provenance"]

@@ -215,9 +215,9 @@ class EncoderParams(_Strict):
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
     alignment: ReferenceAlignment = Field(default_factory=ReferenceAlignment)
-    provenance: dict[str, str | float | int | list | dict] = Field(
+    provenance: dict[str, str | bool | int | float | list | dict | None] = Field(
         default_factory=dict, description=f"free-form record of how the set was made (JSON, at most "
-        f"{PROVENANCE_MAX_BYTES} bytes and {PROVENANCE_MAX_DEPTH} levels deep, finite numbers)")
+        f"{PROVENANCE_MAX_BYTES} bytes and {PROVENANCE_MAX_DEPTH} levels deep, finite numbers; booleans and nulls stay as they are)")
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
 
