@@ -11,7 +11,8 @@ film is weakly coupled or whose amplifier is noisy (a low SNR) loses PC's weak r
 gate at 3 x the noise, so the fit lowers its gate there (:class:`~.config.FitConfig`).
 
 :func:`singletact_noise` measures the SingleTact's own noise on the same baselines: on a noisy one
-SA1's optimum depends on the CMA-ES run, so SA1 restarts there (:class:`~.config.FitConfig`).
+SA1's optimum depends on the CMA-ES run, so SA1 searches harder there (a saturated start and a
+restart, :meth:`~.config.FitConfig.for_singletact`).
 """
 
 from __future__ import annotations
