@@ -108,10 +108,12 @@ def parse_windows(text: str) -> tuple[float, dict[str, float]]:
 def parse_restarts(text: str) -> dict[str, int]:
     """``"2"`` -> every class 2; ``"SA1=1,PC=2"`` -> those (the other classes none); ``"1,PC=2"`` ->
     PC 2, the others 1."""
+    from .config import MAX_RESTARTS
+
     default, per_class = _per_class_values(text, None, "N", "")
     counts = {**({c: default for c in CLASSES} if default is not None else {}), **per_class}
-    if not all(float(n).is_integer() and 0 <= n <= 8 for n in counts.values()):
-        raise argparse.ArgumentTypeError(f"{text!r}: restarts are whole numbers from 0 to 8")
+    if not all(float(n).is_integer() and 0 <= n <= MAX_RESTARTS for n in counts.values()):
+        raise argparse.ArgumentTypeError(f"{text!r}: restarts are whole numbers from 0 to {MAX_RESTARTS}")
     return {c: int(n) for c, n in counts.items()}
 
 

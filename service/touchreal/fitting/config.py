@@ -29,11 +29,18 @@ DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
 WEAK_SIGNAL_GATE_FACTOR = 2.0
 WEAK_SIGNAL_SINE_COUNT_WEIGHTS = {"PC": 10.0}
 #: the search of a build whose SingleTact is noisy (sample noise above ``noisy_st_noise_n``): SA1 also
-#: runs from a saturated start (:data:`~.search.SATURATED_STARTS`) and restarts once, as its optimum
+#: runs from a saturated start (:data:`SATURATED_STARTS`) and restarts once, as its optimum
 #: depends on the run there (docs/fitting.md, "Across sensor builds"); on a quiet SingleTact neither
 #: run won, and together they cost about 3 min of fit time
 NOISY_ST_RESTARTS = {"SA1": 1}
 NOISY_ST_SATURATED_CLASSES = ("SA1",)
+#: input saturations (log i_sat) a class's search also starts from where the fit asks for it
+#: (``saturated_classes``), each with a CMA-ES run of its own beside the runs from the starts' own
+#: saturation: SA1's count grows with the force (about depth^1.5) faster than TouchSim's with depth,
+#: a strongly saturated SA1 follows TouchSim's, and from the mildly saturated starts CMA-ES seldom
+#: reaches it (docs/fitting.md)
+SATURATED_STARTS = {"SA1": (-2.0,)}
+MAX_RESTARTS = 8  #: IPOP restarts a class may have (each doubles the population)
 DEFAULT_GATE_FACTOR: float = GateCalibration.model_fields["factor"].default  #: the gate factor of every other build (3)
 
 #: below this contact SNR the project's fits missed PC's targets (count error <= 25 %, VR ratio <= 1.5)
@@ -78,7 +85,7 @@ class FitConfig:
     #: (a class not named: none); an int gives every class that many (None: chosen from the build's
     #: SingleTact noise, :meth:`for_singletact`)
     restarts: dict[str, int] | int | None = None
-    #: classes whose search also runs from their saturated start (:data:`~.search.SATURATED_STARTS`)
+    #: classes whose search also runs from their saturated start (:data:`SATURATED_STARTS`)
     #: (None: chosen from the build's SingleTact noise, :meth:`for_singletact`)
     saturated_classes: tuple[str, ...] | None = None
     workers: int | None = None  #: None = all cores
@@ -125,12 +132,10 @@ class FitConfig:
                 raise ValueError(f"{name} must be a subset of {list(CLASSES)}, got {list(given)}")
         if not all(4.0 <= w <= 512.0 for w in (self.window_ms, *self.class_window_ms.values())):
             raise ValueError("window_ms must be in [4, 512]")
-        from .search import SATURATED_STARTS
-
         if not set(self.saturated_classes or ()) <= set(SATURATED_STARTS):
             raise ValueError(f"saturated_classes must be a subset of {list(SATURATED_STARTS)} (the classes with a saturated start)")
-        if not all(isinstance(n, int) and 0 <= n <= 8 for n in (self.restarts or {}).values()):
-            raise ValueError("restarts must be integers in [0, 8]")
+        if not all(isinstance(n, int) and 0 <= n <= MAX_RESTARTS for n in (self.restarts or {}).values()):
+            raise ValueError(f"restarts must be integers in [0, {MAX_RESTARTS}]")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:

@@ -3,7 +3,7 @@
 :func:`fit_class` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
 restarts side by side from the grid's best point (each from the same point with its own seed, so
 they are independent of each other), and where the fit asks for it (SA1 on a noisy SingleTact) one
-more run from the best strongly saturated start (:data:`SATURATED_STARTS`); the best point any of
+more run from the best strongly saturated start (:data:`~.config.SATURATED_STARTS`); the best point any of
 them evaluated wins. Every run draws
 its samples from a random stream of its own, so runs (and the classes of a fit) may interleave in
 any order and the result is still the same for a seed. A run ends at its generation budget or at
@@ -24,7 +24,7 @@ import numpy as np
 
 from ..params import ClassParams
 from ..settings import CLASSES
-from .config import FitConfig, parse_stage_key, stage_key
+from .config import SATURATED_STARTS, FitConfig, parse_stage_key, stage_key
 from .executor import Executor
 from .objective import LossTerms
 from .space import DELAY_UNIT_MS, ParamSpace
@@ -32,12 +32,6 @@ from .space import DELAY_UNIT_MS, ParamSpace
 GRID_GAINS = 2.0 ** np.arange(-4, 5)  #: overall weight gains of the start grid
 GRID_LOG_TAU = (-1.4, 0.0, 1.4)  #: tau multipliers exp(.) of the start grid (x0.25, x1, x4)
 GRID_DELAYS_MS = (-20.0, 0.0, 20.0)  #: delay offsets of the start grid (clipped to delays >= 0)
-#: input saturations (log i_sat) a class's search also starts from where the fit asks for it (SA1 on
-#: a noisy SingleTact, :attr:`~.config.FitConfig.saturated_classes`), each with a CMA-ES run of its
-#: own beside the runs from the starts' own saturation: SA1's count grows with the force (about
-#: depth^1.5) faster than TouchSim's with depth, a strongly saturated SA1 follows TouchSim's, and
-#: from the mildly saturated starts CMA-ES seldom reaches it (docs/fitting.md)
-SATURATED_STARTS = {"SA1": (-2.0,)}
 
 
 @dataclass
@@ -157,7 +151,7 @@ def fit_class(
     class's IPOP restarts (:meth:`~.config.FitConfig.restarts_of`; population doubled, generations
     halved each time, so every run costs about the same) run side by side with the first run, each
     with its own seed; for a search the configuration saturates (:meth:`~.config.FitConfig.saturated`),
-    one more run from the best grid point at each of its class's :data:`SATURATED_STARTS` (not for
+    one more run from the best grid point at each of its class's :data:`~.config.SATURATED_STARTS` (not for
     its refinement, which starts from the saturation the search chose).
     The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
