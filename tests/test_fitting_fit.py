@@ -270,6 +270,13 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert [(r["popsize"], r["generations"], r["stop"]) for r in stage["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
         assert stage["generations"] == 3
     assert prov["optimizer"]["restarts"] == {"PC": 1}
+    # a SingleTact above --noisy-st-noise gets SA1's noisy-SingleTact search: its saturated start and a restart
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "SA1", "--generations", "2", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--noisy-st-noise", "1e-4"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["noisy_singletact"] is True and prov["noisy_st_noise_n"] == 1e-4
+    assert prov["optimizer"]["restarts"] == {"SA1": 1} and prov["optimizer"]["saturated_classes"] == ["SA1"]
+    assert [(r["popsize"], r["generations"]) for r in prov["loss"]["SA1"]["runs"]] == [(4, 2), (8, 1), (4, 2)]
     assert parse_restarts("2") == {"SA1": 2, "RA": 2, "PC": 2}  # every class
     assert parse_restarts("PC=2") == {"PC": 2}  # the named ones; the others none
     assert parse_restarts("1,PC=2") == {"SA1": 1, "RA": 1, "PC": 2}  # a bare number: the classes not named
