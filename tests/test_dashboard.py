@@ -84,7 +84,8 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         wait_for(browser, "return window.touchreal.decodedForce.size > 0 && "
                           "document.getElementById('decoded-force').textContent.includes(' N (force')")
         shot = tmp_path / "dashboard.png"
-        time.sleep(3.0)  # a little more history on the canvases
+        frames = browser.execute_script("return window.touchreal.frames")  # a little more history on the canvases
+        wait_for(browser, f"return window.touchreal.frames > {frames + 150}")
         browser.save_screenshot(str(shot))
         stats = browser.execute_script("const s = window.touchreal; return [s.events, s.gaps, s.hello.session, "
                                        "document.getElementById('delivery').textContent]")
