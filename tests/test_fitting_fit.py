@@ -99,6 +99,21 @@ def test_space_without_pvdf_holds_the_pvdf_weights_at_zero():
     assert np.all(np.asarray(es.ask())[:, 4:8] == 0.0)
 
 
+def test_an_excitatory_space_bounds_the_film_weights_below_at_zero():
+    free = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True)
+    space = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True, excitatory=True)
+    (lo, hi), (lo0, hi0) = space.bounds(), free.bounds()
+    assert list(lo[4:6]) == [0.0] * 2 and lo0[4] < 0 and np.array_equal(np.delete(lo, [4, 5]), np.delete(lo0, [4, 5]))
+    assert np.array_equal(hi, hi0) and space.fixed() == {}
+    x = np.random.default_rng(2).uniform(lo0, hi0, (50, space.n_dim))
+    w = np.array([space.decode(v).weights for v in x])
+    assert np.all(w[:, 4:6] >= 0.0) and np.any(w[:, 4:6] == 0.0) and np.any(w[:, [0, 1, 2, 3, 6, 7]] < 0.0)  # only w5, w6
+    bounded, unbounded = (np.asarray(S.make_cma(sp, sp.initial(0.0, 1), 12, 2, 1).ask()) for sp in (space, free))
+    assert np.all(bounded[:, 4:6] >= 0.0) and np.any(unbounded[:, 4:6] < 0.0)  # CMA-ES samples inside the bound
+    inhibitory = free.decode(np.r_[0.0, 0.0, 2.0, -1.0, 3.0, -2.0, -4.0, 0.0, x[0][8:]])  # e.g. an --init file's class
+    assert list(space.clip(space.encode(inhibitory))[2:7]) == pytest.approx([2.0, -1.0, 3.0, 0.0, -4.0])  # its start is brought inside
+
+
 # ------------------------------------------------------------------- fast simulation == encoder
 
 
@@ -237,6 +252,7 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
     objective = json.loads(out.read_text())["provenance"]["objective"]
     assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
     assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
+    assert objective["excitatory_classes"] == ["RA"] and min(q.classes["RA"].weights[4:6]) >= 0.0  # pressing and releasing both excite RA
     assert objective["refine_sine_count_weights"] == {}  # on this build every count term weighs the sines as its distance
     prov = json.loads(out.read_text())["provenance"]
     assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0 and not prov["weak_signal"]  # rig-v1's film stands well out of its noise
@@ -261,6 +277,9 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
                  "--segmented-count-classes", "none"]) == 0
     prov = json.loads(out.read_text())["provenance"]
     assert prov["objective"]["refine"] == {} and prov["objective"]["segmented_count_classes"] == []  # the paper's objective
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--excitatory-classes", "none"]) == 0
+    assert json.loads(out.read_text())["provenance"]["objective"]["excitatory_classes"] == []  # the paper's unconstrained weights
     assert "search" not in prov["loss"]["PC"]
     # the file records every CMA-ES run of a class (a restart: population x2, generations /2)
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "2", "--popsize", "4", "--restarts", "1",
@@ -423,7 +442,7 @@ def test_window_option_per_class():
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
 
 
-@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes"])
+@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "excitatory_classes", "segmented_count_classes", "vr_distance_classes"])
 def test_fit_config_refuses_unknown_classes_in_every_class_list(name):
     with pytest.raises(ValueError, match=f"{name} must be a subset"):
         FitConfig(**{name: ("PC", "SA9")})

@@ -39,6 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "shipped parameters (SA1=16,RA=16,PC=128, the fast path)")
     p.add_argument("--no-pvdf-classes", default="", metavar="CLS,...",
                    help="classes fitted on the SingleTact channels alone (PVDF and dPVDF weights held at 0)")
+    p.add_argument("--excitatory-classes", default=None, metavar="CLS,...|none",
+                   help="classes whose film weights (w5, w6: both polarities of PVDF) are held >= 0, so pressing and "
+                   "releasing both excite them, as in every TouchSim RA model; 'none' for the paper's unconstrained "
+                   "weights (default: RA)")
     p.add_argument("--no-holdout", action="store_true",
                    help="train on every ramp/sine trial (no held-out half; evaluate on a separate recording)")
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
@@ -165,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if v is not None:
             kw[attr] = v
-    for name in ("input_stage_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes"):
+    for name in ("input_stage_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes", "excitatory_classes"):
         v = getattr(args, name)
         if v is not None:
             kw[name] = _classes(v)

@@ -115,6 +115,10 @@ class FitConfig:
     vr_distance_classes: tuple[str, ...] = ("PC",)  #: refined classes whose refinement is scored by the VR-normalised distance, not the kernel distance
     input_stage_classes: tuple[str, ...] = ("RA", "PC")  #: classes whose input stage (low-pass cutoff, negative lead) is fitted
     no_pvdf_classes: tuple[str, ...] = ()  #: classes fitted on the SingleTact channels alone (PVDF weights held at 0)
+    #: classes whose film weights (w5, w6: both polarities of PVDF) are held >= 0, so pressing and
+    #: releasing both excite the class, as in every TouchSim RA model, whose weights on both polarities
+    #: of the skin's velocity are >= 0 (paper: unconstrained)
+    excitatory_classes: tuple[str, ...] = ("RA",)
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
@@ -124,7 +128,7 @@ class FitConfig:
         bad = [c for c in self.classes if c not in CLASSES]
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
-        for name in ("input_stage_classes", "no_pvdf_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes",
+        for name in ("input_stage_classes", "no_pvdf_classes", "excitatory_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes",
                      "class_window_ms", "refine", "refine_sine_count_weights", "restarts"):  # a dict's classes are its keys
             given = getattr(self, name) or ()
             bad = [c for c in given if c not in CLASSES]

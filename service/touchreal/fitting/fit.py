@@ -148,7 +148,8 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     spaces = {}
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
-        spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes)
+        spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes,
+                                         c in cfg.excitatory_classes)
     for c in cfg.refined():  # a refinement evaluates on its class's trials and space
         spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
@@ -271,6 +272,7 @@ def fit_dataset(
             "vr_distance_classes": [c for c in cfg.refined() if c in cfg.vr_distance_classes],
             "input_stage_classes": list(cfg.input_stage_classes),
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
+            "excitatory_classes": list(cfg.excitatory_classes),
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
         "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": {c: cfg.restarts_of(c) for c in fits},

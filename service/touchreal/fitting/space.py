@@ -8,7 +8,8 @@ size means about the same everywhere:
 ====  =============  ==========================================================================
  0-7  w1..w8         ``w = x / (scale_ch * tau0_samples)``: x = 1 drives the LIF to its threshold
                      (steady state ``V = I tau``) when the channel sits at its typical magnitude
-                     ``scale_ch`` (99th percentile of |channel| over the training trials)
+                     ``scale_ch`` (99th percentile of |channel| over the training trials);
+                     w5, w6 (the film's two polarities) >= 0 in an excitatory space
    8  log_tau        ``tau_ms = tau0_ms * exp(x)``
  9-10 ih1, ih2       ``ih = x * ih_scale`` (TouchSim's class-median basis weights as the unit)
   11  delay          ``delay_ms = 20 x`` (>= 0; the rig's lag is the parameter file's alignment)
@@ -40,6 +41,9 @@ LEAD_UNIT_MS = 10.0
 LEAD_MAX_MS = 100.0
 DELAY_UNIT_MS = 20.0
 PVDF_WEIGHTS = (4, 5, 6, 7)  #: coordinates of the PVDF and dPVDF weights
+#: coordinates of the film's weights, its positive and negative part: the PVDF's AC-coupled strain
+#: follows the skin's rate of change below its high-pass, so its two polarities are pressing and releasing
+FILM_WEIGHTS = (4, 5)
 DELAY_RANGE_MS = (0.0, 500.0)  #: the schema's delay range (physiological: >= 0)
 _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
@@ -84,9 +88,12 @@ class ParamSpace:
     ih_scale: tuple[float, float]
     lp0_hz: float | None = None  #: None: the input stage (low-pass, lead) is not fitted (13 coordinates)
     pvdf: bool = True  #: False: the PVDF and dPVDF weights (w5..w8) are held at 0 (a class on the SingleTact alone)
+    #: True: the film's weights (w5, w6) are bounded below at 0, so pressing and releasing both excite
+    #: (a class whose on and off responses are both excitatory, as TouchSim's RA)
+    excitatory: bool = False
 
     @classmethod
-    def for_class(cls, name: str, channel_scale, input_stage: bool = False, pvdf: bool = True) -> "ParamSpace":
+    def for_class(cls, name: str, channel_scale, input_stage: bool = False, pvdf: bool = True, excitatory: bool = False) -> "ParamSpace":
         if name not in CLASSES:
             raise ValueError(f"unknown class {name!r}")
         sc = np.asarray(channel_scale, np.float64)
@@ -94,7 +101,7 @@ class ParamSpace:
             raise ValueError("channel_scale must be four positive numbers")
         ts = touchsim_class_defaults()[name]
         ih_scale = (max(abs(ts["ih1"]), 0.05), max(abs(ts["ih2"]), 0.005))
-        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None, pvdf)
+        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None, pvdf, excitatory)
 
     @property
     def n_dim(self) -> int:
@@ -109,6 +116,8 @@ class ParamSpace:
         lo[9:11], hi[9:11] = -20.0, 2.0
         lo[11], hi[11] = DELAY_RANGE_MS[0] / DELAY_UNIT_MS, DELAY_RANGE_MS[1] / DELAY_UNIT_MS
         lo[12], hi[12] = -8.0, 8.0
+        if self.excitatory:
+            lo[list(FILM_WEIGHTS)] = 0.0
         if self.lp0_hz is not None:
             lo[13], hi[13] = (np.log(f / self.lp0_hz) for f in LOWPASS_RANGE_HZ)
             lo[14], hi[14] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
