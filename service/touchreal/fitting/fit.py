@@ -148,8 +148,8 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     spaces = {}
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
-        spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), lp0 is not None, c not in cfg.no_pvdf_classes,
-                                         c in cfg.excitatory_classes)
+        spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), input_stage=lp0 is not None,
+                                         pvdf=c not in cfg.no_pvdf_classes, excitatory=c in cfg.excitatory_classes)
     for c in cfg.refined():  # a refinement evaluates on its class's trials and space
         spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
