@@ -130,11 +130,36 @@ def test_negative_lead_delays_positive_parts_only():
     np.testing.assert_allclose(cur, delayed + neg, rtol=1e-12)
 
 
+def test_class_highpass_follows_the_lowpass_and_removes_a_steady_baseline():
+    ch = _channels(t=3000, taxels=2) + np.array([0.5, 0.0, 0.03, 0.0])  # a baseline offset on ST and PVDF
+    w = np.array([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01])
+    cur = input_current(ch, _cp(w, lowpass_hz=120.0, highpass_hz=5.0))
+    sos = np.vstack([signal.butter(3, 120.0, fs=5000.0, output="sos"), signal.butter(1, 5.0, btype="high", fs=5000.0, output="sos")])
+    zi = signal.sosfilt_zi(sos)[:, :, None, None] * ch[0][None, None]  # steady state at the first sample
+    filt, _ = signal.sosfilt(sos, ch, axis=0, zi=zi)
+    np.testing.assert_allclose(cur, rectify(filt) @ w, rtol=1e-9, atol=1e-12)
+    steady = np.ones((2000, 1, 4)) * np.array([0.5, -2.0, 0.03, -40.0])
+    assert np.abs(input_current(steady, _cp(w, highpass_hz=5.0))).max() < 1e-12  # a baseline drives nothing
+    assert input_current(steady, _cp(w))[0, 0] > 0.1  # without the high-pass it does
+    step = steady.copy()
+    step[1000:, 0, 2] += 0.1  # a PVDF transient passes: 1st order at 5 Hz keeps e^-(2 pi 5 t) of a step
+    got = input_current(step, _cp([0, 0, 0, 0, 1, 1, 0, 0], highpass_hz=5.0))[:, 0]
+    assert got[1000] == pytest.approx(0.1, rel=0.01) and got[1000 + 159] == pytest.approx(0.1 * np.exp(-2 * np.pi * 5 * 0.0318), rel=0.02)
+
+
+def test_a_column_without_highpass_keeps_its_bits_beside_one_with_it():
+    ch = _channels(t=2000, taxels=2, seed=8)
+    lp = _cp([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01], lowpass_hz=300.0)
+    alone = InputStage([lp, _cp(lp.weights)], [0, 1]).process(ch)
+    mixed = InputStage([lp, _cp(lp.weights), lp.model_copy(update={"highpass_hz": 5.0})], [0, 1, 1]).process(ch)
+    np.testing.assert_array_equal(mixed[:, :2], alone)  # the identity section adds nothing, bit for bit
+
+
 @settings(max_examples=25, deadline=None)
-@given(cuts=st.lists(st.integers(1, 599), max_size=6), lead=st.floats(0.0, 20.0))
-def test_class_input_chunk_invariance(cuts, lead):
+@given(cuts=st.lists(st.integers(1, 599), max_size=6), lead=st.floats(0.0, 20.0), hp=st.sampled_from([None, 0.5, 40.0]))
+def test_class_input_chunk_invariance(cuts, lead, hp):
     ch = _channels(t=600, taxels=3, seed=4)
-    p = _cp([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01], i_sat=3.0, lowpass_hz=90.0, negative_lead_ms=lead)
+    p = _cp([0.3, 0.1, 0.01, 0.02, 5.0, 4.0, 0.02, 0.01], i_sat=3.0, lowpass_hz=90.0, negative_lead_ms=lead, highpass_hz=hp)
     whole = input_current(ch, p)
     inp = InputStage([p] * 3, [0, 1, 2])
     edges = sorted({0, 600, *cuts})
@@ -181,7 +206,7 @@ def test_encoder_with_input_stage_is_chunk_invariant_and_reports_its_state():
         for x in range(3):
             np.testing.assert_array_equal(got.train(c, x), whole.train(c, x))
     state = enc.state_arrays()
-    assert state["input_lowpass"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
+    assert state["input_filter"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
     assert state["input_lead"].shape == (9, 30)  # 6 ms = 30 samples, one row per column
     assert all(np.isfinite(a).all() for a in state.values())
 
@@ -215,6 +240,24 @@ def test_set_columns_keeps_continuing_columns_and_starts_new_ones_from_rest():
     assert got.train("PC", 2).max() < 0.5 + p.classes["PC"].delay_ms / 1000 + 1e-9  # PC on taxel 2 stopped at sample 2500
     with pytest.raises(ValueError, match="out of range"):
         enc.set_columns({"PC": [3]})
+
+
+def test_set_columns_carries_state_between_stages_with_and_without_a_highpass_section():
+    p = default_params()
+    classes = dict(p.classes)
+    classes["PC"] = classes["PC"].model_copy(update={"highpass_hz": 5.0})
+    p = p.model_copy(update={"classes": classes, "version": 4})
+    ch = _channels(t=3000, taxels=2, seed=9)
+    enc = Encoder(p, n_taxels=2)
+    parts = [enc.process(Channels(0, ch[:1000]))]
+    enc.set_columns({"RA": [0]})  # no high-pass column left: the stage drops its section
+    parts.append(enc.process(Channels(1000, ch[1000:2000])))
+    enc.set_columns({"RA": [0], "PC": [1]})  # and takes it up again
+    parts.append(enc.process(Channels(2000, ch[2000:])))
+    got = type(parts[0]).concatenate(parts)
+    whole = Encoder(p, n_taxels=2).process(Channels(0, ch))
+    np.testing.assert_array_equal(got.train("RA", 0), whole.train("RA", 0))  # active all along
+    assert whole.train("RA", 0).size > 10
 
 
 def test_fused_kernel_equals_input_stage_then_lif_across_tiles_layouts_and_threads(monkeypatch):

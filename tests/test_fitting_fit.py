@@ -99,6 +99,16 @@ def test_space_without_pvdf_holds_the_pvdf_weights_at_zero():
     assert np.all(np.asarray(es.ask())[:, 4:8] == 0.0)
 
 
+def test_a_class_highpass_is_held_at_its_cutoff_not_searched():
+    space = ParamSpace.for_class("PC", [8.0, 60.0, 0.2, 200.0], input_stage=True, highpass_hz=5.0)
+    plain = ParamSpace.for_class("PC", [8.0, 60.0, 0.2, 200.0], input_stage=True)
+    assert space.n_dim == plain.n_dim and np.array_equal(space.bounds()[0], plain.bounds()[0])
+    for x in np.random.default_rng(3).uniform(*space.bounds(), (10, space.n_dim)):
+        p, q = space.decode(x), plain.decode(x)
+        assert p.highpass_hz == 5.0 and q.highpass_hz is None and p.model_copy(update={"highpass_hz": None}) == q
+        np.testing.assert_allclose(space.encode(p), x, rtol=1e-9, atol=1e-9)
+
+
 def test_an_excitatory_space_bounds_the_film_weights_below_at_zero():
     free = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True)
     space = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True, excitatory=True)
@@ -231,8 +241,9 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert grid < search.evaluations <= grid + sum(p * g for p, g in plan) and search.generations <= sum(g for _, g in plan)
         if f.search is not None:
             assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
-        # the input stage is fitted for RA and PC only (FitConfig default)
+        # the input stage is fitted for RA and PC only, PC's input has the fixed high-pass (FitConfig defaults)
         assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
+        assert f.params.highpass_hz == (5.0 if c == "PC" else None)
     # reproducible
     res2 = F.fit_dataset(ds.root, FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
     for c in CLASSES:
@@ -271,6 +282,11 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
                  "--gate-factor", "2.5", "--refine-sine-count-weights", "none"]) == 0
     prov = json.loads(out.read_text())["provenance"]
     assert prov["gate_factor"] == 2.5 and prov["objective"]["refine_sine_count_weights"] == {}
+    assert prov["objective"]["highpass_hz"] == {"PC": 5.0} and EncoderParams.load(out).classes["PC"].highpass_hz == 5.0
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--highpass", "none"]) == 0
+    assert json.loads(out.read_text())["provenance"]["objective"]["highpass_hz"] == {}
+    assert EncoderParams.load(out).classes["PC"].highpass_hz is None  # the paper's input: no high-pass
     assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
                  "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
@@ -424,7 +440,7 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
 def test_window_option_per_class():
     import argparse
 
-    from touchreal.fitting.command import parse_class_weights, parse_windows
+    from touchreal.fitting.command import parse_class_weights, parse_highpass, parse_windows
 
     assert parse_windows("64") == (64.0, {})
     assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
@@ -439,6 +455,15 @@ def test_window_option_per_class():
         parse_class_weights("3")
     with pytest.raises(ValueError, match="window_ms"):
         FitConfig(class_window_ms={"RA": 2.0})
+    assert parse_highpass("PC=5,RA=0.5") == {"PC": 5.0, "RA": 0.5} and parse_highpass("none") == {}
+    for bad in ("PC=0", "PC=500", "3", "PC=x", "SA9=5"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_highpass(bad)
+    with pytest.raises(ValueError, match="highpass_hz cutoffs"):
+        FitConfig(highpass_hz={"PC": 0.01})
+    with pytest.raises(ValueError, match="highpass_hz must be a subset"):
+        FitConfig(highpass_hz={"SA9": 5.0})
+    assert FitConfig().highpass_hz == {"PC": 5.0} and FitConfig(highpass_hz={}).highpass_hz == {}
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
 
 

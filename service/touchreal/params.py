@@ -22,8 +22,11 @@ SCHEMA_NAME = "touchreal.params"
 #: read, as no class low-pass and no lead; version 2 files (no ``ClassParams.window_ms``) as every
 #: class on ``preprocess.window_ms``. Files without ``alignment`` (every version 1-2 file, and version
 #: 3 files written before it existed) may hold negative class delays: they are read as the same
-#: encoder with that lead moved into the alignment (:func:`legacy_alignment`).
-SCHEMA_VERSION = 3
+#: encoder with that lead moved into the alignment (:func:`legacy_alignment`); version 3 files (no
+#: ``ClassParams.highpass_hz``) as no class high-pass.
+SCHEMA_VERSION = 4
+
+HIGHPASS_RANGE_HZ = (0.1, 100.0)  #: cutoffs (Hz) a class's input high-pass may have
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
 WEIGHT_NAMES = ("ST+", "ST-", "dST+", "dST-", "PVDF+", "PVDF-", "dPVDF+", "dPVDF-")
@@ -85,6 +88,14 @@ class ClassParams(_Strict):
         le=2000.0,
         description="cutoff (Hz) of the class's causal 3rd-order Butterworth input low-pass on all four "
         "channels before rectification (TouchSim's per-model input filter); None = no filter",
+    )
+    highpass_hz: Num | None = Field(
+        default=None,
+        ge=HIGHPASS_RANGE_HZ[0],
+        le=HIGHPASS_RANGE_HZ[1],
+        description="cutoff (Hz) of the class's causal 1st-order Butterworth input high-pass on all four channels, "
+        "after the low-pass and before rectification (removes a slow baseline such as a PVDF amplifier's "
+        "wander); None = no filter (version 4)",
     )
     negative_lead_ms: Num = Field(
         default=0.0,
@@ -211,7 +222,7 @@ class EncoderParams(_Strict):
     """A complete, versioned TouchReal parameter set."""
 
     schema_name: Literal["touchreal.params"] = Field(default=SCHEMA_NAME, alias="schema")
-    version: Literal[1, 2, 3] = SCHEMA_VERSION
+    version: Literal[1, 2, 3, 4] = SCHEMA_VERSION
     preprocess: PreprocessParams = Field(default_factory=PreprocessParams)
     classes: dict[str, ClassParams]
     alignment: ReferenceAlignment = Field(default_factory=ReferenceAlignment)
@@ -251,6 +262,8 @@ class EncoderParams(_Strict):
             raise ValueError("classes.*.lowpass_hz and negative_lead_ms need schema version 2")
         if self.version < 3 and any(c.window_ms is not None for c in self.classes.values()):
             raise ValueError("classes.*.window_ms needs schema version 3")
+        if self.version < 4 and any(c.highpass_hz is not None for c in self.classes.values()):
+            raise ValueError("classes.*.highpass_hz needs schema version 4")
         return self
 
     def reference_times(self, stamps_s: np.ndarray) -> np.ndarray:

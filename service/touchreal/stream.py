@@ -315,7 +315,7 @@ class StreamEncoder:
         return self.acq.stats
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """All state: preprocessing stages and buffers, class low-passes and membrane potentials."""
+        """All state: preprocessing stages and buffers, class input filters and membrane potentials."""
         out = self.acq.state_arrays()
         for i, block in enumerate(self.blocks):
             prefix = f"b{i}_" if len(self.blocks) > 1 else ""

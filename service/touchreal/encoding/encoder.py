@@ -2,7 +2,7 @@
 
 For afferent class a and channels x_c (ST, dST, PVDF, dPVDF), the input current is
 
-    x_c <- LP_a(x_c)                                 (optional per-class 3rd-order Butterworth)
+    x_c <- HP_a(LP_a(x_c))       (optional per-class 3rd-order Butterworth low-pass, 1st-order high-pass)
     I_a[k] = sum_c  w_a[2c] * max(x_c[k - L_a], 0) + w_a[2c+1] * max(-x_c[k], 0)       (w1..w8)
     I_a <- I_sat * I_a / (I_sat + |I_a|)                                       (when I_sat > 0)
 
@@ -42,6 +42,8 @@ def ih_basis() -> np.ndarray:
 N_CHANNELS = len(CHANNELS)  #: ST, dST, PVDF, dPVDF (a compile-time constant of the input kernel)
 LOWPASS_ORDER = 3  #: order of the per-class input Butterworth (TouchSim's input filter)
 LOWPASS_SECTIONS = (LOWPASS_ORDER + 1) // 2
+HIGHPASS_ORDER = 1  #: order of the optional per-class input high-pass (one section)
+_IDENTITY_SECTION = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])  #: y = 1 x + 0: exact, bit for bit
 
 
 @lru_cache(maxsize=1024)
@@ -52,12 +54,27 @@ def _lowpass_design(cutoff_hz: float) -> tuple[np.ndarray, np.ndarray]:
     return sos, signal.sosfilt_zi(sos)
 
 
-def lowpass_channels(channels: np.ndarray, cutoff_hz: float | None) -> np.ndarray:
-    """(T, ..., 4) channels through a fresh class low-pass (unchanged for ``None``)."""
-    if cutoff_hz is None:
+@lru_cache(maxsize=1024)
+def _input_design(lowpass_hz: float | None, highpass_hz: float | None, sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """A class's input cascade of ``sections`` sections on the 5 kHz grid: the low-pass's
+    :data:`LOWPASS_SECTIONS`, then the high-pass's (when ``sections`` has room for it); a filter the
+    class does not have is identity sections. Returns the SOS and its unit-step steady state
+    (``sosfilt_zi``: a high-pass settles at 0)."""
+    sos = np.tile(_IDENTITY_SECTION, (sections, 1))
+    if lowpass_hz is not None:
+        sos[:LOWPASS_SECTIONS] = _lowpass_design(float(lowpass_hz))[0]
+    if highpass_hz is not None:
+        sos[LOWPASS_SECTIONS:] = signal.butter(HIGHPASS_ORDER, float(highpass_hz), btype="high", fs=OUT_FS_HZ, output="sos")
+    return sos, signal.sosfilt_zi(sos)
+
+
+def class_filtered(channels: np.ndarray, lowpass_hz: float | None, highpass_hz: float | None = None) -> np.ndarray:
+    """(T, ..., 4) channels through a fresh class input filter (unchanged when it has none)."""
+    if lowpass_hz is None and highpass_hz is None:
         return channels
     flat = np.asarray(channels, np.float64).reshape(channels.shape[0], -1)
-    return SosFilter(_lowpass_design(float(cutoff_hz))[0], flat.shape[1]).process(flat).reshape(channels.shape)
+    sections = LOWPASS_SECTIONS + (highpass_hz is not None)
+    return SosFilter(_input_design(lowpass_hz, highpass_hz, sections)[0], flat.shape[1]).process(flat).reshape(channels.shape)
 
 
 def rectify(channels: np.ndarray) -> np.ndarray:
@@ -71,13 +88,13 @@ TILE_TAXELS = 16  #: taxels the fused kernel copies at once (contiguous rows of 
 
 
 @numba.njit(cache=True, nogil=True)
-def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head,
+def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, head,
                     tau, ih, v_mem, counter, spikes, n_spikes, out, a, b):  # pragma: no cover - compiled
     """Input stage and LIF of columns a ... b - 1 fused: no current array; column n's spikes (grid
     sample within the block) go to ``spikes[n, :n_spikes[n]]``. With a non-empty ``out`` (N, T)
     the input current goes there instead and the LIF does not run (:meth:`InputStage.process`).
 
-    Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n], stepped by
+    Per column: the class input filter (when has_filter[n]: the cascade sos[n], state zi[n], stepped by
     :func:`~touchreal.preprocess.filters.sos_step` like every :class:`SosFilter`);
     pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
     positive part passes through ring[n, :L] (so it is taken from sample k - L); then
@@ -105,7 +122,7 @@ def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, lead, ring, head,
                         tile[k, t, j] = channels[k, x0 + t, j]
             loaded = x0
         x = src[n] - x0
-        lp = has_lp[n]
+        lp = has_filter[n]
         z[0] = zi[n]
         n_lead = lead[n]
         h = head[n]
@@ -159,7 +176,9 @@ class InputStage:
 
     Column n applies ``params[n]`` to taxel ``taxels[n]``:
 
-    1. optional class low-pass (``lowpass_hz``: 3rd-order Butterworth, steady state at the first sample);
+    1. optional class input filter, steady state at the first sample: a low-pass (``lowpass_hz``:
+       3rd-order Butterworth) and a high-pass (``highpass_hz``: 1st-order Butterworth; it removes a
+       constant, so a column starts at 0 current on a steady baseline);
     2. rectified weights: positive parts ``w[2c] max(x_c, 0)``, negative parts ``w[2c+1] max(-x_c, 0)``;
     3. optional lead of the negative parts: the positive-part current is delayed by
        ``negative_lead_ms`` (its history starts at the first sample's value), the negative parts are not;
@@ -177,14 +196,17 @@ class InputStage:
         n = len(params)
         self.w = np.array([p.weights for p in params], dtype=np.float64).reshape(n, 8)
         self.i_sat = np.array([p.i_sat for p in params], dtype=np.float64)
-        self.has_lp = np.array([p.lowpass_hz is not None for p in params], dtype=np.bool_)
-        self.sos = np.zeros((n, LOWPASS_SECTIONS, 6))
-        self._zi_unit = np.zeros((n, LOWPASS_SECTIONS, 2))
+        # one cascade per column: the low-pass's sections, plus a high-pass section when any column
+        # has one (identity sections stand in for a filter a column lacks, so its output keeps its bits)
+        self.has_filter = np.array([p.lowpass_hz is not None or p.highpass_hz is not None for p in params], dtype=np.bool_)
+        sections = LOWPASS_SECTIONS + any(p.highpass_hz is not None for p in params)
+        self.sos = np.zeros((n, sections, 6))
+        self._zi_unit = np.zeros((n, sections, 2))
         for j, p in enumerate(params):
-            if p.lowpass_hz is not None:
-                self.sos[j], self._zi_unit[j] = _lowpass_design(float(p.lowpass_hz))
+            if self.has_filter[j]:
+                self.sos[j], self._zi_unit[j] = _input_design(p.lowpass_hz, p.highpass_hz, sections)
         self.lead = np.array([int(round(p.negative_lead_ms * OUT_FS_HZ / 1000.0)) for p in params], dtype=np.int64)
-        self.zi = np.zeros((n, LOWPASS_SECTIONS, 2, N_CHANNELS))
+        self.zi = np.zeros((n, sections, 2, N_CHANNELS))
         self.ring = np.zeros((n, int(self.lead.max(initial=0))))
         self.head = np.zeros(n, dtype=np.int64)
         self.fresh = np.ones(n, dtype=np.bool_)  # columns whose state starts at their next first sample
@@ -196,15 +218,16 @@ class InputStage:
     def carry(self, old: "InputStage", old_rows: np.ndarray, new_rows: np.ndarray) -> None:
         """Continue columns ``old_rows`` of ``old`` as this stage's ``new_rows`` (same class
         parameters): their state is copied bit-exactly; the other columns start fresh."""
-        self.zi[new_rows] = old.zi[old_rows]
+        sections = min(old.zi.shape[1], self.zi.shape[1])  # a column without a high-pass: identity section, state 0
+        self.zi[new_rows, :sections] = old.zi[old_rows, :sections]
         lead = min(old.ring.shape[1], self.ring.shape[1])  # a column uses its own lead's first entries only
         self.ring[new_rows, :lead] = old.ring[old_rows, :lead]
         self.head[new_rows] = old.head[old_rows]
         self.fresh[new_rows] = old.fresh[old_rows]
 
     def _start(self, first: np.ndarray) -> None:
-        """Fresh columns start in steady state at their first sample ``first`` (X, 4): the low-pass
-        (unit DC gain) at that sample, the lead's history at its positive-part current."""
+        """Fresh columns start in steady state at their first sample ``first`` (X, 4): the input
+        filter at that sample (the low-pass's DC gain is 1, the high-pass's 0), the lead's history at its positive-part current."""
         rows = np.flatnonzero(self.fresh)
         x = first[self.src[rows]]  # (R, 4)
         self.zi[rows] = self._zi_unit[rows, :, :, None] * x[:, None, None, :]
@@ -240,7 +263,7 @@ class InputStage:
         else:
             work = n * x.shape[0]
         st = lif.state
-        split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.lead,
+        split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_filter, self.zi, self.lead,
                                                self.ring, self.head, lif.tau, lif.ih, st.v, st.counter, spikes, counts, out, a, b),
                   n, work)
 
@@ -273,8 +296,8 @@ class InputStage:
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}
-        if self.has_lp.any():
-            out["lowpass"] = self.zi[self.has_lp]
+        if self.has_filter.any():
+            out["filter"] = self.zi[self.has_filter]
         if self.ring.size:
             out["lead"] = self.ring
         return out
@@ -290,8 +313,8 @@ def class_columns(params: Sequence[ClassParams]) -> tuple[np.ndarray, np.ndarray
 
 def channel_currents(channels: np.ndarray, params: ClassParams) -> np.ndarray:
     """(T, 4) channels -> (T, 4) weighted pre-saturation current of each channel (eq. 11), after
-    the class low-pass (the lead only shifts the positive parts in time and is left out)."""
-    r = rectify(lowpass_channels(np.asarray(channels, dtype=np.float64), params.lowpass_hz))  # (T, 8)
+    the class input filter (the lead only shifts the positive parts in time and is left out)."""
+    r = rectify(class_filtered(np.asarray(channels, dtype=np.float64), params.lowpass_hz, params.highpass_hz))  # (T, 8)
     w = np.asarray(params.weights)
     return (r * w).reshape(-1, 4, 2).sum(axis=2)
 
@@ -341,7 +364,7 @@ class Encoder:
     All columns are active at first; :meth:`set_columns` changes the set: continuing columns keep
     their state bit-exactly (columns are independent, so a column's spikes do not depend on which
     others run), a (re)started column starts from rest at the next sample it is given (membrane at
-    0, no recent spike, class low-pass and lead history in steady state at that sample).
+    0, no recent spike, class input filter and lead history in steady state at that sample).
     """
 
     def __init__(self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None):
@@ -395,7 +418,7 @@ class Encoder:
         self._build(self.columns)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        """Membrane potentials and the input stages' states (class low-pass, lead)."""
+        """Membrane potentials and the input stages' states (class input filter, lead)."""
         return {"lif_v": self.lif.state.v, **{f"input_{k}": a for k, a in self.inputs.state_arrays().items()}}
 
     def currents(self, data: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_REFINE, NOISY_ST_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
+    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_HIGHPASS_HZ, DEFAULT_REFINE, NOISY_ST_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
                          FitConfig)
 
     p = sub.add_parser(
@@ -43,6 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="classes whose film weights (w5, w6: both polarities of PVDF) are held >= 0, so pressing and "
                    "releasing both excite them, as in every TouchSim RA model; 'none' for the paper's unconstrained "
                    "weights (default: RA)")
+    p.add_argument("--highpass", type=parse_highpass, default=None, metavar="CLS=HZ,...|none",
+                   help="classes whose input gets a 1st-order high-pass at this cutoff (Hz), held fixed: it removes the "
+                   f"PVDF amplifier's slow baseline wander; 'none' for no high-pass (default {_weights_text(DEFAULT_HIGHPASS_HZ)})")
     p.add_argument("--no-holdout", action="store_true",
                    help="train on every ramp/sine trial (no held-out half; evaluate on a separate recording)")
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
@@ -131,6 +134,17 @@ def parse_class_weights(text: str) -> dict[str, float]:
     return per_class
 
 
+def parse_highpass(text: str) -> dict[str, float]:
+    """``"PC=5"`` -> {class: cutoff Hz} (``--highpass``); ``"none"`` -> {}."""
+    from ..params import HIGHPASS_RANGE_HZ
+
+    cutoffs = parse_class_weights(text)
+    lo, hi = HIGHPASS_RANGE_HZ
+    if not all(lo <= f <= hi for f in cutoffs.values()):
+        raise argparse.ArgumentTypeError(f"{text!r}: high-pass cutoffs are from {lo:g} to {hi:g} Hz")
+    return cutoffs
+
+
 def _per_class_values(text: str, default: float | None, symbol: str, unit: str) -> tuple[float | None, dict[str, float]]:
     per_class: dict[str, float] = {}
     for tok in (t.strip() for t in text.split(",") if t.strip()):
@@ -164,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("highpass", "highpass_hz"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
                        ("noisy_st_noise", "noisy_st_noise_n"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:

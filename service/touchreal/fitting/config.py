@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..params import GateCalibration, default_params
+from ..params import HIGHPASS_RANGE_HZ, GateCalibration, default_params
 from ..settings import CLASSES
 from .objective import ObjectiveConfig
 
@@ -22,6 +22,11 @@ def shipped_windows_ms() -> dict[str, float]:
 #: classes refined by default, each with the count weight of its refinement: RA, whose count is the
 #: target other sensor builds miss first, and PC, refined on the VR-normalised distance (docs/fitting.md)
 DEFAULT_REFINE = {"RA": 3.0, "PC": 5.0}
+
+#: classes whose input has a fixed high-pass (cutoff Hz): PC's film carries the PVDF amplifier's slow
+#: baseline wander (OU, tau 1 s), which the gate keeps; per trial it shifts the rectified film's level
+#: against PC's threshold (docs/fitting.md, "PC's input high-pass")
+DEFAULT_HIGHPASS_HZ = {"PC": 5.0}
 
 #: the gate factor (x the noise) and the refinements' sine count weights of a build whose PVDF contact
 #: SNR is below ``weak_signal_snr``: its gate at 3 x the noise removes PC's weak ramp transients, and
@@ -119,6 +124,8 @@ class FitConfig:
     #: releasing both excite the class, as in every TouchSim RA model, whose weights on both polarities
     #: of the skin's velocity are >= 0 (paper: unconstrained)
     excitatory_classes: tuple[str, ...] = ("RA",)
+    #: classes whose input high-pass (1st-order, cutoff Hz) is held at this cutoff (not searched); empty: none
+    highpass_hz: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_HIGHPASS_HZ))
     progress: bool = True
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
 
@@ -129,7 +136,7 @@ class FitConfig:
         if bad or not self.classes:
             raise ValueError(f"classes must be a non-empty subset of {list(CLASSES)}, got {list(self.classes)}")
         for name in ("input_stage_classes", "no_pvdf_classes", "excitatory_classes", "segmented_count_classes", "vr_distance_classes", "saturated_classes",
-                     "class_window_ms", "refine", "refine_sine_count_weights", "restarts"):  # a dict's classes are its keys
+                     "class_window_ms", "refine", "refine_sine_count_weights", "restarts", "highpass_hz"):  # a dict's classes are its keys
             given = getattr(self, name) or ()
             bad = [c for c in given if c not in CLASSES]
             if bad:
@@ -140,6 +147,8 @@ class FitConfig:
             raise ValueError(f"saturated_classes must be a subset of {list(SATURATED_STARTS)} (the classes with a saturated start)")
         if not all(isinstance(n, int) and 0 <= n <= MAX_RESTARTS for n in (self.restarts or {}).values()):
             raise ValueError(f"restarts must be integers in [0, {MAX_RESTARTS}]")
+        if not all(np.isfinite(f) and HIGHPASS_RANGE_HZ[0] <= f <= HIGHPASS_RANGE_HZ[1] for f in self.highpass_hz.values()):
+            raise ValueError(f"highpass_hz cutoffs must be in [{HIGHPASS_RANGE_HZ[0]:g}, {HIGHPASS_RANGE_HZ[1]:g}] Hz")
         if self.popsize < 4 or self.max_generations < 1:
             raise ValueError("popsize must be >= 4 and max_generations >= 1")
         if self.kernel_ms <= 0:

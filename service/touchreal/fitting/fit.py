@@ -149,7 +149,8 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     for c in cfg.classes:  # an input-stage class's weights are normalised behind its start cutoff
         lp0 = touchsim_class_defaults()[c]["lowpass_hz"] if c in cfg.input_stage_classes else None
         spaces[c] = ParamSpace.for_class(c, channel_scale(train[c].trials, lp0), input_stage=lp0 is not None,
-                                         pvdf=c not in cfg.no_pvdf_classes, excitatory=c in cfg.excitatory_classes)
+                                         pvdf=c not in cfg.no_pvdf_classes, excitatory=c in cfg.excitatory_classes,
+                                         highpass_hz=cfg.highpass_hz.get(c))
     for c in cfg.refined():  # a refinement evaluates on its class's trials and space
         spaces[stage_key(c, True)], train[stage_key(c, True)] = spaces[c], train[c]
     refs = {key: _references(train[key], key, cfg) for key in train}
@@ -273,6 +274,7 @@ def fit_dataset(
             "input_stage_classes": list(cfg.input_stage_classes),
             "no_pvdf_classes": list(cfg.no_pvdf_classes),
             "excitatory_classes": list(cfg.excitatory_classes),
+            "highpass_hz": {c: cfg.highpass_hz[c] for c in cfg.classes if c in cfg.highpass_hz},
             "max_refs_per_condition": cfg.max_refs_per_condition,
         },
         "optimizer": {"name": "CMA-ES (cma)", "popsize": cfg.popsize, "max_generations": cfg.max_generations, "restarts": {c: cfg.restarts_of(c) for c in fits},

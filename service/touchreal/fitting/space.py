@@ -18,6 +18,9 @@ size means about the same everywhere:
   14  lead           ``negative_lead_ms = 10 x``               (input stage only)
 ====  =============  ==========================================================================
 
+A class's input high-pass (``highpass_hz``), when it has one, is a setting of the fit held at its
+value, not a coordinate.
+
 ``tau0_ms``, ``ih_scale`` and ``lp0_hz`` come from TouchSim's own class parameters
 (``data/touchsim_constants.json``: tau column 9 in samples, ih columns 10-11, low-pass factor
 column 0 = cutoff / 10 Hz), which also give the starting point of tau, ih and the cutoff.
@@ -91,9 +94,11 @@ class ParamSpace:
     #: True: the film's weights (w5, w6) are bounded below at 0, so pressing and releasing both excite
     #: (a class whose on and off responses are both excitatory, as TouchSim's RA)
     excitatory: bool = False
+    hp_hz: float | None = None  #: the class's input high-pass cutoff (Hz), held fixed (not searched); None: no high-pass
 
     @classmethod
-    def for_class(cls, name: str, channel_scale, input_stage: bool = False, pvdf: bool = True, excitatory: bool = False) -> "ParamSpace":
+    def for_class(cls, name: str, channel_scale, input_stage: bool = False, pvdf: bool = True, excitatory: bool = False,
+                  highpass_hz: float | None = None) -> "ParamSpace":
         if name not in CLASSES:
             raise ValueError(f"unknown class {name!r}")
         sc = np.asarray(channel_scale, np.float64)
@@ -101,7 +106,8 @@ class ParamSpace:
             raise ValueError("channel_scale must be four positive numbers")
         ts = touchsim_class_defaults()[name]
         ih_scale = (max(abs(ts["ih1"]), 0.05), max(abs(ts["ih2"]), 0.005))
-        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None, pvdf, excitatory)
+        return cls(name, tuple(float(v) for v in sc), ts["tau_ms"], ih_scale, ts["lowpass_hz"] if input_stage else None, pvdf, excitatory,
+                   highpass_hz)
 
     @property
     def n_dim(self) -> int:
@@ -156,6 +162,7 @@ class ParamSpace:
             i_sat=float(np.clip(np.exp(x[12]), 0.0, 1e6)),
             lowpass_hz=None if self.lp0_hz is None else float(np.clip(self.lp0_hz * np.exp(x[13]), *LOWPASS_RANGE_HZ)),
             negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[14] * LEAD_UNIT_MS, 0.0, LEAD_MAX_MS)),
+            highpass_hz=self.hp_hz,
         )
 
     def encode(self, p: ClassParams) -> np.ndarray:

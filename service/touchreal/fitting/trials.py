@@ -10,7 +10,7 @@ from typing import Any, Literal, Sequence
 import numpy as np
 
 from ..analysis.turning_points import turning_points, window_edges
-from ..encoding.encoder import encode_population, lowpass_channels
+from ..encoding.encoder import encode_population, class_filtered
 from ..params import ClassParams, PreprocessParams
 from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset, Trial
@@ -116,7 +116,7 @@ def baseline_segments(
 def channel_scale(trials: Sequence[TrialData], lowpass_hz: float | None = None) -> np.ndarray:
     """Typical magnitude of each channel: 99th percentile of |x| over the trials, after a class
     low-pass at ``lowpass_hz`` when given (it shrinks the fast channels, dPVDF most)."""
-    allc = np.concatenate([lowpass_channels(t.channels, lowpass_hz) for t in trials], axis=0)
+    allc = np.concatenate([class_filtered(t.channels, lowpass_hz) for t in trials], axis=0)
     sc = np.percentile(np.abs(allc), 99.0, axis=0)
     return np.where(sc > 0, sc, 1.0)
 
