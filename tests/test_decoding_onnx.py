@@ -100,6 +100,9 @@ def test_metadata_records_params_and_warns_on_other_params(force_model):
     assert "active parameters" in params_warning(meta, other)
     # provenance alone does not change the hash
     assert params_hash(p.model_copy(update={"provenance": {"note": "x"}})) == params_hash(p)
+    # a class high-pass changes it (a version 4 field; absent, the hash is that of the file before it)
+    pc = p.classes["PC"].model_copy(update={"highpass_hz": 5.0})
+    assert params_hash(p.model_copy(update={"classes": {**p.classes, "PC": pc}, "version": 4})) != params_hash(p.model_copy(update={"version": 4}))
 
 
 def test_not_onnx_is_a_clear_error(tmp_path):

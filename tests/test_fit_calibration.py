@@ -57,7 +57,7 @@ def test_the_contact_snr_tells_a_noisy_amplifier_from_the_nominal_build(tmp_path
     assert not cfg.weak_signal(nominal) and cfg.weak_signal(noisy)
     weakest = _contact_snr(tmp_path, str(corner_build))  # half the coupling on the noisy amplifier
     assert 1.5 < noisy / weakest < 2.5  # half the film's signal over the same noise
-    assert cfg.signal_limited(weakest) and not cfg.signal_limited(noisy)  # the fit warns of PC on the corner only
+    assert cfg.film_limited(weakest) and not cfg.film_limited(noisy)  # PC's film-limited settings on the corner only
     assert contact_snr([np.zeros(4000)], [4000], calibrate_pvdf([np.random.default_rng(0).normal(0, 1e-3, 4000)], PreprocessParams())) is None
 
 

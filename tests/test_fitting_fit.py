@@ -15,7 +15,7 @@ from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
 from touchreal.fitting.command import parse_restarts
-from touchreal.fitting.config import SIGNAL_LIMITED_SNR, FitConfig, signal_limited_message
+from touchreal.fitting.config import FitConfig
 from touchreal.fitting.executor import FitState, LocalExecutor
 from touchreal.fitting.split import split_repeats
 from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
@@ -241,9 +241,9 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
         assert grid < search.evaluations <= grid + sum(p * g for p, g in plan) and search.generations <= sum(g for _, g in plan)
         if f.search is not None:
             assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
-        # the input stage is fitted for RA and PC only, PC's input has the fixed high-pass (FitConfig defaults)
+        # the input stage is fitted for RA and PC only (FitConfig default); no input high-pass off a film-limited build
         assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
-        assert f.params.highpass_hz == (5.0 if c == "PC" else None)
+        assert f.params.highpass_hz is None
     # reproducible
     res2 = F.fit_dataset(ds.root, FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
     for c in CLASSES:
@@ -282,10 +282,19 @@ def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
                  "--gate-factor", "2.5", "--refine-sine-count-weights", "none"]) == 0
     prov = json.loads(out.read_text())["provenance"]
     assert prov["gate_factor"] == 2.5 and prov["objective"]["refine_sine_count_weights"] == {}
-    assert prov["objective"]["highpass_hz"] == {"PC": 5.0} and EncoderParams.load(out).classes["PC"].highpass_hz == 5.0
+    assert prov["objective"]["highpass_hz"] == {} and not prov["film_limited"] and EncoderParams.load(out).classes["PC"].highpass_hz is None
+    # a build below --film-limited-snr gets PC's input high-pass, its count margin and a plain count; given options win
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--highpass", "none"]) == 0
-    assert json.loads(out.read_text())["provenance"]["objective"]["highpass_hz"] == {}
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--film-limited-snr", "1e6"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["film_limited"] and prov["film_limited_snr"] == 1e6 and prov["weak_signal"] is False and prov["gate_factor"] == 3.0
+    assert prov["objective"]["highpass_hz"] == {"PC": 5.0} and EncoderParams.load(out).classes["PC"].highpass_hz == 5.0
+    assert prov["objective"]["refine_count_margins"] == {"PC": 0.22} and prov["objective"]["refine_sine_count_weights"] == {"PC": 1.0}
+    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
+                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--film-limited-snr", "1e6",
+                 "--highpass", "none", "--refine-count-margins", "PC=0.1"]) == 0
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["objective"]["highpass_hz"] == {} and prov["objective"]["refine_count_margins"] == {"PC": 0.1}
     assert EncoderParams.load(out).classes["PC"].highpass_hz is None  # the paper's input: no high-pass
     assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
     assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
@@ -463,7 +472,10 @@ def test_window_option_per_class():
         FitConfig(highpass_hz={"PC": 0.01})
     with pytest.raises(ValueError, match="highpass_hz must be a subset"):
         FitConfig(highpass_hz={"SA9": 5.0})
-    assert FitConfig().highpass_hz == {"PC": 5.0} and FitConfig(highpass_hz={}).highpass_hz == {}
+    with pytest.raises(ValueError, match="refine_count_margins must be in"):
+        FitConfig(refine_count_margins={"PC": 1.0})
+    with pytest.raises(ValueError, match="film_limited_snr"):
+        FitConfig(film_limited_snr=-1.0)
     assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
 
 
@@ -483,25 +495,36 @@ def test_the_weak_signal_settings_apply_below_the_snr_threshold_where_not_given(
     assert cfg.for_snr(None) == strong and cfg.refine_sine_count_weights is None  # not measured: no change; cfg itself kept
     given = FitConfig(gate_factor=2.5, refine_sine_count_weights={"RA": 5.0}).for_snr(37.0)
     assert (given.gate_factor, given.refine_sine_count_weights) == (2.5, {"RA": 5.0})
-    never = FitConfig(weak_signal_snr=0.0).for_snr(1e-3)  # 0: no build is weak
+    never = FitConfig(weak_signal_snr=0.0, film_limited_snr=0.0).for_snr(1e-3)  # 0: no build is weak (nor film-limited)
     assert (never.gate_factor, never.refine_sine_count_weights) == (3.0, {})
     assert weak.objective_of("PC:refine") == cfg.objective_of("PC:refine")  # the rest is the same
+    assert (weak.highpass_hz, weak.refine_count_margins) == ({}, {})  # not film-limited
 
 
-def test_pc_is_signal_limited_below_its_snr_floor_only_when_fitted():
-    assert FitConfig().signal_limited(SIGNAL_LIMITED_SNR - 0.1) and not FitConfig().signal_limited(SIGNAL_LIMITED_SNR)
-    assert not FitConfig().signal_limited(None)  # not measured
-    assert not FitConfig(classes=("SA1", "RA")).signal_limited(1.0)  # the SingleTact classes do not need the film
+def test_the_film_limited_settings_apply_below_their_snr_where_not_given():
+    cfg = FitConfig()
+    assert cfg.film_limited(34.9) and not cfg.film_limited(35.0) and not cfg.film_limited(None)
+    film = cfg.for_snr(19.0)  # the corner build (docs/fitting.md)
+    assert (film.gate_factor, film.refine_sine_count_weights) == (2.0, {"PC": 1.0})  # a weak-signal gate, a plain count
+    assert (film.highpass_hz, film.refine_count_margins) == ({"PC": 5.0}, {"PC": 0.22})
+    assert film.objective_of("PC:refine").count_margin == 0.22 and film.objective_of("PC").count_margin == 0.0  # the refinement's only
+    assert film.objective_of("RA:refine").count_margin == 0.0
+    given = FitConfig(highpass_hz={}, refine_count_margins={"PC": 0.1}, refine_sine_count_weights={"PC": 10.0}).for_snr(19.0)
+    assert (given.highpass_hz, given.refine_count_margins, given.refine_sine_count_weights) == ({}, {"PC": 0.1}, {"PC": 10.0})
+    never = FitConfig(film_limited_snr=0.0).for_snr(19.0)  # 0: no build is film-limited; it is still weak-signal
+    assert (never.highpass_hz, never.refine_count_margins, never.refine_sine_count_weights) == ({}, {}, {"PC": 10.0})
 
 
-def test_a_fit_on_the_corner_build_warns_that_pc_is_signal_limited(tmp_path, corner_build, capsys):
+def test_a_fit_on_the_corner_build_gives_pc_the_film_limited_settings(tmp_path, corner_build, capsys):
     assert main(["simulate", "ramp", "--trials", "ramp=16", "--seed", "3", "--build", str(corner_build), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
     out = tmp_path / "pc.json"
     capsys.readouterr()
     assert main(["fit", str(tmp_path / "ds"), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--refine", "none", "--quiet", "--workers", "1"]) == 0
-    prov = EncoderParams.load(out).provenance
-    assert prov["contact_snr"] < SIGNAL_LIMITED_SNR and prov["signal_limited"] and prov["weak_signal"]
-    said = capsys.readouterr()
-    message = f"warning: {signal_limited_message(prov['contact_snr'])}"
-    assert message in said.err.splitlines() and message in said.out.splitlines()  # in the log as it happens, and in the summary
+                 "--quiet", "--workers", "1"]) == 0
+    p = EncoderParams.load(out)
+    prov = p.provenance
+    assert prov["contact_snr"] < prov["film_limited_snr"] == 35.0 and prov["film_limited"] and prov["weak_signal"]
+    assert p.classes["PC"].highpass_hz == 5.0 and p.version == 4  # the high-pass needs schema version 4
+    assert prov["objective"]["refine_count_margins"] == {"PC": 0.22} and prov["objective"]["refine_sine_count_weights"] == {"PC": 1.0}
+    said = capsys.readouterr().err
+    assert "(film-limited), input high-pass {'PC': 5.0} Hz, refinement count margins {'PC': 0.22}" in said  # the log says so

@@ -103,6 +103,19 @@ def test_count_weight_scales_only_the_relative_count_term():
     assert t.total == pytest.approx(base.total + 2.0 * base.l_rel)
 
 
+def test_a_count_margin_leaves_count_errors_within_it_free():
+    d = np.array([0.2, 0.8])
+    n_t = np.array([2.0, 4.0])
+    n_s = np.array([2.0, 2.0])  # L_rel = (0 + 0.5) / 2 = 0.25
+    plain = terms_from_stats(d, n_s, n_t, np.ones(2), ObjectiveConfig(kernel_tau_s=TAU, count_weight=3.0))
+    assert ObjectiveConfig().count_margin == 0.0  # the paper: every count error is charged
+    within = terms_from_stats(d, n_s, n_t, np.ones(2), ObjectiveConfig(kernel_tau_s=TAU, count_weight=3.0, count_margin=0.3))
+    beyond = terms_from_stats(d, n_s, n_t, np.ones(2), ObjectiveConfig(kernel_tau_s=TAU, count_weight=3.0, count_margin=0.1))
+    assert within.l_rel == beyond.l_rel == plain.l_rel == pytest.approx(0.25)  # reported as it is
+    assert within.total == pytest.approx(plain.total - 3.0 * 0.25)  # free within the margin
+    assert beyond.total == pytest.approx(plain.total - 3.0 * 0.1)  # charged beyond it at the count weight
+
+
 def test_errors():
     refs = ReferenceSet.build([[np.array([0.1])], [np.array([0.2])]], TAU)
     with pytest.raises(ValueError, match="without predicted"):

@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 from ..analysis.metrics import TARGETS as REPORT_TARGETS
-from ..fitting.config import SIGNAL_LIMITED_SNR
 from ..settings import CLASSES
 
 #: VR ratio a fit must stay within on a build's held-out trials: the evaluation report's bounds
@@ -67,11 +66,11 @@ def _one(build: str, work: Path, args: argparse.Namespace) -> tuple[dict[str, tu
 
 def _snr_cell(prov: dict) -> str:
     """The fit's PVDF contact SNR, starred when the build was fitted with the weak-signal settings,
-    with a ! when the fit found PC signal-limited."""
+    with a ! when PC got the film-limited ones."""
     snr = prov.get("contact_snr")
     if snr is None:
         return f"{'-':>6}"
-    return f"{snr:4.0f}{'*' if prov['weak_signal'] else ' '}{'!' if prov.get('signal_limited') else ' '}"
+    return f"{snr:4.0f}{'*' if prov['weak_signal'] else ' '}{'!' if prov.get('film_limited') else ' '}"
 
 
 def _st_cell(prov: dict) -> str:
@@ -105,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {_snr_cell(prov)}  {_st_cell(prov)}  {'  '.join(cells)}  "
                   f"{'met' if not missed else 'missed: ' + ', '.join(missed)}", flush=True)
     print("SNR: the fit's PVDF contact SNR; * below --weak-signal-snr: fitted with the weak-signal gate and sine count weights; "
-          f"! below {SIGNAL_LIMITED_SNR:g}: PC signal-limited (docs/fitting.md, 'The limit'); ST mN: the SingleTact's sample "
+          "! below --film-limited-snr: PC's input high-pass and count margin too; ST mN: the SingleTact's sample "
           "noise, * above --noisy-st-noise: SA1 searched from its saturated start too and restarted")
     print(f"\nevery build within the targets: {'yes' if met_all else 'no'}")
     return 0

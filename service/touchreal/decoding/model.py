@@ -37,8 +37,12 @@ class DecoderModelError(ValueError):
 
 
 def params_hash(params: EncoderParams) -> str:
-    """sha256 of the parameter values (provenance excluded: it describes, it does not change spikes)."""
+    """sha256 of the parameter values (provenance excluded: it describes, it does not change spikes;
+    so is a class's absent high-pass, a field of version 4, so a set hashes as it did before it)."""
     data = params.model_dump(mode="json", by_alias=True, exclude={"provenance"})
+    for c in data["classes"].values():
+        if c.get("highpass_hz") is None:
+            c.pop("highpass_hz", None)
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

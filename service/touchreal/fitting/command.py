@@ -17,7 +17,8 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_HIGHPASS_HZ, DEFAULT_REFINE, NOISY_ST_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
+    from .config import (DEFAULT_GATE_FACTOR, DEFAULT_REFINE, FILM_LIMITED_COUNT_MARGINS, FILM_LIMITED_HIGHPASS_HZ,
+                         FILM_LIMITED_SINE_COUNT_WEIGHTS, NOISY_ST_RESTARTS, WEAK_SIGNAL_GATE_FACTOR, WEAK_SIGNAL_SINE_COUNT_WEIGHTS,
                          FitConfig)
 
     p = sub.add_parser(
@@ -45,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "weights (default: RA)")
     p.add_argument("--highpass", type=parse_highpass, default=None, metavar="CLS=HZ,...|none",
                    help="classes whose input gets a 1st-order high-pass at this cutoff (Hz), held fixed: it removes the "
-                   f"PVDF amplifier's slow baseline wander; 'none' for no high-pass (default {_weights_text(DEFAULT_HIGHPASS_HZ)})")
+                   f"PVDF amplifier's slow baseline wander; 'none' for no high-pass (default: {_weights_text(FILM_LIMITED_HIGHPASS_HZ)} "
+                   "on a film-limited build, else none)")
     p.add_argument("--no-holdout", action="store_true",
                    help="train on every ramp/sine trial (no held-out half; evaluate on a separate recording)")
     p.add_argument("--seed", type=int, default=0, help="seed of the train/held-out split and of CMA-ES (default 0)")
@@ -70,13 +72,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refine-sine-count-weights", type=parse_class_weights, default=None, metavar="CLS=W,...|none",
                    help="refined classes whose refinement's count term weighs one sine condition W (1: the plain mean over "
                    "conditions the held-out report reads), or 'none'; the others, and every distance, keep --sine-weight "
-                   f"(default: none, or {_weights_text(WEAK_SIGNAL_SINE_COUNT_WEIGHTS)} on a weak-signal build)")
+                   f"(default: none, {_weights_text(WEAK_SIGNAL_SINE_COUNT_WEIGHTS)} on a weak-signal build, "
+                   f"{_weights_text(FILM_LIMITED_SINE_COUNT_WEIGHTS)} on a film-limited one)")
+    p.add_argument("--refine-count-margins", type=parse_class_weights, default=None, metavar="CLS=M,...|none",
+                   help="refined classes whose refinement does not charge a relative count error up to M (e.g. 0.2): "
+                   f"within it the distance alone decides; 'none' (default: {_weights_text(FILM_LIMITED_COUNT_MARGINS)} on a "
+                   "film-limited build, else none)")
     p.add_argument("--gate-factor", type=float, default=None, help="the PVDF spectral gate keeps bins above this multiple of "
                    f"the noise calibrated on the baselines (default: {DEFAULT_GATE_FACTOR:g}, or {WEAK_SIGNAL_GATE_FACTOR:g} on a "
                    "weak-signal build)")
     p.add_argument("--weak-signal-snr", type=float, default=None, help="a build whose PVDF contact SNR (99th percentile of "
                    "|PVDF| after the contact onsets of the training ramps over the baseline noise RMS) is below this is a "
                    f"weak-signal build; 0: none is (default {FitConfig.weak_signal_snr:g})")
+    p.add_argument("--film-limited-snr", type=float, default=None, help="a build whose PVDF contact SNR is below this is "
+                   "film-limited: PC gets its input high-pass and refinement count margin where not given; 0: none is "
+                   f"(default {FitConfig.film_limited_snr:g})")
     p.add_argument("--saturated-classes", default=None, help="comma-separated classes whose search also runs from a strongly "
                    "saturated start, or 'none' (default: SA1 on a build whose SingleTact noise is above --noisy-st-noise, else none)")
     p.add_argument("--noisy-st-noise", type=float, default=None, metavar="N", help="a build whose SingleTact sample noise "
@@ -178,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("highpass", "highpass_hz"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("highpass", "highpass_hz"), ("refine_count_margins", "refine_count_margins"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"), ("film_limited_snr", "film_limited_snr"),
                        ("noisy_st_noise", "noisy_st_noise_n"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
@@ -266,8 +276,4 @@ def _summary(res: FitResult, out: Path) -> None:
             print(f"  {c}: search loss start {s.start_loss:.4f} ({s.generations} generations, {s.evaluations} evaluations, {s.seconds:.0f} s), then")
         print(f"  {c}: {'refinement ' if f.search is not None else ''}loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
-    prov = res.params.provenance
-    if prov.get("signal_limited"):
-        from .config import signal_limited_message
 
-        print(f"warning: {signal_limited_message(prov['contact_snr'])}")

@@ -10,8 +10,8 @@ Steps of :func:`fit_dataset`:
 2. **Calibrate** the PVDF stage (mains harmonics + spectral gate) on the contact-free baselines of
    the training trials (PVDF samples before ``onset_s``), and measure the build's contact SNR on the
    training ramps: below ``cfg.weak_signal_snr`` the gate and the sine count weights not given are
-   the weak-signal ones (:meth:`FitConfig.for_snr`); below :data:`~.config.SIGNAL_LIMITED_SNR` the
-   log warns that PC is limited by the sensor (:meth:`FitConfig.signal_limited`). Measure the
+   the weak-signal ones, and below ``cfg.film_limited_snr`` PC's input high-pass and refinement
+   count margin not given are the film-limited ones (:meth:`FitConfig.for_snr`). Measure the
    SingleTact's noise on the same baselines: above ``cfg.noisy_st_noise_n`` SA1 also searches from
    its saturated start and restarts, where not told otherwise (:meth:`FitConfig.for_singletact`).
 3. **Preprocess** every trial once per distinct causal PVDF window of the fitted classes (:mod:`.trials`;
@@ -48,7 +48,7 @@ import numpy as np
 from ..params import EncoderParams, PreprocessParams, ReferenceAlignment
 from ..recording import Dataset
 from .calibration import calibrate_pvdf, contact_snr, singletact_noise
-from .config import FitConfig, parse_stage_key, signal_limited_message, stage_key
+from .config import FitConfig, parse_stage_key, stage_key
 from .executor import ExecutorFactory, FitSource, FitState, LocalExecutor
 from .objective import ReferenceSet, evaluate_loss
 from .search import ClassFit, search_and_refine
@@ -121,9 +121,10 @@ def prepare(source: FitSource, log: Callable[[str], None] | None = None) -> Prep
     log(f"PVDF calibration on {len(segments)} contact-free baselines: mains {pre.mains_hz:g} Hz, notch harmonics {pre.notch_harmonics}; "
         f"contact SNR {'-' if snr is None else f'{snr:.0f}'}" + (f" < {cfg.weak_signal_snr:g} (weak signal)" if cfg.weak_signal(snr) else "")
         + f": gate on {len(pre.gate.freqs_hz)} bins at {pre.gate.factor:g} x the noise"
-        + (f", refinement sine count weights {cfg.refine_sine_count_weights}" if cfg.refine_sine_count_weights else ""))
-    if cfg.signal_limited(snr):
-        log(f"warning: {signal_limited_message(snr)}")
+        + (f", refinement sine count weights {cfg.refine_sine_count_weights}" if cfg.refine_sine_count_weights else "")
+        + (f"; below {cfg.film_limited_snr:g} (film-limited)" if cfg.film_limited(snr) else "")
+        + (f", input high-pass {cfg.highpass_hz} Hz" if cfg.highpass_hz else "")
+        + (f", refinement count margins {cfg.refine_count_margins}" if cfg.refine_count_margins else ""))
     st_noise = singletact_noise(baseline_segments(ds, train_e, loaded=loaded, channel="st"))
     cfg = cfg.for_singletact(st_noise)
     log(f"SingleTact noise {'-' if st_noise is None else f'{1000.0 * st_noise:.1f} mN'}"
@@ -254,7 +255,8 @@ def fit_dataset(
         "contact_snr": None if prep.contact_snr is None else round(prep.contact_snr, 2),
         "weak_signal_snr": cfg.weak_signal_snr,
         "weak_signal": cfg.weak_signal(prep.contact_snr),
-        "signal_limited": cfg.signal_limited(prep.contact_snr),
+        "film_limited_snr": cfg.film_limited_snr,
+        "film_limited": cfg.film_limited(prep.contact_snr),
         "st_noise_n": None if prep.st_noise_n is None else round(prep.st_noise_n, 6),
         "noisy_st_noise_n": cfg.noisy_st_noise_n,
         "noisy_singletact": cfg.noisy_singletact(prep.st_noise_n),
@@ -270,6 +272,7 @@ def fit_dataset(
             "segmented_count_classes": list(cfg.segmented_count_classes),
             "refine": {c: cfg.refine[c] for c in cfg.refined()},
             "refine_sine_count_weights": {c: cfg.refine_sine_count_weights[c] for c in cfg.refined() if c in cfg.refine_sine_count_weights},
+            "refine_count_margins": {c: cfg.refine_count_margins[c] for c in cfg.refined() if c in cfg.refine_count_margins},
             "vr_distance_classes": [c for c in cfg.refined() if c in cfg.vr_distance_classes],
             "input_stage_classes": list(cfg.input_stage_classes),
             "no_pvdf_classes": list(cfg.no_pvdf_classes),

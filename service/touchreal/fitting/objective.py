@@ -1,8 +1,9 @@
 """The paper's fitting objective (eqs. 1-10) for one afferent class.
 
 ``L = D_basic + L_rel + L_empty + L_MGD`` (with ``ObjectiveConfig.count_weight`` != 1, the
-non-paper option ``L = D_basic + count_weight * L_rel + L_empty + L_MGD``; ``LossTerms.l_rel``
-stays the unweighted mean relative count error):
+non-paper option ``L = D_basic + count_weight * L_rel + L_empty + L_MGD``; with a
+``count_margin`` m > 0, ``count_weight * max(L_rel - m, 0)``: count errors up to m are free, so the
+distance decides within them; ``LossTerms.l_rel`` stays the unweighted mean relative count error):
 
 * ``D_kernel^r`` (eq. 5-6): mean over all (predicted, reference) pairs of condition r of
   ``1 - C / (sqrt(A_pred A_ref) + eps)``, exponential kernel of time constant ``tau``;
@@ -61,6 +62,7 @@ class ObjectiveConfig:
     eps: float = SIM_EPS
     empty_pair_distance: float = 0.0  #: D_kernel of (empty, empty)
     count_weight: float = 1.0  #: multiplier of L_rel in the total (paper: 1; ``--count-weight``)
+    count_margin: float = 0.0  #: L_rel up to this is not charged (paper: 0)
 
 
 @dataclass
@@ -223,7 +225,7 @@ def terms_from_stats(
     l_empty = float(np.dot(wc, empty))
     m = min(cfg.m_worst, d_kernel.size)
     l_mgd = float(np.mean(np.sort(d_kernel)[-m:])) if m > 0 else 0.0
-    total = d_basic + cfg.count_weight * l_rel + l_empty + l_mgd
+    total = d_basic + cfg.count_weight * max(l_rel - cfg.count_margin, 0.0) + l_empty + l_mgd
     return LossTerms(total, d_basic, l_rel, l_empty, l_mgd, d_kernel, n_s, n_t)
 
 
