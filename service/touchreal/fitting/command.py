@@ -188,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
         kw["window_ms"], kw["class_window_ms"] = args.window_ms
     for name, attr in (("generations", "max_generations"), ("popsize", "popsize"), ("restarts", "restarts"), ("kernel_ms", "kernel_ms"),
                        ("sine_weight", "sine_weight"), ("count_weight", "count_weight"), ("refine", "refine"),
-                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("highpass", "highpass_hz"), ("refine_count_margins", "refine_count_margins"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"), ("film_limited_snr", "film_limited_snr"),
+                       ("refine_sine_count_weights", "refine_sine_count_weights"), ("highpass", "highpass_hz"),
+                       ("refine_count_margins", "refine_count_margins"), ("gate_factor", "gate_factor"), ("weak_signal_snr", "weak_signal_snr"),
+                       ("film_limited_snr", "film_limited_snr"),
                        ("noisy_st_noise", "noisy_st_noise_n"), ("max_ramp_conditions", "max_ramp_conditions"), ("workers", "workers")):
         v = getattr(args, name)
         if v is not None:
@@ -276,4 +278,3 @@ def _summary(res: FitResult, out: Path) -> None:
             print(f"  {c}: search loss start {s.start_loss:.4f} ({s.generations} generations, {s.evaluations} evaluations, {s.seconds:.0f} s), then")
         print(f"  {c}: {'refinement ' if f.search is not None else ''}loss start {f.start_loss:.4f} -> train {tr:.4f}, held-out {va} "
               f"({f.generations} generations, {f.evaluations} evaluations, {f.seconds:.0f} s)")
-
