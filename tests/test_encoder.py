@@ -206,7 +206,7 @@ def test_encoder_with_input_stage_is_chunk_invariant_and_reports_its_state():
         for x in range(3):
             np.testing.assert_array_equal(got.train(c, x), whole.train(c, x))
     state = enc.state_arrays()
-    assert state["input_filter"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
+    assert state["input_lowpass"].shape[0] == 2 * 3  # RA and PC columns of 3 taxels
     assert state["input_lead"].shape == (9, 30)  # 6 ms = 30 samples, one row per column
     assert all(np.isfinite(a).all() for a in state.values())
 

@@ -16,7 +16,7 @@ from touchreal.stream import StreamEncoder
 #: state that stays float64 by design: raw acquisition (sanitizers, history rings), the 100 Hz
 #: alpha-beta tracker, the PVDF low-pass + notch cascade (float32 notches err by ~1e-3 of the range)
 #: and the encoder's class low-pass, lead and membrane (float64 accumulators)
-FLOAT64_STATE = {"st_last", "pv_last", "st_hist", "pv_hist", "st_ab_v", "st_ab_x", "pv_filter", "lif_v", "input_filter", "input_lead"}
+FLOAT64_STATE = {"st_last", "pv_last", "st_hist", "pv_hist", "st_ab_v", "st_ab_x", "pv_filter", "lif_v", "input_lowpass", "input_highpass", "input_lead"}
 
 CHANNEL_BOUND = 1e-5  #: |float32 - float64| channel, fraction of the channel's range (documented bound)
 COUNT_BOUND = 0.01  #: |float32 - float64| spike count, fraction of float64's per class (documented bound)

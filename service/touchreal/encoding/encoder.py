@@ -55,16 +55,14 @@ def _lowpass_design(cutoff_hz: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=1024)
-def _input_design(lowpass_hz: float | None, highpass_hz: float | None, sections: int) -> tuple[np.ndarray, np.ndarray]:
-    """A class's input cascade of ``sections`` sections on the 5 kHz grid: the low-pass's
-    :data:`LOWPASS_SECTIONS`, then the high-pass's (when ``sections`` has room for it); a filter the
-    class does not have is identity sections. Returns the SOS and its unit-step steady state
-    (``sosfilt_zi``: a high-pass settles at 0)."""
-    sos = np.tile(_IDENTITY_SECTION, (sections, 1))
-    if lowpass_hz is not None:
-        sos[:LOWPASS_SECTIONS] = _lowpass_design(float(lowpass_hz))[0]
-    if highpass_hz is not None:
-        sos[LOWPASS_SECTIONS:] = signal.butter(HIGHPASS_ORDER, float(highpass_hz), btype="high", fs=OUT_FS_HZ, output="sos")
+def _input_design(lowpass_hz: float | None, highpass_hz: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """A class's input cascade on the 5 kHz grid: the low-pass's :data:`LOWPASS_SECTIONS` (identity
+    sections without one), then the high-pass's section when it has one. Returns the SOS and its
+    unit-step steady state (``sosfilt_zi``: a high-pass settles at 0)."""
+    if highpass_hz is None:
+        return _lowpass_design(float(lowpass_hz)) if lowpass_hz is not None else (np.zeros((0, 6)), np.zeros((0, 2)))
+    lp = _lowpass_design(float(lowpass_hz))[0] if lowpass_hz is not None else np.tile(_IDENTITY_SECTION, (LOWPASS_SECTIONS, 1))
+    sos = np.vstack([lp, signal.butter(HIGHPASS_ORDER, float(highpass_hz), btype="high", fs=OUT_FS_HZ, output="sos")])
     return sos, signal.sosfilt_zi(sos)
 
 
@@ -73,8 +71,7 @@ def class_filtered(channels: np.ndarray, lowpass_hz: float | None, highpass_hz: 
     if lowpass_hz is None and highpass_hz is None:
         return channels
     flat = np.asarray(channels, np.float64).reshape(channels.shape[0], -1)
-    sections = LOWPASS_SECTIONS + (highpass_hz is not None)
-    return SosFilter(_input_design(lowpass_hz, highpass_hz, sections)[0], flat.shape[1]).process(flat).reshape(channels.shape)
+    return SosFilter(_input_design(lowpass_hz, highpass_hz)[0], flat.shape[1]).process(flat).reshape(channels.shape)
 
 
 def rectify(channels: np.ndarray) -> np.ndarray:
@@ -88,14 +85,15 @@ TILE_TAXELS = 16  #: taxels the fused kernel copies at once (contiguous rows of 
 
 
 @numba.njit(cache=True, nogil=True)
-def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, head,
+def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, hp_sos, has_hp, hp_zi, lead, ring, head,
                     tau, ih, v_mem, counter, spikes, n_spikes, out, a, b):  # pragma: no cover - compiled
     """Input stage and LIF of columns a ... b - 1 fused: no current array; column n's spikes (grid
     sample within the block) go to ``spikes[n, :n_spikes[n]]``. With a non-empty ``out`` (N, T)
     the input current goes there instead and the LIF does not run (:meth:`InputStage.process`).
 
-    Per column: the class input filter (when has_filter[n]: the cascade sos[n], state zi[n], stepped by
-    :func:`~touchreal.preprocess.filters.sos_step` like every :class:`SosFilter`);
+    Per column: the class low-pass (when has_lp[n]: the cascade sos[n], state zi[n]) and high-pass
+    (when has_hp[n]: the section hp_sos[n], state hp_zi[n]), each stepped by
+    :func:`~touchreal.preprocess.filters.sos_step` like every :class:`SosFilter`;
     pos / neg = sum_j w[n, 2j] max(x_j, 0) / w[n, 2j+1] max(-x_j, 0); with lead[n] = L > 0 the
     positive part passes through ring[n, :L] (so it is taken from sample k - L); then
     ``I_sat I / (I_sat + |I|)`` where ``I_sat > 0``; then the LIF (tau, post-spike current ih,
@@ -111,6 +109,7 @@ def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, he
     tile = np.empty((n_t, TILE_TAXELS, N_CHANNELS))
     loaded = -1
     z = np.empty((1, sos.shape[1], 2, N_CHANNELS))
+    zh = np.empty((1, hp_sos.shape[1], 2, N_CHANNELS))
     v = np.empty(N_CHANNELS)
     for n in range(a, b):
         x0 = src[n] - src[n] % TILE_TAXELS
@@ -122,8 +121,10 @@ def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, he
                         tile[k, t, j] = channels[k, x0 + t, j]
             loaded = x0
         x = src[n] - x0
-        lp = has_filter[n]
+        lp = has_lp[n]
+        hp = has_hp[n]
         z[0] = zi[n]
+        zh[0] = hp_zi[n]
         n_lead = lead[n]
         h = head[n]
         s_max = i_sat[n]
@@ -136,6 +137,8 @@ def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, he
                 v[j] = tile[k, x, j]
             if lp:
                 sos_step(sos, n, v, z, 0, N_CHANNELS)
+            if hp:
+                sos_step(hp_sos, n, v, zh, 0, N_CHANNELS)
             pos = 0.0
             neg = 0.0
             for j in range(N_CHANNELS):  # branch-free (noise flips signs unpredictably); adding 0 keeps the bits
@@ -165,6 +168,7 @@ def _encode_columns(channels, src, w, i_sat, sos, has_filter, zi, lead, ring, he
                     spikes[n, count] = k
                 count += 1
         zi[n] = z[0]
+        hp_zi[n] = zh[0]
         head[n] = h
         v_mem[n] = vm
         counter[n] = c
@@ -196,17 +200,23 @@ class InputStage:
         n = len(params)
         self.w = np.array([p.weights for p in params], dtype=np.float64).reshape(n, 8)
         self.i_sat = np.array([p.i_sat for p in params], dtype=np.float64)
-        # one cascade per column: the low-pass's sections, plus a high-pass section when any column
-        # has one (identity sections stand in for a filter a column lacks, so its output keeps its bits)
-        self.has_filter = np.array([p.lowpass_hz is not None or p.highpass_hz is not None for p in params], dtype=np.bool_)
-        sections = LOWPASS_SECTIONS + any(p.highpass_hz is not None for p in params)
-        self.sos = np.zeros((n, sections, 6))
-        self._zi_unit = np.zeros((n, sections, 2))
+        # per column the low-pass's sections and the high-pass's one, stepped only where the column
+        # has that filter; the steady states are those of the whole cascade
+        self.has_lp = np.array([p.lowpass_hz is not None for p in params], dtype=np.bool_)
+        self.has_hp = np.array([p.highpass_hz is not None for p in params], dtype=np.bool_)
+        self.sos = np.zeros((n, LOWPASS_SECTIONS, 6))
+        self._zi_unit = np.zeros((n, LOWPASS_SECTIONS, 2))
+        self.hp_sos = np.zeros((n, 1, 6))
+        self._hp_zi_unit = np.zeros((n, 1, 2))
         for j, p in enumerate(params):
-            if self.has_filter[j]:
-                self.sos[j], self._zi_unit[j] = _input_design(p.lowpass_hz, p.highpass_hz, sections)
+            sos, zi = _input_design(p.lowpass_hz, p.highpass_hz)
+            if self.has_lp[j]:
+                self.sos[j], self._zi_unit[j] = sos[:LOWPASS_SECTIONS], zi[:LOWPASS_SECTIONS]
+            if self.has_hp[j]:
+                self.hp_sos[j], self._hp_zi_unit[j] = sos[LOWPASS_SECTIONS:], zi[LOWPASS_SECTIONS:]
         self.lead = np.array([int(round(p.negative_lead_ms * OUT_FS_HZ / 1000.0)) for p in params], dtype=np.int64)
-        self.zi = np.zeros((n, sections, 2, N_CHANNELS))
+        self.zi = np.zeros((n, LOWPASS_SECTIONS, 2, N_CHANNELS))
+        self.hp_zi = np.zeros((n, 1, 2, N_CHANNELS))
         self.ring = np.zeros((n, int(self.lead.max(initial=0))))
         self.head = np.zeros(n, dtype=np.int64)
         self.fresh = np.ones(n, dtype=np.bool_)  # columns whose state starts at their next first sample
@@ -218,8 +228,8 @@ class InputStage:
     def carry(self, old: "InputStage", old_rows: np.ndarray, new_rows: np.ndarray) -> None:
         """Continue columns ``old_rows`` of ``old`` as this stage's ``new_rows`` (same class
         parameters): their state is copied bit-exactly; the other columns start fresh."""
-        sections = min(old.zi.shape[1], self.zi.shape[1])  # a column without a high-pass: identity section, state 0
-        self.zi[new_rows, :sections] = old.zi[old_rows, :sections]
+        self.zi[new_rows] = old.zi[old_rows]
+        self.hp_zi[new_rows] = old.hp_zi[old_rows]
         lead = min(old.ring.shape[1], self.ring.shape[1])  # a column uses its own lead's first entries only
         self.ring[new_rows, :lead] = old.ring[old_rows, :lead]
         self.head[new_rows] = old.head[old_rows]
@@ -231,6 +241,7 @@ class InputStage:
         rows = np.flatnonzero(self.fresh)
         x = first[self.src[rows]]  # (R, 4)
         self.zi[rows] = self._zi_unit[rows, :, :, None] * x[:, None, None, :]
+        self.hp_zi[rows] = self._hp_zi_unit[rows, :, :, None] * x[:, None, None, :]
         pos = np.zeros(rows.size)
         for j in range(N_CHANNELS):  # left to right, as a row sum: the same bits for any set of rows
             pos = pos + np.maximum(x[:, j], 0.0) * self.w[rows, 2 * j]
@@ -263,7 +274,8 @@ class InputStage:
         else:
             work = n * x.shape[0]
         st = lif.state
-        split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_filter, self.zi, self.lead,
+        split_run(lambda a, b: _encode_columns(x, self.src, self.w, self.i_sat, self.sos, self.has_lp, self.zi, self.hp_sos,
+                                               self.has_hp, self.hp_zi, self.lead,
                                                self.ring, self.head, lif.tau, lif.ih, st.v, st.counter, spikes, counts, out, a, b),
                   n, work)
 
@@ -296,8 +308,10 @@ class InputStage:
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}
-        if self.has_filter.any():
-            out["filter"] = self.zi[self.has_filter]
+        if self.has_lp.any():
+            out["lowpass"] = self.zi[self.has_lp]
+        if self.has_hp.any():
+            out["highpass"] = self.hp_zi[self.has_hp]
         if self.ring.size:
             out["lead"] = self.ring
         return out
