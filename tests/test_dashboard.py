@@ -2,8 +2,13 @@
 against a real service on 127.0.0.1 with the simulated source.
 
 Needs Debian's chromium and chromium-driver (/usr/bin/chromium, /usr/bin/chromedriver; `.ci/run`
-installs them); skips with that reason where they are missing. Set TOUCHREAL_DASHBOARD_SCREENSHOT to
-a path to keep the screenshot (docs/img/dashboard.png is made that way).
+installs them); skips with that reason where they are missing. The browser resolves no host name
+(only 127.0.0.1 is reached), so a page that needs the internet fails here. The page runs under the
+service's Content-Security-Policy: a violation is an error in the browser log and fails the test.
+Set TOUCHREAL_DASHBOARD_SCREENSHOT to a path to keep the screenshot (docs/img/dashboard.png is
+made that way).
+
+tests/test_server_browser.py reuses :func:`browser`, :func:`wait_for` and :func:`csp_violations`.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ def test_dashboard_is_served_without_shadowing_the_api(tmp_path):
             js = http.get("/dashboard.js")
             assert page.status_code == 200 and "text/html" in page.headers["content-type"]
             assert '<canvas id="raster"' in page.text and js.status_code == 200
-            assert http.get("/protocol.js").status_code == 200 and http.get("/style.css").status_code == 200
+            assert all(http.get(f).status_code == 200 for f in ("/protocol.js", "/style.css", "/favicon.svg"))
             assert http.get("/v1/health").json()["status"] == "ok"
             assert http.get("/openapi.json").json()["info"]["title"] == "TouchReal"
             assert "swagger" in http.get("/docs").text.lower()
@@ -49,7 +54,8 @@ def browser(tmp_path):
     opts.binary_location = str(CHROMIUM)
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--disable-dev-shm-usage", "--window-size=1280,1000", f"--user-data-dir={tmp_path / 'chromium'}"):
+                 "--disable-dev-shm-usage", "--window-size=1280,1000", f"--user-data-dir={tmp_path / 'chromium'}",
+                 "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"):  # no network: no name resolves
         opts.add_argument(flag)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
@@ -61,14 +67,23 @@ def browser(tmp_path):
 
 
 def wait_for(driver, script: str, seconds: float = 30.0):
+    """The first truthy value of ``script`` in the page, polled every 0.2 s; fails after ``seconds``
+    with the dashboard's message list (if the page has one) and the browser log."""
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         value = driver.execute_script(script)
         if value:
             return value
         time.sleep(0.2)
-    page_log = driver.execute_script("return document.getElementById('log').innerText")
-    raise AssertionError(f"timed out waiting for: {script}\npage log:\n{page_log}")
+    page_log = driver.execute_script("const log = document.getElementById('log'); return log && log.innerText")
+    raise AssertionError(f"timed out waiting for: {script}\npage log:\n{page_log}\n"
+                         f"browser log:\n{driver.get_log('browser')}")
+
+
+def csp_violations(entries: list[dict]) -> list[dict]:
+    """The Content-Security-Policy violations among browser log entries (Chromium logs each one,
+    with source 'security')."""
+    return [e for e in entries if e.get("source") == "security" or "Content Security Policy" in e["message"]]
 
 
 def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser, tmp_path):
@@ -128,8 +143,9 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         wait_for(browser, "return document.getElementById('config').textContent.includes('window 64 ms')")
         assert svc.config_view()["window_ms"] == 64
 
-        errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE" and "401" not in e["message"]]
-    assert errors == []
+        entries = browser.get_log("browser")
+    assert csp_violations(entries) == []
+    assert [e for e in entries if e["level"] == "SEVERE" and "401" not in e["message"]] == []
     assert shot.stat().st_size > 10_000
     if os.environ.get("TOUCHREAL_DASHBOARD_SCREENSHOT"):
         shutil.copyfile(shot, os.environ["TOUCHREAL_DASHBOARD_SCREENSHOT"])
