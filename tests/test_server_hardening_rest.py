@@ -186,7 +186,8 @@ def test_hostile_bodies_get_422_naming_the_field_never_500(tmp_path):
             ("PATCH", "/v1/config", '{"loop":0}', ["body", "loop"]),
             ("PATCH", "/v1/config", '{"taxels":' + "9" * 900 + "}", ["body", "taxels"]),
             ("PATCH", "/v1/config", '{"taxels":' + "9" * 5000 + "}", ["body"]),
-            ("PATCH", "/v1/config", "[" * 30000 + "]" * 30000, ["body"]),
+            ("PATCH", "/v1/config", "[" * 8000 + "]" * 8000, ["body"]),  # within the route's 16 KiB
+            ("PUT", "/v1/params", "[" * 300000 + "]" * 300000, ["body"]),
             ("POST", "/v1/params/rollback", '{"rev":NaN}', ["body", "rev"]),
             ("POST", "/v1/params/rollback", '{"rev":1.0}', ["body", "rev"]),
         ]

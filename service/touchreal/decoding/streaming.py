@@ -38,11 +38,13 @@ class StreamingDecoder:
     Spikes of taxels not in ``taxels`` and of classes the model does not read are ignored.
     """
 
-    def __init__(self, model: DecoderModel, taxels: Sequence[int], threads: int = 1, start_us: int | None = None):
+    def __init__(self, model: DecoderModel, taxels: Sequence[int], threads: int = 1, start_us: int | None = None,
+                 session=None):
         self.model = model
         self.binner = StreamBinner.from_metadata(model.meta, taxels, start_us)
         self.taxels = self.binner.taxels
-        self._session = model.session(threads)
+        #: the model's onnxruntime session: ``session`` if given (one kept across decoders of the same model)
+        self._session = session if session is not None else model.session(threads)
         self._state = model.initial_state(self.taxels.size)
 
     @property

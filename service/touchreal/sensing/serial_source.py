@@ -18,6 +18,9 @@ fed every frame's newest sample time and its arrival on the host's monotonic clo
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import os
 import threading
 import time
 from collections import deque
@@ -111,6 +114,30 @@ class SampleCollector:
             x = np.concatenate([g[1] for g in got]).astype(np.float64) if got else np.zeros((0, self.n_taxels))
             parts += [t, x]
         return RawChunk(*parts)
+
+
+def check_device(port: str) -> None:
+    """Raise ValueError, saying why, unless ``port`` is a serial device this process could open now:
+    it exists, is a terminal (a TTY; ``/dev/null`` or a file is not) and nobody holds it exclusively
+    (pyserial's ``exclusive=True`` lock, or ``TIOCEXCL``)."""
+    try:
+        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise ValueError(f"serial device {port} not found") from None
+    except OSError as exc:
+        if exc.errno == errno.EBUSY:
+            raise ValueError(f"serial device {port} is busy (another program holds it exclusively)") from None
+        raise ValueError(f"serial device {port} cannot be opened: {exc.strerror}") from None
+    try:
+        if not os.isatty(fd):
+            raise ValueError(f"{port} is not a serial device (not a terminal)")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"serial device {port} is busy (another program has it open)") from None
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
 
 
 class SerialSource:

@@ -18,6 +18,8 @@ from touchreal_client.protocol import MAX_CLIENT_MESSAGE_BYTES
 
 from .. import __version__
 from . import rest, ws
+from .api_docs import add_docs
+from .browser import SecurityHeaders, server_error
 from .limits import uvicorn_limits
 from .security import BodyGuard, validation_error
 from .service import Service
@@ -57,14 +59,20 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
         description="REST configuration and parameter uploads; the spike stream is the WebSocket `/v1/stream` "
         "(docs/stream-protocol.md).",
         lifespan=lifespan,
+        docs_url=None,  # add_docs: an offline Swagger UI under a strict CSP
+        redoc_url=None,
     )
     app.state.service = service
     app.state.allowed_origins = service.settings.allowed_origins  # /v1/stream's Origin check (security.admit)
     app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_middleware(BodyGuard, token=lambda: service.settings.token, max_body_bytes=service.settings.max_body_bytes)
-    app.add_middleware(TrustedHostMiddleware, allowed_hosts=service.settings.allowed_hosts)  # outermost: first
+    app.add_exception_handler(Exception, server_error)
+    app.add_middleware(BodyGuard, token=lambda: service.settings.token, max_body_bytes=service.settings.max_body_bytes,
+                       on_auth=service.metrics.count_auth)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=service.settings.allowed_hosts)  # first check
+    app.add_middleware(SecurityHeaders)  # outermost: a refused Host's 400 carries the headers too
     app.include_router(rest.router)
     app.include_router(ws.router)
+    add_docs(app)
     # last: routes match in order, so /v1, /metrics, /docs and /openapi.json are never shadowed
     app.mount("/", StaticFiles(directory=DASHBOARD_DIR, html=True), name="dashboard")
     return app

@@ -174,14 +174,25 @@ def limits(settings) -> dict[str, int | float]:
     return {"max_message_bytes": P.MAX_CLIENT_MESSAGE_BYTES, "queue_frames": settings.queue_frames,
             "slow_timeout_s": settings.slow_timeout_s, "control_messages": P.CONTROL_QUEUE_MESSAGES,
             "control_bytes": P.CONTROL_QUEUE_BYTES, "max_errors_in_a_row": P.MAX_ERRORS_IN_A_ROW,
+            "control_rate_per_s": P.CONTROL_RATE_PER_S, "control_burst": P.CONTROL_BURST,
+            "control_bytes_per_s": P.CONTROL_BYTES_PER_S, "control_burst_bytes": P.CONTROL_BURST_BYTES,
             "max_clients": settings.max_clients, "ping_interval_s": settings.ping_interval_s,
             "ping_timeout_s": settings.ping_timeout_s, "max_frame_age_ms": settings.max_frame_age_ms}
 
 
 class Hub:
-    """All subscribers of one service; lives on the event loop."""
+    """All subscribers of one service; lives on the event loop.
 
-    def __init__(self, capacity: int, slow_timeout_s: float, max_age_s: float | None = MAX_AGE_S):
+    Subscription changes take effect in the rendering at once, and in the :attr:`demand` (what the
+    pipeline computes) at most once per ``refresh_s``: changes that arrive closer together are
+    coalesced into one rebuild (:meth:`demand_changed`), so no client can make the demand churn
+    faster than the updates it feeds."""
+
+    def __init__(self, capacity: int, slow_timeout_s: float, max_age_s: float | None = MAX_AGE_S,
+                 refresh_s: float = 0.005, clock: Callable[[], float] = time.monotonic):
+        self.refresh_s, self.clock = refresh_s, clock
+        self._refreshed_at = -float("inf")
+        self._refresh: asyncio.TimerHandle | None = None
         self.capacity = capacity
         self.slow_timeout_s = slow_timeout_s
         self.max_age_s = max_age_s
@@ -205,7 +216,7 @@ class Hub:
 
     def remove(self, sub: Subscriber) -> None:
         if self.subscribers.pop(sub.id, None) is not None and sub.subscription is not None:
-            self.refresh_demand()
+            self.demand_changed()
 
     def broadcast(self, text: str) -> None:
         """A control message (``hello``, ``clock``) for every client."""
@@ -215,7 +226,23 @@ class Hub:
 
     def subscribe(self, sub: Subscriber, subscription: P.Subscription | None) -> None:
         sub.subscription = subscription
-        self.refresh_demand()
+        self.demand_changed()
+
+    def demand_changed(self) -> None:
+        """Rebuild the demand now, or, if it was rebuilt less than ``refresh_s`` ago, once that much
+        time has passed (a rebuild already scheduled covers this change too). Without a running event
+        loop (sans-I/O use) it is rebuilt at once."""
+        if self._refresh is not None:
+            return
+        wait = self._refreshed_at + self.refresh_s - self.clock()
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            wait = 0.0
+        if wait <= 0:
+            self.refresh_demand()
+        else:
+            self._refresh = loop.call_later(wait, self.refresh_demand)
 
     def admit(self, msg: Mapping) -> P.Subscription:
         """A subscribe message as a subscription of what is served. Without ``classes`` it asks for
@@ -247,6 +274,10 @@ class Hub:
         self.refresh_demand()
 
     def refresh_demand(self) -> None:
+        if self._refresh is not None:
+            self._refresh.cancel()
+            self._refresh = None
+        self._refreshed_at = self.clock()
         subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
         self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes)
 

@@ -1,8 +1,10 @@
-"""Connection limits of the HTTP server (uvicorn): the keyword arguments from the settings, the
+"""Connection limits of the HTTP server (uvicorn): the keyword arguments from the settings; the
 request-head timeout uvicorn lacks (it only times out idle keep-alive connections, so a client that
-opens connections and never finishes its headers would hold their descriptors forever), and a
-bounded kernel send buffer per connection (with Linux's autotuning a slow WebSocket reader's frames
-wait seconds in the kernel, where the hub's frame age limit cannot drop them)."""
+opens connections and never finishes its headers would hold their descriptors forever); a bounded
+kernel send buffer per connection (with Linux's autotuning a slow WebSocket reader's frames wait
+seconds in the kernel, where the hub's frame age limit cannot drop them); and which peers'
+``X-Forwarded-For`` is believed (none by default, so a client cannot choose the address its failed
+logins are counted under)."""
 
 from __future__ import annotations
 
@@ -56,5 +58,7 @@ def uvicorn_limits(settings: ServeSettings) -> dict[str, Any]:
     """uvicorn.Config keyword arguments for the settings' connection limits."""
     protocol = type("HeadTimeoutH11Protocol", (HeadTimeoutH11Protocol,), {"head_timeout_s": settings.header_timeout_s,
                                                                           "send_buffer_bytes": settings.send_buffer_bytes})
+    proxies = list(settings.forwarded_allow_ips)
     return {"http": protocol, "timeout_keep_alive": settings.keep_alive_s,
-            "h11_max_incomplete_event_size": settings.max_header_bytes, "limit_concurrency": settings.limit_concurrency}
+            "h11_max_incomplete_event_size": settings.max_header_bytes, "limit_concurrency": settings.limit_concurrency,
+            "proxy_headers": bool(proxies), "forwarded_allow_ips": proxies or None}

@@ -8,6 +8,7 @@ from touchreal_client.protocol import CLASSES
 
 from .hub import DROP_REASONS
 
+AUTH_OUTCOMES = ("failure", "throttled")
 _LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3, 0.5, 1.0)
 _COMPUTE_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 
@@ -36,13 +37,22 @@ class Metrics:
                                 "they read the replies (4029)", registry=r)
         self.faults = Gauge("touchreal_input_faults", "cumulative input faults (sanitizer: NaN/Inf, gaps, ...; "
                             "serial: CRC errors, gaps, resyncs, reconnects)", ["kind"], registry=r)
+        self.auth = Counter("touchreal_auth_refused", "write requests refused at authentication (failure: a wrong "
+                            "or missing token; throttled: 429 to a peer in back-off after repeated failures)",
+                            ["outcome"], registry=r)
         self.source_state = Gauge("touchreal_source_state", "1 for the source's current state", ["state"], registry=r)
         self.ready = Gauge("touchreal_ready", "1 when the source delivers and the pipeline is warm", registry=r)
         for c in CLASSES:
             self.events.labels(c)
         for reason in DROP_REASONS:
             self.drops.labels(reason)
+        for outcome in AUTH_OUTCOMES:
+            self.auth.labels(outcome)
 
     def count_drop(self, reason: str, frames: int) -> None:
         """A hub's ``on_drop``: frames dropped for a client, by reason."""
         self.drops.labels(reason).inc(frames)
+
+    def count_auth(self, outcome: str) -> None:
+        """A body guard's ``on_auth``: one refused write, by outcome (:data:`AUTH_OUTCOMES`)."""
+        self.auth.labels(outcome).inc()

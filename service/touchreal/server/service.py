@@ -35,6 +35,7 @@ from .. import __version__
 from ..decoding.model import ModelStore, params_warning
 from ..dryrun import prove_runnable
 from ..params import EncoderParams, ParamsError
+from ..redaction import redact
 from .hub import Hub, limits
 from .metrics import Metrics
 from .params_store import ParamsStore
@@ -84,7 +85,8 @@ class Service:
         self.store = ParamsStore(settings.state_dir, settings.params)
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
-        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None)
+        self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None,
+                       refresh_s=settings.hop_ms / 1000)
         self.hub.on_drop = self.metrics.count_drop
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -104,6 +106,8 @@ class Service:
         self._lost: dict[tuple[str, str | None], int] = {}
         self.source_error: str | None = None
         self.ended: dict[str, Any] | None = None  #: the ``ended`` message once the source has ended (a finished replay)
+        #: decoder name -> (its file's identity, the loaded model, its session): :meth:`_make_decoder`
+        self._decoder_models: dict[str, tuple[tuple, Any, Any]] = {}
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -157,13 +161,15 @@ class Service:
         """The source's hop (ms): ``hop_ms``, at most the update interval."""
         return min(self.settings.hop_ms, self.store.active.preprocess.update_ms)
 
-    async def _open_runtime(self) -> str | None:
-        """Open the configured source and start the runtime on it; returns why it could not open (None: it did)."""
+    async def _open_runtime(self, device_present: bool = False) -> str | None:
+        """Open the configured source and start the runtime on it; returns why it could not open (None: it
+        did). ``device_present``: a serial device must be there and free now (:func:`.sources.open_source`)."""
         try:
-            source = await asyncio.to_thread(open_source, self.config, self.settings, self.hop_ms() / 1000.0)
+            source = await asyncio.to_thread(open_source, self.config, self.settings, self.hop_ms() / 1000.0,
+                                             device_present)
         except (ValueError, OSError) as exc:
             self.source_error = str(exc)
-            log.error("cannot open source %s: %s", self.config.source, exc)
+            log.error("cannot open source %s: %s", redact(self.config.source), redact(str(exc)))
             return self.source_error
         self.source_error, self.ended = None, None
         self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
@@ -175,10 +181,10 @@ class Service:
         self.announce_hello()  # the address map may have changed: say it again
         return None
 
-    async def restart_source(self) -> str | None:
+    async def restart_source(self, device_present: bool = False) -> str | None:
         """Close and reopen the source; returns why it could not open (None: it did)."""
         await self.stop()
-        return await self._open_runtime()
+        return await self._open_runtime(device_present)
 
     # -- acquisition thread -> event loop ------------------------------------------------------------
     def _post(self, upd: Update) -> None:
@@ -360,22 +366,35 @@ class Service:
         return out
 
     def _make_decoder(self, name: str, taxels: tuple[int, ...]):
-        """Called on the acquisition thread when a decoder becomes demanded."""
+        """Called on the acquisition thread when a decoder becomes demanded. The model and its
+        onnxruntime session are loaded once per model file (kept while the file is unchanged), so a
+        client that toggles a decoder on and off costs a binner, not a model load."""
         from ..decoding.streaming import StreamingDecoder
 
-        model = self.models.load(name)
-        warning = params_warning(model.meta, self.store.active)
-        if warning:
-            log.warning(warning)
-        return StreamingDecoder(model, taxels, threads=1)
+        path = self.models.path(name)
+        stat = path.stat()
+        key = (str(path), stat.st_mtime_ns, stat.st_size)
+        cached = self._decoder_models.get(name)
+        if cached is None or cached[0] != key:
+            model = self.models.load(name)
+            warning = params_warning(model.meta, self.store.active)
+            if warning:
+                log.warning(warning)
+            cached = self._decoder_models[name] = (key, model, model.session(1))
+        _, model, session = cached
+        return StreamingDecoder(model, taxels, session=session)
 
     def status(self) -> dict[str, Any]:
+        """``GET /v1/status``; the source's spec, its texts and the pipeline's error go through
+        :func:`~touchreal.redaction.redact` (a URL source or port may carry credentials)."""
         rt = self.runtime
         src = rt.source.status() if rt is not None else {"state": "failed", "error": self.source_error}
+        error = rt.error if rt else self.source_error
         return {
             "session": self.session,
-            "source": {"spec": self.config.source, **src},
-            "pipeline": {"state": rt.state if rt else "stopped", "error": rt.error if rt else self.source_error,
+            "source": {k: redact(v) if isinstance(v, str) else v
+                       for k, v in {"spec": self.config.source, **src}.items()},
+            "pipeline": {"state": rt.state if rt else "stopped", "error": error and redact(error),
                          "updates": rt.update_no if rt else 0, "active": rt.active if rt else None},
             "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
                        "channel_taxels": list(self.hub.demand.channel_taxels),
@@ -394,9 +413,9 @@ class Service:
             return False, "warming up (compiling the pipeline, opening the source)"
         rt = self.runtime
         if rt is None:
-            return False, f"source not open: {self.source_error}"
+            return False, redact(f"source not open: {self.source_error}")
         if rt.state in ("failed", "stopped"):
-            return False, f"pipeline {rt.state}: {rt.error}"
+            return False, redact(f"pipeline {rt.state}: {rt.error}")
         st = rt.source.status().get("state")
         if st != "streaming":
             return False, f"source {st}"
@@ -413,7 +432,8 @@ class Service:
 
     def config_view(self) -> dict[str, Any]:
         p = self.store.active.preprocess
-        return {**self.config.model_dump(), "update_ms": p.update_ms, "window_ms": p.window_ms}
+        return {**self.config.model_dump(), "source": redact(self.config.source), "update_ms": p.update_ms,
+                "window_ms": p.window_ms}
 
     # -- changes --------------------------------------------------------------------------------
     async def patch_config(self, patch: ConfigPatch) -> dict[str, Any]:
@@ -440,11 +460,12 @@ class Service:
         source_change = any(getattr(cfg, k) != getattr(old, k) for k in ("source", "taxels", "speed", "loop"))
         self.config = cfg
         if source_change or "update_ms" in pre:
-            error = await self.restart_source()
+            error = await self.restart_source(device_present=source_change)
             if error is not None and source_change:
                 self.config = old
                 await self.restart_source()
-                raise SourceOpenError(f"cannot open source: {error} (the previous source {old.source!r} runs again)")
+                raise SourceOpenError(redact(f"cannot open source: {error} (the previous source {old.source!r} runs "
+                                             "again)"))
             restarted.append("source")
         elif "classes" in changes:
             self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())

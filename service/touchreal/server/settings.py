@@ -70,6 +70,9 @@ class ServeSettings(BaseSettings):
                                      "values served (others: 400), e.g. the name behind a proxy; * = any")
     allowed_origins: CommaList = Field(default_factory=list, description="browser origins (scheme://host[:port]) "
                                        "that may open /v1/stream besides the service's own; * = any")
+    forwarded_allow_ips: CommaList = Field(default_factory=list, description="addresses of reverse proxies whose "
+                                           "X-Forwarded-For names the client (failed logins are throttled per client "
+                                           "address); empty = the TCP peer is the client")
     data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list, description="folders under which PATCH /v1/config may "
                                   "open replay: datasets, besides STATE_DIR/datasets and serve's own --source folder")
     serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
@@ -112,7 +115,7 @@ class ServeSettings(BaseSettings):
             return None
         return v
 
-    @field_validator("allowed_hosts", "allowed_origins", "data_roots", mode="before")
+    @field_validator("allowed_hosts", "allowed_origins", "forwarded_allow_ips", "data_roots", mode="before")
     @classmethod
     def _comma_list(cls, v: object) -> object:
         return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v

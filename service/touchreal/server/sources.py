@@ -51,9 +51,11 @@ def confine_source(spec: str, data_roots: Sequence[Path], serial_urls: bool) -> 
             raise SourceRefused("serial: takes a device path under /dev (or a link to one)")
 
 
-def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float) -> LiveSource:
+def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float, device_present: bool = False) -> LiveSource:
     """Open the source a config names, handing over samples every ``hop_s`` (raises ValueError/OSError
-    with a clear message)."""
+    with a clear message). A serial device that is absent at start is waited for (it reconnects on
+    unplug anyway), unless ``device_present``: then a device that is missing, not a terminal or busy
+    is refused at once (a client's source change)."""
     kind, arg = parse_source(config.source)
     if kind == "sim":
         return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s, own_process=True)
@@ -63,6 +65,8 @@ def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float) ->
             raise ValueError(f"replay dataset folder not found: {folder}")
         trial_ids = [t for t in ids.split(",") if t] or None
         return ReplayLiveSource(Dataset.open(folder), trial_ids, hop_s, config.speed, config.loop)
-    from ..sensing.serial_source import SerialSource
+    from ..sensing.serial_source import SerialSource, check_device
 
+    if device_present and "://" not in arg:
+        check_device(arg)
     return SerialSource(arg, n_taxels=config.taxels, update_s=hop_s, allow_urls=settings.serial_urls)

@@ -1,7 +1,8 @@
 """``/v1/stream``: the WebSocket layer over one :class:`~.hub.Subscriber` (docs/stream-protocol.md).
 
-Two tasks per connection: this handler reads client messages, and a sender task is the only writer
-(control replies first, then frames). A client that stalls is closed from here when the hub marks
+Two tasks per connection: this handler reads client messages, no faster than the connection's
+:class:`~.budget.ControlBudget` allows, and a sender task is the only writer (control replies
+first, then frames). A client that stalls is closed from here when the hub marks
 it (``kicked``), even while the sender is stuck in a send.
 """
 
@@ -16,6 +17,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect
 from touchreal_client import protocol as P
 
+from .budget import ControlBudget
 from .hub import Subscriber
 from .runtime import wall_us
 from .security import admit
@@ -78,7 +80,13 @@ async def stream(ws: WebSocket) -> None:
 async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio.Task,
                         kicked: asyncio.Task) -> tuple[int, str] | None:
     errors = 0
+    budget = ControlBudget()
+    wait = 0.0
     while True:
+        if wait > 0:  # over its budget: the next message stays in the network until the budget refills
+            done, _ = await asyncio.wait({sender, kicked}, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
+            if done:
+                return sub.kick if kicked in done else None
         recv = asyncio.ensure_future(ws.receive())
         done, _ = await asyncio.wait({recv, sender, kicked}, return_when=asyncio.FIRST_COMPLETED)
         if recv not in done or len(done) > 1:  # a kick wins over a message that arrived with it
@@ -89,6 +97,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
             return None
         t1 = wall_us()
         text = msg.get("text")
+        wait = budget.charge(len(text if text is not None else msg.get("bytes") or b""))
         try:
             if text is None:
                 raise P.ProtocolError("binary messages from clients are not part of the protocol; send JSON text")

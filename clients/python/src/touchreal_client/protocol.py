@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 from typing import Any
@@ -42,6 +43,13 @@ MAX_ERRORS_IN_A_ROW = 10  #: this many refused messages in a row close the conne
 #: bytes; a client that sends requests faster than it reads the replies is closed (CLOSE_FLOODING).
 CONTROL_QUEUE_MESSAGES = 256
 CONTROL_QUEUE_BYTES = 1 << 20
+#: The server reads a client's messages no faster than this budget (a token bucket per connection, in
+#: messages and in bytes: rate per second, burst); beyond it the messages wait in the network, nothing
+#: is dropped or closed, so one client's requests cannot take another's share of the server.
+CONTROL_RATE_PER_S = 50
+CONTROL_BURST = 100
+CONTROL_BYTES_PER_S = 256 * 1024
+CONTROL_BURST_BYTES = 256 * 1024
 
 # frame kinds
 KIND_SPIKES = 1
@@ -392,6 +400,10 @@ def _refuse_constant(name: str) -> Any:
     raise ProtocolError(f"{name} is not valid JSON: numbers must be finite")
 
 
+#: a run of more digits than an integer literal may have (str and bytes messages)
+_LONG_DIGITS = {str: re.compile("[0-9]{%d}" % (MAX_INT_DIGITS + 1)), bytes: re.compile(b"[0-9]{%d}" % (MAX_INT_DIGITS + 1))}
+
+
 def _bounded_int(literal: str) -> int:
     if len(literal.lstrip("-")) > MAX_INT_DIGITS:
         raise ProtocolError(f"an integer of {len(literal)} digits; at most {MAX_INT_DIGITS} are accepted")
@@ -411,8 +423,12 @@ def parse_client_message(text: str | bytes) -> dict[str, Any]:
     nesting; anything else raises :class:`ProtocolError` (``bad_message``), never another exception."""
     if len(text) > MAX_CLIENT_MESSAGE_BYTES:
         raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_CLIENT_MESSAGE_BYTES}", "too_big")
+    # the integer hook costs a Python call per integer (5 ms for a 64 KiB taxel list): only texts with a
+    # run of more digits than an integer may have need it
+    long_digits = _LONG_DIGITS[str if isinstance(text, str) else bytes].search(text)
+    bounded = {"parse_int": _bounded_int} if long_digits else {}
     try:
-        msg = json.loads(text, parse_constant=_refuse_constant, parse_int=_bounded_int, parse_float=_finite_float)
+        msg = json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float, **bounded)
     except ProtocolError:
         raise
     except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError; nesting past the stack limit

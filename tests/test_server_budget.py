@@ -1,0 +1,194 @@
+"""A fair control plane: each connection's messages are read within a budget (server/budget.py) and
+subscription changes reach the pipeline's demand at most once per hop (Hub.demand_changed), so one
+client's requests cannot cut another's frame rate or raise its latency."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import statistics
+import sys
+import time
+
+import numpy as np
+from server_harness import connect, hello_and_subscribe, running_server, until
+from touchreal_client import protocol as P
+from touchreal_client.clock import ClockMap
+
+from touchreal.server.budget import ControlBudget, TokenBucket
+from touchreal.server.hub import Hub
+from touchreal.server.settings import RuntimeConfig
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_a_token_bucket_lets_a_burst_through_then_paces_to_its_rate():
+    clock = FakeClock()
+    bucket = TokenBucket(rate=10.0, burst=3.0, clock=clock)
+    assert [bucket.charge(1) for _ in range(3)] == [0.0, 0.0, 0.0]
+    assert bucket.charge(1) == 0.1  # one over: wait a tenth of a second
+    clock.t += 0.1
+    assert bucket.charge(1) == 0.1  # the refill paid the debt; this one is over again
+    clock.t += 10.0
+    assert bucket.charge(0) == 0.0 and bucket.tokens == 3.0  # saves up to the burst, no more
+
+
+def test_a_control_budget_paces_by_messages_and_by_bytes():
+    clock = FakeClock()
+    budget = ControlBudget(clock)
+    waits = [budget.charge(10) for _ in range(P.CONTROL_BURST + 1)]
+    assert waits[:-1] == [0.0] * P.CONTROL_BURST and waits[-1] == 1 / P.CONTROL_RATE_PER_S
+    clock.t += 100.0
+    big = [budget.charge(P.MAX_CLIENT_MESSAGE_BYTES) for _ in range(5)]
+    over = 5 * P.MAX_CLIENT_MESSAGE_BYTES - P.CONTROL_BURST_BYTES
+    assert big[:4] == [0.0] * 4 and big[-1] == over / P.CONTROL_BYTES_PER_S
+
+
+def test_subscription_changes_within_the_refresh_interval_are_one_demand_rebuild():
+    async def go():
+        clock = FakeClock()
+        hub = Hub(16, 2.0, refresh_s=0.05, clock=clock)
+        hub.configure(4, P.CLASSES, {})
+        clock.t += 1.0  # long after configure's rebuild
+        sub = hub.add()
+        builds = []
+        original = hub.refresh_demand
+
+        def counted() -> None:
+            builds.append(time.monotonic())
+            original()
+
+        hub.refresh_demand = counted
+        hub.subscribe(sub, P.Subscription(taxels=[0], classes=["SA1"]))  # the first change applies at once
+        assert hub.demand.columns == {"SA1": (0,)}
+        for t in range(1, 4):
+            hub.subscribe(sub, P.Subscription(taxels=[t], classes=["RA"]))
+        assert hub.demand.columns == {"SA1": (0,)}  # not yet: coalesced
+        await until(lambda: len(builds) == 2, 5, "the coalesced rebuild")
+        assert hub.demand.columns == {"RA": (3,)}  # the latest wins
+        assert builds[1] - builds[0] >= 0.045  # scheduled one interval after the first
+
+    asyncio.run(asyncio.wait_for(go(), 10))
+
+
+async def _steady(addr: str, seconds: float) -> tuple[float, list[float]]:
+    """A client of SA1 and RA spikes for ``seconds``: (spikes frames per second, the latency of each
+    spike in ms: its receipt minus the acquisition of its causing sample, mapped by the stream's
+    clock model on this client's clock)."""
+    async with connect(addr) as ws:
+        hello, _ = await hello_and_subscribe(ws, classes=["SA1", "RA"])
+        delay = np.array([hello["delay_us"].get(c, 0) for c in P.CLASSES], np.float64)
+        clock, frames, latency = ClockMap(), 0, []
+        if hello.get("clock"):
+            clock.update({"type": "clock", **hello["clock"]})
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                msg = await asyncio.wait_for(ws.recv(), left)
+            except asyncio.TimeoutError:
+                break
+            recv_us = time.time_ns() / 1000
+            if isinstance(msg, str):
+                m = json.loads(msg)
+                if m["type"] == "clock":
+                    clock.update(m)
+                continue
+            f = P.decode_frame(msg)
+            frames += 1
+            if f.t_us.size and clock.last is not None:
+                cause = f.t_us.astype(np.float64) - delay[f.cls]
+                latency.extend((recv_us - clock.to_local_us(cause)) / 1000.0)
+        return frames / seconds, latency
+
+
+#: Another client, in a process of its own (so its own work does not compete with the server's thread
+#: for this process's interpreter lock); argv = host:port, kind, seconds, mode; it reads everything the
+#: server sends and prints how many messages it sent. ``toggle`` switches decoded outputs on and off
+#: (``{"streams": ["decoded"]}`` / ``{"streams": []}``), each after the reply to the last; ``largest``
+#: sends the largest subscription that fits a message (a taxel list near 64 KiB), alternating two of
+#: them without waiting for replies. In mode ``hold`` it sends its first message once and keeps it: the
+#: same load on the service (decoders computing, a second subscriber), without the flood.
+CLIENT = """
+import asyncio, json, sys, time
+import websockets
+
+async def main(addr, kind, seconds, mode):
+    if kind == "toggle":
+        msgs = [json.dumps({"type": "subscribe", "streams": s}) for s in (["decoded"], [])]
+    else:
+        msgs = [json.dumps({"type": "subscribe", "classes": ["SA1"], "taxels": [t] * 21000}) for t in (1, 2)]
+        assert all(len(m) < 65536 for m in msgs)
+    async with websockets.connect(f"ws://{addr}/v1/stream", compression=None, max_queue=None) as ws:
+        replies = asyncio.Queue()
+
+        async def read():
+            async for msg in ws:
+                if isinstance(msg, str) and json.loads(msg)["type"] in ("subscribed", "error"):
+                    assert json.loads(msg)["type"] == "subscribed", msg
+                    replies.put_nowait(msg)
+
+        reader = asyncio.create_task(read())
+        end, n = time.monotonic() + seconds, 0
+        while time.monotonic() < end and not reader.done():
+            if n and mode == "hold":
+                await asyncio.sleep(0.05)
+                continue
+            await ws.send(msgs[n % 2])
+            if kind == "toggle":
+                await replies.get()
+            n += 1
+        assert not reader.done(), reader
+        reader.cancel()
+    print(n)
+
+asyncio.run(main(sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]))
+"""
+
+
+async def _others(addr: str, mode: str, seconds: float) -> list[asyncio.subprocess.Process]:
+    """The two other clients (:data:`CLIENT`), ``hold`` or ``flood``, for ``seconds``."""
+    return [await asyncio.create_subprocess_exec(sys.executable, "-c", CLIENT, addr, kind, str(seconds), mode,
+                                                 stdout=asyncio.subprocess.PIPE) for kind in ("toggle", "largest")]
+
+
+async def _sent(procs: list[asyncio.subprocess.Process]) -> list[int]:
+    out = [int((await p.communicate())[0]) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0]
+    return out
+
+
+def test_a_steady_clients_frame_rate_and_latency_hold_while_another_floods_subscriptions(tmp_path):
+    """The steady client is measured while two other clients hold their subscriptions (decoded
+    outputs on; a 64 KiB taxel list), then while the same clients flood: decoded toggled on and off
+    as fast as the server answers, and the largest subscription re-sent as fast as the socket takes
+    it. Its frame rate and median latency hold within 10 %."""
+    with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
+
+        async def go():
+            await until(lambda: svc.ready()[0], 60, "the service to be ready")
+            results = {}
+            for mode in ("hold", "flood"):
+                others = await _others(addr, mode, 7.0)
+                await until(lambda: len(svc.hub.subscribers) == 2 and all(
+                    s.subscription is not None for s in svc.hub.subscribers.values()), 20, "the other clients")
+                await _steady(addr, 1.0)  # settle: decoders and columns the others demand are running
+                results[mode] = (await _steady(addr, 4.0), await _sent(others))
+                await until(lambda: not svc.hub.subscribers, 20, "the other clients to leave")
+            return results
+
+        results = asyncio.run(asyncio.wait_for(go(), 120))
+    (rate0, lat0), _ = results["hold"]
+    (rate1, lat1), (toggles, large) = results["flood"]
+    # the flooders were paced by their budgets, not refused: both kept sending throughout
+    assert toggles >= 7 * 10 and large >= 7 * 2, (toggles, large)
+    assert toggles <= (7 + 1) * P.CONTROL_RATE_PER_S + P.CONTROL_BURST  # paced: unpaced it is thousands
+    assert len(lat0) >= 20 and len(lat1) >= 20, (len(lat0), len(lat1))
+    lat0, lat1 = statistics.median(lat0), statistics.median(lat1)
+    assert rate1 >= 0.9 * rate0, (rate0, rate1)
+    assert lat1 <= 1.1 * lat0, (lat0, lat1)
