@@ -95,13 +95,14 @@ def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp
                 h2, _ = await hello_and_subscribe(w2, streams=["spikes", "channels"])  # everything
                 await hello_and_subscribe(direct, streams=["spikes", "channels"])
                 await until(lambda: len(pub.demand.gateways) == 2, 10, "both gateways' demand reached the publisher")
-                demand = dict(svc.hub.demand.columns)
+                await until(lambda: dict(svc.hub.demand.columns) == {c: (0, 1, 2, 3) for c in P.CLASSES}, 10,
+                            "the service computes the union of both")
                 f1, f2, fd = await asyncio.gather(collect(w1, 3.0), collect(w2, 3.0), collect(direct, 3.0))
             # the gateways withdraw their demand as soon as their clients leave: the publisher no longer subscribes
             await until(lambda: not pub.demand.gateways, 10, "the gateways withdrew their demand")
-            return h1, h2, demand, f1, f2, fd, [s.subscription for s in pub.lanes.values()]
+            return h1, h2, f1, f2, fd, [s.subscription for s in pub.lanes.values()]
 
-        h1, h2, demand, f1, f2, fd, after = run(go())
+        h1, h2, f1, f2, fd, after = run(go())
     # channels (decimation 25 of the 5 kHz grid) through the gateway equal the service's own
     ch_direct = {f.header.update: f for f in fd if isinstance(f, P.ChannelsFrame)}
     ch_gw = [f for f in f2 if isinstance(f, P.ChannelsFrame) and f.header.update in ch_direct]
@@ -114,7 +115,7 @@ def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp
     f2, fd = _spikes(f2), _spikes(fd)
     assert h1["session"] == h2["session"] == svc.session and len(h1["taxels"]) == 4
     assert set(h1["streams"]) == {"spikes", "channels", "decoded"} and "gateway" in h1["server"]
-    assert demand == {c: (0, 1, 2, 3) for c in P.CLASSES} and after == [None, None]
+    assert after == [None, None]
     f1 = _spikes(f1)
     assert _consecutive(f1)
     for frames in (f1, f2):
@@ -271,24 +272,26 @@ def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path
         port = natsd.free_port()
 
         async def first_life():
-            with gateway(nats_url, port=port) as (ga, _g1):
+            with gateway(nats_url, port=port) as (ga, g1):
                 async with connect(ga) as ws:
                     hello, _ = await hello_and_subscribe(ws)
-                    return hello, _spikes(await collect(ws, 1.5))
+                    return hello, _spikes(await collect(ws, 1.5)), g1.id
 
         async def go():
             async with connect(gb) as steady:
                 await hello_and_subscribe(steady)
                 collecting = asyncio.create_task(collect(steady, 6.0))
-                h1, f1 = await first_life()  # the gateway goes away with its client...
+                h1, f1, id1 = await first_life()  # the gateway goes away with its client...
                 await until(lambda: len(pub.demand.gateways) == 1, 10, "the publisher saw it go")
-                with gateway(nats_url, port=port) as (ga, _g1):  # ...and comes back on the same address
+                with gateway(nats_url, port=port) as (ga, g1):  # ...and comes back on the same address
                     async with connect(ga) as ws:
                         h2, _ = await hello_and_subscribe(ws)
                         f2 = _spikes(await collect(ws, 1.5))
-                return h1, f1, h2, f2, _spikes(await collecting)
+                        back = pub.demand.gateways
+                return h1, f1, h2, f2, _spikes(await collecting), (id1, g1.id, back)
 
-        h1, f1, h2, f2, steady = run(go())
+        h1, f1, h2, f2, steady, (id1, id2, back) = run(go())
+    assert id1 == id2 and id1 in back  # the same identity (HOSTNAME-PORT): it renewed its own place
     assert h1["session"] == h2["session"] == svc.session  # same sensor clock: the client carries on
     assert f1 and f2 and _consecutive(f2) and f2[0].header.seq == 0
     assert f2[0].header.update > f1[-1].header.update
@@ -318,8 +321,8 @@ def test_gateway_reports_not_ready_without_a_publisher_and_bad_demand_is_ignored
         async def go():
             nc = await nats.connect(nats_url)
             for bad in (b"{", b'{"gateway": "x", "ttl_ms": 1000, "columns": {"XX": [0]}}', b'[]'):
-                await nc.publish(f"touchreal.{SENSOR}.demand", bad)
-            await nc.publish(f"touchreal.{SENSOR}.demand", json.dumps(
+                await nc.publish(subjects.demand(SENSOR, "x"), bad)
+            await nc.publish(subjects.demand(SENSOR, "rec"), json.dumps(
                 {"gateway": "rec", "ttl_ms": 1000, "columns": {"RA": [0]}}).encode())
             await nc.flush()
             await until(lambda: svc.hub.demand.columns == {"RA": (0,)}, 10, "the valid announcement counts")

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from touchreal_client import protocol as P
 
-from touchreal.bridge.demand import Announced, ForwardedDemand, announcement, parse_announcement
+from touchreal.bridge import subjects
+from touchreal.bridge.demand import Announced, ForwardedDemand, Rejected, announcement, parse_announcement
+from touchreal.bridge.gateway import GatewaySettings
 from touchreal.bridge.subjects import check_sensor_id
 from touchreal.bridge.upstream import UpstreamTracker, update_from_frame
 from touchreal.server.hub import Hub
@@ -49,8 +51,8 @@ def test_published_frames_become_hub_updates():
 
 
 def test_demand_announcements_merge_into_one_product_and_expire():
-    gid, d, ttl = parse_announcement(announcement("g1", Announced({"SA1": [2, 0]}, [1]), ttl_s=2.0))
-    assert (gid, dict(d.columns), list(d.channels), ttl) == ("g1", {"SA1": [0, 2]}, [1], 2.0)
+    d, ttl = parse_announcement("g1", announcement("g1", Announced({"SA1": [2, 0]}, [1]), ttl_s=2.0))
+    assert (dict(d.columns), list(d.channels), ttl) == ({"SA1": [0, 2]}, [1], 2.0)
     fd = ForwardedDemand()
     fd.announce("g1", d, ttl, now=0.0)
     fd.announce("g2", Announced({"PC": [3]}), 5.0, now=0.0)
@@ -63,7 +65,7 @@ def test_demand_announcements_merge_into_one_product_and_expire():
     fd.announce("g2", Announced({}), 5.0, now=3.0)  # an empty announcement withdraws at once
     assert fd.spikes() is None and fd.gateways == []
     # decoders: one decoded-only subscription per decoder, over the union of its taxels; no spikes
-    gid, d, ttl = parse_announcement(announcement("g3", Announced({}, (), {"force": [3, 1], "texture": []})))
+    d, ttl = parse_announcement("g3", announcement("g3", Announced({}, (), {"force": [3, 1], "texture": []})))
     assert dict(d.decoders) == {"force": [1, 3]} and not d.empty
     fd.announce("g3", d, ttl, now=4.0)
     fd.announce("g4", Announced({}, (), {"force": [0], "texture": [2]}), ttl, now=4.0)
@@ -71,14 +73,14 @@ def test_demand_announcements_merge_into_one_product_and_expire():
     dec = fd.decoded()
     assert {n: (s.taxels, s.classes, s.streams, s.decoders) for n, s in dec.items()} == {
         "force": ([0, 1, 3], [], ["decoded"], ["force"]), "texture": ([2], [], ["decoded"], ["texture"])}
-    assert parse_announcement(b'{"gateway": "old", "ttl_ms": 5, "columns": {"RA": [0]}}')[1].decoders == {}
+    assert parse_announcement("old", b'{"gateway": "old", "ttl_ms": 5, "columns": {"RA": [0]}}')[0].decoders == {}
     for bad in (b"{", b"[]", b'{"gateway": 1, "ttl_ms": 5, "columns": {}}',
                 b'{"gateway": "g", "ttl_ms": 5, "columns": {"XX": [0]}}',
                 b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "channels": [-1]}',
                 b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "decoders": {"a.b": [0]}}',  # not a subject token
                 b'{"gateway": "g", "ttl_ms": 5, "columns": {}, "decoders": {"force": 0}}'):
         with pytest.raises(ValueError, match="malformed demand"):
-            parse_announcement(bad)
+            parse_announcement("g", bad)
 
 
 def test_sensor_ids_are_single_subject_tokens():
@@ -104,18 +106,18 @@ def test_hub_skip_advances_seq_and_dropped_per_stream_and_decoder():
 
 
 def test_announcements_are_bounded_and_the_gateway_count_is_capped():
-    from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES, Rejected
+    from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES
 
-    def reason(data: bytes, n_taxels: int = 4) -> str:
+    def reason(data: bytes, n_taxels: int = 4, sender: str = "g") -> str:
         with pytest.raises(Rejected) as exc:
-            parse_announcement(data, n_taxels)
+            parse_announcement(sender, data, n_taxels)
         return exc.value.reason
 
     assert reason(b" " * (MAX_ANNOUNCEMENT_BYTES + 1)) == "oversized"
     assert reason(announcement("g", Announced({"SA1": [4]}))) == "out_of_range"
     assert reason(announcement("g", Announced({}, [0], {"force": [9]}))) == "out_of_range"
     assert reason(announcement("g", Announced({"SA1": [0]}), ttl_s=61.0)) == "malformed"
-    assert reason(announcement("a.b", Announced({"SA1": [0]}))) == "malformed"
+    assert reason(announcement("a.b", Announced({"SA1": [0]})), sender="a.b") == "malformed"
     assert reason(b"[" * 5000 + b"]" * 5000) == "malformed"
     fd = ForwardedDemand(max_gateways=2)
     fd.announce("a", Announced({"SA1": [0]}), 1.0, now=0.0)
@@ -126,3 +128,39 @@ def test_announcements_are_bounded_and_the_gateway_count_is_capped():
     fd.announce("a", Announced({"SA1": [3]}), 1.0, now=0.5)  # a live gateway may always renew
     fd.announce("c", Announced({"PC": [2]}), 5.0, now=2.0)  # a's announcement expired: room for c
     assert fd.gateways == ["b", "c"]
+
+
+def test_an_announcement_counts_for_the_gateway_whose_subject_it_came_on_only():
+    silence = announcement("victim", Announced({}))
+    with pytest.raises(Rejected) as exc:  # on the attacker's own subject, naming its victim: dropped
+        parse_announcement("attacker", silence)
+    assert exc.value.reason == "identity_mismatch"
+    assert parse_announcement("victim", silence)[0].empty  # the victim itself may withdraw
+    sub = subjects.demand("lab-1", "gw-1")
+    assert sub == "touchreal.lab-1.demand.gw-1" and subjects.last_token(sub) == "gw-1"
+    assert subjects.gateway_permissions("gw-1")["publish"][0] == sub.replace("lab-1", "*")
+    assert not any("demand" in s for s in subjects.gateway_permissions("gw-1")["subscribe"])
+
+
+def test_one_identity_holds_one_place_and_a_restarted_gateway_renews_its_own_when_all_are_taken():
+    fd = ForwardedDemand(max_gateways=2)
+    for i in range(100):  # one identity announcing over and over: one place, its latest demand
+        fd.announce("flooder", Announced({"SA1": [i % 4]}), 60.0, now=i * 0.2)
+    fd.announce("gw-2", Announced({"RA": [0]}), 3.0, now=20.0)
+    assert fd.gateways == ["flooder", "gw-2"] and fd.spikes().taxels == [0, 3]
+    # gw-2 crashed (its announcement lives on) and came back under its id: it renews, though all places are taken
+    fd.announce("gw-2", Announced({"PC": [1]}), 3.0, now=20.5)
+    assert fd.gateways == ["flooder", "gw-2"] and fd.spikes().classes == ["SA1", "PC"]
+    with pytest.raises(Rejected) as exc:  # a new identity still finds no room
+        fd.announce("newcomer", Announced({"RA": [0]}), 3.0, now=21.0)
+    assert exc.value.reason == "too_many_gateways"
+
+
+def test_a_gateways_default_id_is_stable_per_host_and_port_and_a_subject_token():
+    a, b = GatewaySettings(port=8801), GatewaySettings(port=8801)
+    assert a.gateway_id == b.gateway_id and a.gateway_id.endswith("-8801") and subjects.token_ok(a.gateway_id)
+    assert GatewaySettings(port=8802).gateway_id != a.gateway_id
+    assert GatewaySettings(port=0).gateway_id != GatewaySettings(port=0).gateway_id  # any free port: no stable id
+    assert GatewaySettings(gateway_id="gateway-1").gateway_id == "gateway-1"
+    with pytest.raises(ValueError, match="gateway id"):
+        GatewaySettings(gateway_id="a.b")

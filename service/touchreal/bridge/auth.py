@@ -1,9 +1,10 @@
 """How the publisher and the gateways authenticate to the broker: one of user/password, token, a
-``.creds`` file (JWT + nkey seed) or an nkey seed file, optionally over TLS (docs/scale-out.md).
+``.creds`` file (JWT + nkey seed) or an nkey seed file, optionally over TLS (docs/scale-out.md);
+or credentials in the URL (``nats://USER:PASSWORD@HOST``, ``nats://TOKEN@HOST``).
 
 Flags ``--nats-*`` over ``TOUCHREAL_NATS_*`` environment variables; an empty variable counts as
 unset (compose passes ``""`` for a variable it does not know). Secrets never appear in ``repr`` or
-``/v1/status`` (:meth:`NatsAuth.describe`).
+``/v1/status`` (:meth:`NatsAuth.describe`; URLs are shown through :func:`touchreal.redaction.redact`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import argparse
 import ssl
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from pydantic import SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -26,6 +28,20 @@ _FLAGS = (
     ("tls-cert", "client certificate for TLS client authentication to the broker (with --nats-tls-key)"),
     ("tls-key", "private key of --nats-tls-cert"),
 )
+
+
+def servers(urls: str) -> list[str]:
+    """The broker URLs of a comma-separated list, each with its scheme: nats-py reads ``HOST:PORT``
+    and ``USER:PASSWORD@HOST`` as ``nats://...``, and so does everything that shows them."""
+    return [u if "://" in u else f"nats://{u}" for u in (u.strip() for u in urls.split(",")) if u]
+
+
+def _in_url(url: str) -> str | None:
+    """The method the credentials in ``url`` amount to, as nats-py uses them (None: there are none)."""
+    parts = urlsplit(url)
+    if parts.username is None:
+        return None
+    return "token (in the URL)" if parts.password is None else f"user {parts.username} (in the URL)"
 
 
 class NatsAuth(BaseSettings):
@@ -82,11 +98,24 @@ class NatsAuth(BaseSettings):
             out["tls"] = ctx
         return out
 
-    def describe(self) -> str:
-        """The method in use, without secrets (for logs and ``/v1/status``)."""
-        method = (f"user {self.user}" if self.user else "token" if self.token else f"creds {self.creds}" if self.creds
-                  else f"nkey {self.nkey}" if self.nkey else "anonymous")
-        return method + (" over TLS" if self.tls or self.tls_ca or self.tls_cert else "")
+    def _method(self) -> str | None:
+        """The method these settings give (None: none)."""
+        return (f"user {self.user}" if self.user else "token" if self.token else f"creds {self.creds}" if self.creds
+                else f"nkey {self.nkey}" if self.nkey else None)
+
+    def check(self, urls: list[str]) -> None:
+        """Refuse credentials both here and in a URL of ``urls`` (:func:`servers`): one method at a time."""
+        if self._method() is not None and any(_in_url(u) for u in urls):
+            raise ValueError("NATS: credentials both in the URL and in --nats-*/TOUCHREAL_NATS_*: use one method")
+
+    def describe(self, urls: list[str]) -> str:
+        """The method in use with the brokers ``urls`` (:func:`servers`), without secrets (for logs and
+        ``/v1/status``): e.g. ``user gateway``, ``user publisher (in the URL)``, ``token (in the URL)``,
+        ``nkey /path/seed.nk``, ``anonymous``; `` over TLS`` when TLS is required (flags or a ``tls://`` URL)."""
+        in_urls = sorted({m for m in map(_in_url, urls) if m})
+        method = self._method() or " and ".join(in_urls) or "anonymous"
+        tls = self.tls or self.tls_ca or self.tls_cert or any(urlsplit(u).scheme == "tls" for u in urls)
+        return method + (" over TLS" if tls else "")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,8 +1,8 @@
 """The demand a gateway forwards to the publisher, sans-I/O.
 
 A gateway announces the union of its clients' subscriptions (spikes columns class -> taxels,
-channel taxels, and decoder -> taxels) on the ``demand`` subject when it changes and every
-``interval`` seconds, with a time to live. The publisher merges the live announcements and publishes
+channel taxels, and decoder -> taxels) on its own subject ``demand.<gateway_id>`` when it changes
+and every ``interval`` seconds, with a time to live. The publisher merges the live announcements and publishes
 the smallest single frame stream per subject covering them: spikes for the union of the announced
 taxels x the union of the announced classes (one frame per update keeps the subject's ``seq`` a
 faithful loss counter; a product is exact when clients ask for products, as they do in the
@@ -10,11 +10,17 @@ protocol), full-rate channels for the union of the channel taxels, and each anno
 the union of its taxels. Announcements that expire (a gateway gone) stop counting, so computing
 stops too.
 
+The sender is the subject's last token, which the broker binds to the gateway's credentials
+(:func:`.subjects.gateway_permissions`); an announcement whose body names another gateway is
+dropped, so one identity holds at most one of the ``max_gateways`` places and a gateway restarted
+under its id renews its own place, full or not.
+
 Announcements are bounded (anyone allowed to publish demand could otherwise make the service
 compute everything or grow without limit): at most :data:`MAX_ANNOUNCEMENT_BYTES`, a TTL of at
 most :data:`MAX_TTL_MS`, gateway ids and decoder names that are subject tokens, at most
-:data:`MAX_DECODERS` decoders, taxel ids of existing taxels, and at most ``max_gateways`` live
-gateways. Anything else raises :class:`Rejected` with its reason, for the publisher to drop and count.
+:data:`MAX_DECODERS` decoders, the sender's own id, taxel ids of existing taxels, and at most
+``max_gateways`` live gateways. Anything else raises :class:`Rejected` with its reason, for the
+publisher to drop and count.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ MAX_ANNOUNCEMENT_BYTES = 256 * 1024
 MAX_TTL_MS = 60_000
 MAX_DECODERS = 64
 MAX_GATEWAYS = 64  #: live gateways per sensor, by default
-REJECT_REASONS = ("oversized", "malformed", "out_of_range", "too_many_gateways")
+REJECT_REASONS = ("oversized", "malformed", "out_of_range", "identity_mismatch", "too_many_gateways")
 
 
 class Rejected(ValueError):
@@ -70,9 +76,10 @@ def _taxel_list(v) -> bool:
     return isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 65536 for x in v)
 
 
-def parse_announcement(data: bytes, n_taxels: int = 65536) -> tuple[str, Announced, float]:
-    """(gateway id, its demand, ttl in s); raises :class:`Rejected` for an oversized or malformed
-    message or one naming taxels outside ``0..n_taxels-1``. ``channels`` and ``decoders`` are optional."""
+def parse_announcement(sender: str, data: bytes, n_taxels: int = 65536) -> tuple[Announced, float]:
+    """(the demand of gateway ``sender``, its ttl in s) from an announcement on ``sender``'s subject;
+    raises :class:`Rejected` for an oversized or malformed message, one naming taxels outside
+    ``0..n_taxels-1`` or one whose ``gateway`` is not ``sender``. ``channels`` and ``decoders`` are optional."""
     if len(data) > MAX_ANNOUNCEMENT_BYTES:
         raise Rejected("oversized", f"demand announcement of {len(data)} bytes exceeds {MAX_ANNOUNCEMENT_BYTES}")
     try:
@@ -90,23 +97,27 @@ def parse_announcement(data: bytes, n_taxels: int = 65536) -> tuple[str, Announc
         raise Rejected("malformed", f"malformed demand announcement: expected gateway (a subject token), ttl_ms "
                        f"(1..{MAX_TTL_MS}), columns {{class: [taxel]}}, channels [taxel], decoders {{name: [taxel]}} "
                        f"(at most {MAX_DECODERS})")
+    if gid != sender:
+        raise Rejected("identity_mismatch", f"an announcement for gateway {gid} on the subject of gateway {sender}")
     taxels = [*chan, *(t for ts in cols.values() for t in ts), *(t for ts in decs.values() for t in ts)]
     if taxels and max(taxels) >= n_taxels:
         raise Rejected("out_of_range", f"gateway {gid}: taxel {max(taxels)} does not exist (ids 0..{n_taxels - 1})")
-    return (gid, Announced({c: list(t) for c, t in cols.items()}, list(chan), {n: list(t) for n, t in decs.items()}),
-            ttl / 1000.0)
+    announced = Announced({c: list(t) for c, t in cols.items()}, list(chan), {n: list(t) for n, t in decs.items()})
+    return announced, ttl / 1000.0
 
 
 class ForwardedDemand:
-    """Live announcements by gateway id (at most ``max_gateways``); times in seconds of any monotonic clock."""
+    """Live announcements by gateway id (at most ``max_gateways``, one each); times in seconds of any
+    monotonic clock."""
 
     def __init__(self, max_gateways: int = MAX_GATEWAYS) -> None:
         self.max_gateways = max_gateways
         self._live: dict[str, tuple[Announced, float]] = {}
 
     def announce(self, gateway_id: str, demand: Announced, ttl_s: float, now: float) -> None:
-        """Record (or withdraw, when empty) a gateway's demand; a new gateway beyond ``max_gateways``
-        live ones raises :class:`Rejected` (``too_many_gateways``)."""
+        """Record (or withdraw, when empty) a gateway's demand, replacing its previous one: a live
+        gateway always renews; a new one beyond ``max_gateways`` live ones raises :class:`Rejected`
+        (``too_many_gateways``)."""
         if demand.empty:
             self._live.pop(gateway_id, None)
             return

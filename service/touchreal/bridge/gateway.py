@@ -4,7 +4,9 @@ A gateway is stateless: it reads the publisher's hello (a NATS request), subscri
 subject and feeds every frame, as an :class:`~touchreal.server.runtime.Update`, into the same
 :class:`~touchreal.server.hub.Hub` and ``/v1/stream`` WebSocket layer the service uses (so
 subscriptions, per-client queues, slow-consumer closes and stamping are one code). What its clients
-subscribe to is forwarded to the publisher as demand (:mod:`.demand`). Its decoder routes
+subscribe to is forwarded to the publisher as demand (:mod:`.demand`), on the demand subject of
+its own ``gateway_id`` (a setting, stable across restarts, so a restarted gateway renews its own
+place at the publisher; the broker lets its credentials announce under that id only). Its decoder routes
 (``/v1/decoders``...) ask the publisher over NATS, so clients that download a model work through it.
 
 Losses on the broker hop stay honest: a jump in the publisher's ``seq`` (frames the broker or this
@@ -19,8 +21,10 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
+import secrets
+import socket
 import time
-import uuid
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -30,24 +34,34 @@ from fastapi.responses import JSONResponse
 from nats.errors import Error as NatsError
 from nats.errors import SlowConsumerError
 from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
 from touchreal_client.events import wait_set
 
 from .. import __version__
+from ..redaction import redact
 from ..server import ws
+from ..server.api_docs import add_docs
+from ..server.browser import SecurityHeaders, server_error
 from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
 from . import connection, subjects
-from .auth import NatsAuth
+from .auth import NatsAuth, servers
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .upstream import UpstreamTracker, update_from_frame
 
 log = logging.getLogger("touchreal.bridge")
 HELLO_RETRY_S = 0.5  #: how often a gateway asks for the hello until the publisher answers (s)
 UPSTREAM_REQUEST_S = 5.0  #: how long a decoders/model request waits for the publisher (s)
+
+
+def default_gateway_id(port: int) -> str:
+    """``HOSTNAME-PORT`` as one subject token: the same after a restart on the same host and port (a
+    pod's hostname is its name); with port 0 (any free port) ``HOSTNAME-`` and 6 random hex digits."""
+    host = re.sub(r"[^A-Za-z0-9_-]+", "-", socket.gethostname()).strip("-")[:57] or "gateway"
+    return f"{host}-{port or secrets.token_hex(3)}"
 
 
 class UpstreamUnavailable(RuntimeError):
@@ -61,6 +75,9 @@ class GatewaySettings(BaseSettings):
 
     nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
+    gateway_id: str = Field(default="", description="this gateway's identity on the broker: it announces demand on "
+                            "touchreal.<sensor>.demand.<gateway_id>, which its broker credentials must allow; "
+                            "default HOSTNAME-PORT")
     host: str = "127.0.0.1"
     port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
     queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
@@ -76,6 +93,11 @@ class GatewaySettings(BaseSettings):
                                    "client this often (s)")
     ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
                                   "within this time is closed with 1011 (s)")
+
+    @model_validator(mode="after")
+    def _identity(self) -> GatewaySettings:
+        self.gateway_id = subjects.check_gateway_id(self.gateway_id or default_gateway_id(self.port))
+        return self
 
 
 class AnnouncingHub(Hub):
@@ -105,7 +127,11 @@ class Gateway:
         self.settings = settings
         self.auth = auth or NatsAuth()
         self.sensor_id = subjects.check_sensor_id(settings.sensor_id)
-        self.id = uuid.uuid4().hex[:12]
+        self.id = settings.gateway_id
+        self.servers = servers(settings.nats)
+        self.where = redact(",".join(self.servers))  #: the broker(s), as shown (no secrets)
+        self.auth.check(self.servers)
+        self.demand_subject = subjects.demand(self.sensor_id, self.id)  #: the only subject it announces on
         self._demand_dirty = asyncio.Event()
         self.hub = AnnouncingHub(settings.queue_frames, settings.slow_timeout_s, self._demand_dirty,
                                  settings.max_frame_age_ms / 1000 or None)
@@ -140,7 +166,7 @@ class Gateway:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self.nc is not None and self.nc.is_connected:
             try:  # tell the publisher at once that our demand is gone
-                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, Announced({})))
+                await self.nc.publish(self.demand_subject, announcement(self.id, Announced({})))
             except (NatsError, OSError):
                 pass
         await connection.close(self.nc)
@@ -148,7 +174,7 @@ class Gateway:
     async def _run(self) -> None:
         s = self.settings
         self.nc = nats.NATS()
-        await connection.connect(self.nc, s.nats.split(","), f"touchreal-gateway-{self.sensor_id}-{self.id}", self.auth,
+        await connection.connect(self.nc, self.servers, f"touchreal-gateway-{self.sensor_id}-{self.id}", self.auth,
                                  self._on_error, self._on_conn)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello(self.sensor_id), cb=self._on_hello)
@@ -167,7 +193,7 @@ class Gateway:
                 self._set_hello(json.loads(msg.data))
                 return
             except (NatsError, asyncio.TimeoutError, ValueError) as exc:
-                log.debug("no hello from %s yet: %r", self.sensor_id, exc)
+                log.debug("no hello from %s yet: %s", self.sensor_id, redact(repr(exc)))
                 await asyncio.sleep(HELLO_RETRY_S)
 
     def _set_hello(self, hello: dict[str, Any]) -> None:
@@ -224,7 +250,7 @@ class Gateway:
             return
         decoder = None
         if isinstance(frame, P.DecodedFrame):
-            decoder = subjects.decoder_of(msg.subject)
+            decoder = subjects.last_token(msg.subject)
             tracker = self.upstream_decoded.setdefault(decoder, UpstreamTracker())
             stream = "decoded"
         elif isinstance(frame, P.SpikesFrame):
@@ -254,15 +280,15 @@ class Gateway:
             self._demand_dirty.clear()
             ttl = max(DEFAULT_TTL_S, 3 * self.settings.demand_interval_s)
             try:
-                await self.nc.publish(subjects.demand(self.sensor_id), announcement(self.id, self.hub.announced, ttl))
+                await self.nc.publish(self.demand_subject, announcement(self.id, self.hub.announced, ttl))
             except (NatsError, OSError) as exc:
-                log.debug("demand announcement failed: %r", exc)
+                log.debug("demand announcement failed: %s", redact(repr(exc)))
 
     async def _on_error(self, exc: Exception) -> None:
         if isinstance(exc, SlowConsumerError):
             self.m_slow.inc()  # the loss itself shows as the next frame's seq jump
         else:
-            log.warning("nats: %r", exc)
+            log.warning("nats: %s", redact(repr(exc)))
 
     async def _on_conn(self) -> None:
         self.m_connected.set(1 if self.nc is not None and self.nc.is_connected else 0)
@@ -288,11 +314,12 @@ class Gateway:
 
     async def _ask(self, subject: str, payload: bytes = b""):
         if self.nc is None or not self.nc.is_connected:
-            raise UpstreamUnavailable(f"not connected to NATS at {self.settings.nats}")
+            raise UpstreamUnavailable(f"not connected to NATS at {self.where}")
         try:
             return await self.nc.request(subject, payload, timeout=UPSTREAM_REQUEST_S)
         except (NatsError, asyncio.TimeoutError) as exc:
-            raise UpstreamUnavailable(f"the publisher of sensor {self.sensor_id!r} did not answer ({exc!r})") from exc
+            raise UpstreamUnavailable(f"the publisher of sensor {self.sensor_id!r} did not answer "
+                                      f"({redact(repr(exc))})") from exc
 
     async def decoders(self) -> list[dict[str, Any]]:
         """The publishing service's ``GET /v1/decoders``, asked over NATS."""
@@ -308,14 +335,15 @@ class Gateway:
 
     def ready(self) -> tuple[bool, str]:
         if self.nc is None or not self.nc.is_connected:
-            return False, f"not connected to NATS at {self.settings.nats}"
+            return False, f"not connected to NATS at {self.where}"
         if self.upstream_hello is None:
             return False, f"no hello from sensor {self.sensor_id!r} yet (is its publisher running?)"
         return True, "ok"
 
     def status(self) -> dict[str, Any]:
         u = self.upstream
-        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.settings.nats, "auth": self.auth.describe(),
+        return {"gateway": self.id, "sensor_id": self.sensor_id, "nats": self.where,
+                "auth": self.auth.describe(self.servers),
                 "connected": bool(self.nc and self.nc.is_connected), "ready": self.ready()[1],
                 "last_frame_age_s": None if self.last_frame_mono is None else round(time.monotonic() - self.last_frame_mono, 3),
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
@@ -390,6 +418,8 @@ def metrics(request: Request) -> Response:
 
 
 def create_gateway_app(gateway: Gateway) -> FastAPI:
+    """The gateway's app: /v1/stream and its REST routes, the offline /docs, the browser security headers."""
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         await gateway.start()
@@ -399,8 +429,12 @@ def create_gateway_app(gateway: Gateway) -> FastAPI:
             await gateway.stop()
 
     app = FastAPI(title="TouchReal gateway", version=__version__, lifespan=lifespan,
-                  summary="The /v1/stream spike stream of one sensor, served from NATS (docs/scale-out.md)")
+                  summary="The /v1/stream spike stream of one sensor, served from NATS (docs/scale-out.md)",
+                  docs_url=None, redoc_url=None)  # add_docs: an offline Swagger UI under a strict CSP
     app.state.service = gateway  # server/ws.py reads it under this name
+    app.add_exception_handler(Exception, server_error)
+    app.add_middleware(SecurityHeaders)
     app.include_router(router)
     app.include_router(ws.router)
+    add_docs(app)
     return app

@@ -41,7 +41,9 @@ def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstrea
     store = tempfile.TemporaryDirectory(prefix="touchreal-nats-") if jetstream else None
     cmd = [BINARY, "-a", "127.0.0.1", "-p", str(port)] + (["-js", "-sd", store.name] if store else []) \
         + (["-c", str(config)] if config else [])
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, **(env or {})})
+    # its log goes to a file: a pipe nobody reads fills up and then blocks the broker mid-test
+    log = tempfile.TemporaryFile(prefix="touchreal-nats-log-")
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log, env={**os.environ, **(env or {})})
     try:
         deadline = time.monotonic() + timeout_s
         while True:
@@ -50,7 +52,8 @@ def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstrea
                 break
             except OSError:
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    err = proc.stderr.read().decode(errors="replace") if proc.poll() is not None else "timeout"
+                    log.seek(0)
+                    err = log.read().decode(errors="replace")[-2000:] if proc.poll() is not None else "timeout"
                     raise RuntimeError(f"nats-server did not start on port {port}: {err}")
                 time.sleep(0.05)
         yield f"nats://127.0.0.1:{port}"
@@ -61,5 +64,6 @@ def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstrea
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        log.close()
         if store is not None:
             store.cleanup()

@@ -1,5 +1,7 @@
 """``touchreal serve --publish nats://HOST:PORT --sensor-id ID``: the service's frames onto NATS.
 
+Demand comes from ``demand.<gateway_id>``: the subject names the sender (:mod:`.demand`).
+
 The publisher is more subscribers of the service's :class:`~touchreal.server.hub.Hub` (so the
 acquisition thread never sees it), one per subject (a *lane*): spikes for the demand the gateways
 forward (:mod:`.demand`; every class and taxel with ``publish_all``), full-rate channels for the
@@ -35,10 +37,11 @@ from touchreal_client import protocol as P
 from touchreal_client.events import wait_set
 
 from ..decoding.model import DecoderModelError
+from ..redaction import redact
 from ..server.hub import Subscriber
 from ..server.service import Service
 from . import connection, subjects
-from .auth import NatsAuth
+from .auth import NatsAuth, servers
 from .demand import MAX_GATEWAYS, REJECT_REASONS, ForwardedDemand, Rejected, parse_announcement
 
 log = logging.getLogger("touchreal.bridge")
@@ -52,8 +55,13 @@ class NatsPublisher:
     def __init__(self, service: Service, url: str, sensor_id: str, publish_all: bool = False,
                  pending_bytes: int = 8 << 20, retain_s: float = 0.0, retain_bytes: int = 64 << 20,
                  auth: NatsAuth | None = None, max_gateways: int = MAX_GATEWAYS):
-        self.service, self.url, self.sensor_id = service, url, subjects.check_sensor_id(sensor_id)
+        """``url``: the broker's URL(s), comma-separated; ``pending_bytes``: what nats-py buffers while
+        disconnected; ``retain_s`` (s) and ``retain_bytes``: the JetStream retention (0 s: none)."""
+        self.service, self.sensor_id = service, subjects.check_sensor_id(sensor_id)
+        self.servers = servers(url)
+        self.url = redact(",".join(self.servers))  #: the broker(s), as shown (no secrets)
         self.auth = auth or NatsAuth()
+        self.auth.check(self.servers)
         self.publish_all, self.pending_bytes = publish_all, pending_bytes
         if retain_s < 0 or retain_bytes <= 0:
             raise ValueError("retain_s must be >= 0 and retain_bytes > 0")
@@ -73,7 +81,8 @@ class NatsPublisher:
         self.m_connected = Gauge("touchreal_nats_connected", "1 while the publisher is connected to NATS", registry=r)
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
         self.m_rejected = Counter("touchreal_nats_demand_rejected", "demand announcements dropped (oversized, "
-                                  "malformed, out_of_range taxels, too_many_gateways)", ["reason"], registry=r)
+                                  "malformed, out_of_range taxels, identity_mismatch: the body names another "
+                                  "gateway than the subject, too_many_gateways)", ["reason"], registry=r)
         for reason in REJECT_REASONS:
             self.m_rejected.labels(reason)
 
@@ -99,7 +108,7 @@ class NatsPublisher:
 
     def status(self) -> dict:
         """The ``nats`` section of the service's ``/v1/status``."""
-        return {"url": self.url, "sensor_id": self.sensor_id, "auth": self.auth.describe(),
+        return {"url": self.url, "sensor_id": self.sensor_id, "auth": self.auth.describe(self.servers),
                 "connected": bool(self.nc and self.nc.is_connected),
                 "published": self.published, "failures": int(self.m_failed._value.get()),
                 "gateways": self.demand.gateways,
@@ -114,11 +123,11 @@ class NatsPublisher:
     # -- the loop -------------------------------------------------------------------------------
     async def _run(self) -> None:
         self.nc = nats.NATS()
-        await connection.connect(self.nc, self.url, f"touchreal-publisher-{self.sensor_id}", self.auth,
+        await connection.connect(self.nc, self.servers, f"touchreal-publisher-{self.sensor_id}", self.auth,
                                  self._on_error, self._on_conn, pending_size=self.pending_bytes)
         self.m_connected.set(1)
         await self.nc.subscribe(subjects.hello_request(self.sensor_id), cb=self._on_hello_request)
-        await self.nc.subscribe(subjects.demand(self.sensor_id), cb=self._on_demand)
+        await self.nc.subscribe(subjects.demand_any(self.sensor_id), cb=self._on_demand)
         await self.nc.subscribe(subjects.decoders_request(self.sensor_id), cb=self._on_decoders_request)
         await self.nc.subscribe(subjects.model_request(self.sensor_id), cb=self._on_model_request)
         self.service.clock_listeners.append(self._on_clock)
@@ -145,7 +154,7 @@ class NatsPublisher:
                         self.m_published.inc()
                     except (NatsError, OSError) as exc:
                         self.m_failed.inc()
-                        log.debug("publish failed: %r", exc)
+                        log.debug("publish failed: %s", redact(repr(exc)))
 
     async def _retain(self) -> None:
         """Create (or reconfigure) the in-memory stream over this sensor's frame subjects."""
@@ -161,14 +170,16 @@ class NatsPublisher:
             self.retain_error = None
             log.info("retaining the last %g s of %s in JetStream stream %s", self.retain_s, self.sensor_id, cfg.name)
         except (NatsError, asyncio.TimeoutError) as exc:
-            self.retain_error = f"no JetStream stream ({exc!r}); is nats-server running with -js?"
+            self.retain_error = f"no JetStream stream ({redact(repr(exc))}); is nats-server running with -js?"
             log.warning("publishing without retention: %s", self.retain_error)
 
     # -- demand and hello -----------------------------------------------------------------------
     async def _on_demand(self, msg) -> None:
+        """An announcement on ``demand.<gateway_id>``: counted against that gateway, whatever its body says."""
+        sender = subjects.last_token(msg.subject)
         try:
-            gid, announced, ttl = parse_announcement(msg.data, self.service.n_taxels)
-            self.demand.announce(gid, announced, ttl, time.monotonic())
+            announced, ttl = parse_announcement(sender, msg.data, self.service.n_taxels)
+            self.demand.announce(sender, announced, ttl, time.monotonic())
         except Rejected as exc:
             self.m_rejected.labels(exc.reason).inc()
             log.debug("%s: %s", msg.subject, exc)  # counted; a flood must not flood the log
@@ -214,7 +225,7 @@ class NatsPublisher:
         try:
             await self.nc.publish(subjects.clock(self.sensor_id), data)
         except (NatsError, OSError) as exc:  # the next one (within a second) restates it
-            log.debug("clock publish failed: %r", exc)
+            log.debug("clock publish failed: %s", redact(repr(exc)))
 
     async def _on_hello_request(self, msg) -> None:
         # our own announcements arrive here too: they have no reply subject. Until the service's source
@@ -256,7 +267,7 @@ class NatsPublisher:
             self._announced = key
 
     async def _on_error(self, exc: Exception) -> None:
-        log.warning("nats: %r", exc)
+        log.warning("nats: %s", redact(repr(exc)))
 
     async def _on_conn(self) -> None:
         self.m_connected.set(1 if self.nc is not None and self.nc.is_connected else 0)

@@ -13,7 +13,9 @@
 * ``hello.request``: a request (any payload, with a reply subject) is answered with the current
   hello. Requests and announcements have their own subjects so broker permissions can let gateways
   ask without letting them announce (deploy/nats/nats-server.conf).
-* ``demand``: JSON demand announcements of the gateways (:mod:`.demand`).
+* ``demand.<gateway_id>``: the JSON demand announcements of gateway ``<gateway_id>`` (:mod:`.demand`).
+  The sender is the subject's last token, so the broker can bind it: a gateway's credentials may
+  publish on its own demand subject only (:func:`gateway_permissions`).
 * ``decoders.request``: answered with the service's ``GET /v1/decoders`` JSON; ``model.request``
   (payload: a decoder name) with that model's ONNX bytes, or an empty reply with header
   :data:`ERROR_HEADER` naming why not. So a gateway serves the decoder routes too.
@@ -37,11 +39,21 @@ def token_ok(name: str) -> bool:
     return bool(_TOKEN.match(name))
 
 
+def _check_token(what: str, name: str) -> str:
+    """``name`` if it is one subject token, else ValueError naming ``what`` it is."""
+    if not token_ok(name):
+        raise ValueError(f"{what} {name!r}: use 1-64 letters, digits, '_' or '-' (it is a NATS subject token)")
+    return name
+
+
 def check_sensor_id(sensor_id: str) -> str:
     """A sensor id is one NATS subject token (:func:`token_ok`)."""
-    if not token_ok(sensor_id):
-        raise ValueError(f"sensor id {sensor_id!r}: use 1-64 letters, digits, '_' or '-' (it is a NATS subject token)")
-    return sensor_id
+    return _check_token("sensor id", sensor_id)
+
+
+def check_gateway_id(gateway_id: str) -> str:
+    """A gateway id is one NATS subject token (:func:`token_ok`)."""
+    return _check_token("gateway id", gateway_id)
 
 
 def frames(sensor_id: str) -> str:
@@ -72,8 +84,15 @@ def model_request(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.model.request"
 
 
-def demand(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.demand"
+def demand(sensor_id: str, gateway_id: str) -> str:
+    """Where gateway ``gateway_id`` announces its demand (and nobody else may, on a broker with
+    :func:`gateway_permissions`)."""
+    return f"touchreal.{sensor_id}.demand.{gateway_id}"
+
+
+def demand_any(sensor_id: str) -> str:
+    """The wildcard the publisher subscribes to: every gateway's demand subject."""
+    return f"touchreal.{sensor_id}.demand.*"
 
 
 def decoded(sensor_id: str, decoder: str) -> str:
@@ -85,14 +104,21 @@ def decoded_any(sensor_id: str) -> str:
     return f"touchreal.{sensor_id}.decoded.*"
 
 
-def decoder_of(subject: str) -> str:
-    """The decoder name of a ``decoded.<name>`` subject."""
+def last_token(subject: str) -> str:
+    """The last token of a subject: the decoder of ``decoded.<name>``, the gateway of ``demand.<id>``."""
     return subject.rsplit(".", 1)[1]
 
 
 def retained(sensor_id: str) -> list[str]:
     """The subjects a retaining publisher keeps (every frame subject; not hello or demand)."""
     return [frames(sensor_id), channels(sensor_id), decoded_any(sensor_id)]
+
+
+def gateway_permissions(gateway_id: str) -> dict[str, list[str]]:
+    """The broker permissions of gateway ``gateway_id``, for every sensor: its own demand subject, the
+    requests, and reading frames, hello, clock and request replies (deploy/nats/nats-server.conf)."""
+    return {"publish": [demand("*", gateway_id), hello_request("*"), decoders_request("*"), model_request("*")],
+            "subscribe": [frames("*"), channels("*"), decoded_any("*"), hello("*"), clock("*"), "_INBOX.>"]}
 
 
 def stream_name(sensor_id: str) -> str:

@@ -45,6 +45,7 @@ def settings_from(args: argparse.Namespace) -> ServeSettings:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from ..redaction import redact
     from ..server.app import create_app, uvicorn_config
     from ..server.service import Service
 
@@ -62,10 +63,10 @@ def run(args: argparse.Namespace) -> int:
                                         auth=nats_auth.from_args(args)))
     app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
-    print(f"TouchReal {config.source} ({config.taxels} taxel(s)): dashboard http://{base}/ · "
+    print(f"TouchReal {redact(config.source)} ({config.taxels} taxel(s)): dashboard http://{base}/ · "
           f"stream ws://{base}/v1/stream · API http://{base}/docs · state {settings.state_dir}"
           + (" · write endpoints need the token" if settings.token else "")
-          + (f" · publishing to {settings.publish} as touchreal.{settings.sensor_id}.*" if settings.publish else ""),
+          + (f" · publishing to {redact(settings.publish)} as touchreal.{settings.sensor_id}.*" if settings.publish else ""),
           flush=True)
     uvicorn.Server(uvicorn_config(app, settings.host, settings.port, settings.log_level, settings)).run()
     return 0
