@@ -14,12 +14,21 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="session")
-def shared() -> Path:
-    """The shared data folder: env TOUCHREAL_SHARED (default ``../shared``), relative to the repo root."""
-    path = Path(os.environ.get("TOUCHREAL_SHARED", "../shared"))
+def shared_path() -> Path:
+    """The shared data folder: :class:`touchreal.settings.ProcessSettings`' ``shared`` (TOUCHREAL_SHARED,
+    default ``../shared``), relative to the repo root."""
+    from touchreal.settings import ProcessSettings
+
+    path = ProcessSettings().shared
     if not path.is_absolute():
         path = (REPO_ROOT / path).resolve()
+    return path
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    """The shared data folder (:func:`shared_path`), or skip."""
+    path = shared_path()
     if not path.is_dir():
         pytest.skip(f"shared data folder not found at {path}: set TOUCHREAL_SHARED to the ../shared folder")
     return path

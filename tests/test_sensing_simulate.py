@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_path
 
 from touchreal.cli import main as cli_main
 from touchreal.recording import Dataset
@@ -22,7 +22,7 @@ ENTRY_FIELDS = {
 
 def rig_v1() -> Path:
     """rig-v1 under TOUCHREAL_SHARED (default ../shared next to the repository), or skip."""
-    shared = Path(os.environ.get("TOUCHREAL_SHARED", REPO.parent / "shared"))
+    shared = shared_path()
     root = shared / "datasets" / "rig-v1"
     if not (root / "manifest.json").is_file():
         pytest.skip(f"rig-v1 recordings not found under {shared} (set TOUCHREAL_SHARED to the shared data folder)")

@@ -139,10 +139,12 @@ def test_hostile_bodies_take_time_linear_in_their_size_while_a_subscriber_stream
         wait_until(lambda: len(gaps) >= during + 20, 30, "frames after the bodies")
         stop.set()
         reader.join(15)
-    for shape, t in times.items():  # linear: 8x the size is about 8x the time (quadratic would be 64x)
+    for shape, t in times.items():
+        # linear: 8x the size about 8x the time, where quadratic is 64x. The bounds leave room for a
+        # loaded machine's noise (at most 8^1.5 overall, 4x a step) and still fail a quadratic check
         ms = [round(x * 1000, 1) for x in t]
-        assert all(large <= 3 * small + 0.020 for small, large in zip(t, t[1:])), (shape, ms)
-        assert t[-1] <= 12 * t[0] + 0.020 and t[-1] < 1.0, (shape, ms)
+        assert all(large <= 4 * small + 0.020 for small, large in zip(t, t[1:])), (shape, ms)
+        assert t[-1] <= 8 ** 1.5 * t[0] + 0.020 and t[-1] < 1.0, (shape, ms)
     assert max(gaps[50:]) < 0.25, max(gaps[50:])  # the stream never stalled
 
 

@@ -13,21 +13,14 @@ from pathlib import Path
 import httpx
 import pytest
 from server_harness import free_port, running_server
+from waiting import wait_until
 
 from touchreal.cli import build_parser
 from touchreal.commands.serve import settings_from
 from touchreal.server.settings import ServeSettings
-from touchreal.server.settings_doc import render
+from touchreal.commands.settings_doc import TABLES, begin, render
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def wait_for(predicate, seconds: float = 30.0, what: str = "condition"):
-    deadline = time.monotonic() + seconds
-    while not (got := predicate()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
-    return got
 
 
 def test_every_setting_is_a_serve_flag_and_an_environment_variable(monkeypatch):
@@ -50,9 +43,31 @@ def test_every_setting_is_a_serve_flag_and_an_environment_variable(monkeypatch):
     assert ServeSettings().token is None  # compose passes "" when unset: no token
 
 
-def test_the_settings_table_in_docs_service_md_is_current():
-    assert render() in (REPO / "docs" / "service.md").read_text(), \
-        "run: python -m touchreal.server.settings_doc docs/service.md"
+def test_the_settings_tables_in_the_docs_are_current():
+    for doc, models in TABLES.items():
+        text = (REPO / doc).read_text()
+        for model, prefix in models:
+            assert f"{begin(model)}\n{render(model, prefix)}\n" in text, "run: python -m touchreal.commands.settings_doc"
+
+
+def test_every_gateway_setting_is_a_flag_and_an_environment_variable(monkeypatch):
+    from touchreal.bridge.auth import NatsAuth
+    from touchreal.bridge.gateway import GatewaySettings
+    from touchreal.commands.flags import model_from_args
+
+    gateway = build_parser()._subparsers._group_actions[0].choices["gateway"]
+    flags = {opt for action in gateway._actions for opt in action.option_strings}
+    assert {"--" + n.replace("_", "-") for n in GatewaySettings.model_fields} <= flags
+    assert {"--nats-" + n.replace("_", "-") for n in NatsAuth.model_fields} <= flags
+    assert set(ServeSettings.model_fields) & set(GatewaySettings.model_fields) >= {"queue_frames", "max_clients",
+                                                                                   "allowed_hosts", "ping_timeout_s"}
+    monkeypatch.setenv("TOUCHREAL_GATEWAY_SENSOR_ID", "lab-2")
+    monkeypatch.setenv("TOUCHREAL_GATEWAY_MAX_CLIENTS", "7")
+    monkeypatch.setenv("TOUCHREAL_NATS_USER", "gateway-1")
+    args = build_parser().parse_args(["gateway", "--max-clients", "9", "--nats-password", "pw"])
+    s, auth = model_from_args(GatewaySettings, args), model_from_args(NatsAuth, args, prefix="nats-")
+    assert (s.sensor_id, s.max_clients, s.port) == ("lab-2", 9, 8766)  # flag over environment over default
+    assert auth.user == "gateway-1" and auth.password.get_secret_value() == "pw"
 
 
 def _serve(env: dict[str, str]) -> subprocess.Popen:
@@ -82,7 +97,7 @@ def test_serve_takes_its_settings_from_the_environment_and_an_empty_token_is_no_
                 assert proc.poll() is None, proc.stderr.read()
                 return None
 
-        assert wait_for(config, 90, "serve to answer")["taxels"] == 3
+        assert wait_until(config, 90, "serve to answer")["taxels"] == 3
         assert httpx.patch(f"{base}/v1/config", json={"classes": ["SA1", "RA"]}).status_code == 200  # no token
         assert httpx.get(f"{base}/v1/health", headers={"Host": "touchreal.example"}).status_code == 200
     finally:
@@ -111,13 +126,13 @@ def test_connections_that_never_finish_their_headers_are_closed(tmp_path):
             s.sendall(b"GET /v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
             socks.append(s)
         # both ends of each connection live in this process, once the server has accepted them all
-        wait_for(lambda: _fds() >= before + 900, 10, "the server to accept the connections")
+        wait_until(lambda: _fds() >= before + 900, 10, "the server to accept the connections")
         t0 = time.monotonic()
         for s in socks:
             s.settimeout(max(30 - (time.monotonic() - t0), 0.1))
             assert s.recv(1) == b""  # the server closed it
             s.close()
-        wait_for(lambda: _fds() <= before + 10, 10, "the server's descriptors to be released")
+        wait_until(lambda: _fds() <= before + 10, 10, "the server's descriptors to be released")
         # a normal client is unaffected, on a kept-alive connection too
         with httpx.Client(base_url=f"http://{addr}") as http:
             assert http.get("/v1/health").status_code == 200
@@ -131,8 +146,8 @@ def test_connections_beyond_limit_concurrency_get_503(tmp_path):
             assert http.get("/v1/health").status_code == 200  # this connection is one of the 10
             idle = [socket.create_connection((host, int(port)), timeout=10) for _ in range(9)]
             try:
-                wait_for(lambda: httpx.get(f"http://{addr}/v1/health").status_code == 503, 10, "the limit")
+                wait_until(lambda: httpx.get(f"http://{addr}/v1/health").status_code == 503, 10, "the limit")
             finally:
                 for s in idle:
                     s.close()
-            wait_for(lambda: http.get("/v1/health").status_code == 200, 10, "room again")
+            wait_until(lambda: http.get("/v1/health").status_code == 200, 10, "room again")

@@ -1,12 +1,15 @@
-"""One settings module: rates, class names and environment-derived paths.
+"""One settings module: rates and class names, and :class:`ProcessSettings`, what every command reads
+from its environment.
 
 Rates are in Hz, times in seconds unless a name says otherwise.
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Afferent classes, in the order used for every (..., 3) array in the package.
 CLASSES: tuple[str, ...] = ("SA1", "RA", "PC")
@@ -28,6 +31,17 @@ DEFAULT_UPDATE_MS = 32.0  #: online update interval
 PACKAGE_DATA = Path(__file__).resolve().parent / "data"
 
 
+class ProcessSettings(BaseSettings):
+    """Settings of every ``touchreal`` command, read from the environment (``TOUCHREAL_<NAME>``)."""
+
+    model_config = SettingsConfigDict(env_prefix="TOUCHREAL_", extra="ignore")
+
+    threads: int | None = Field(default=None, ge=0, le=256, description="threads of the large kernels (1 or 0: no "
+                                "thread pool); unset: the CPUs this process may run on, at most 4")
+    shared: Path = Field(default=Path("../shared"), description="the shared data folder (the paper's rig "
+                         "recordings, TouchSim conformance data) that tests and benchmarks read when present")
+
+
 def shared_dir() -> Path:
-    """Location of the shared data folder (``TOUCHREAL_SHARED``, default ``../shared``)."""
-    return Path(os.environ.get("TOUCHREAL_SHARED", "../shared")).resolve()
+    """The shared data folder (:attr:`ProcessSettings.shared`), absolute."""
+    return ProcessSettings().shared.resolve()

@@ -352,7 +352,7 @@ def _service(args, n_taxels: int):
             companions.append(NatsPublisher(svc, log["nats"], BENCH_SENSOR))
         log["addr"] = stack.enter_context(serving(svc, companions=companions))
         deadline = time.monotonic() + 120
-        while not svc.ready()[0] and time.monotonic() < deadline:
+        while not svc.view.ready()[0] and time.monotonic() < deadline:
             time.sleep(0.1)
         yield svc, log
 
@@ -363,7 +363,7 @@ def _part1(addr: str, args, svc, log: dict, n_taxels: int) -> None:
     ups = [u for u in log["updates"] if u[2] >= log["updates"][0][2] + args.settle_s * 1e6]
     ms = np.array([u[1] for u in ups]) * 1000
     in_hand = np.array([(acq - clock.wall_us) / 1000 for _, _, acq, clock in ups if clock is not None])
-    stated = svc.latency_us()
+    stated = svc.view.latency_us()
     print(f"\n   {n_taxels} taxel(s), caused from {args.settle_s:g} s after subscribing: compute per update mean {ms.mean():.2f}, "
           f"p95 {np.percentile(ms, 95):.2f} ms; client clock offset {offset:+.0f} us; chunk in hand after its stated "
           f"acquisition: min {in_hand.min():.2f}, median {np.median(in_hand):.2f}, p95 {np.percentile(in_hand, 95):.2f} ms")

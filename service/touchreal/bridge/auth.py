@@ -2,33 +2,20 @@
 ``.creds`` file (JWT + nkey seed) or an nkey seed file, optionally over TLS (docs/scale-out.md);
 or credentials in the URL (``nats://USER:PASSWORD@HOST``, ``nats://TOKEN@HOST``).
 
-Flags ``--nats-*`` over ``TOUCHREAL_NATS_*`` environment variables; an empty variable counts as
+Flags ``--nats-*`` (:mod:`touchreal.commands.flags`) over ``TOUCHREAL_NATS_*`` environment variables; an empty variable counts as
 unset (compose passes ``""`` for a variable it does not know). Secrets never appear in ``repr`` or
 ``/v1/status`` (:meth:`NatsAuth.describe`; URLs are shown through :func:`touchreal.redaction.redact`).
 """
 
 from __future__ import annotations
 
-import argparse
 import ssl
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from pydantic import SecretStr, field_validator, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
-
-_FLAGS = (
-    ("user", "NATS user name (with --nats-password)"),
-    ("password", "NATS password; prefer the environment variable: flags show in the process list"),
-    ("token", "NATS token; prefer the environment variable"),
-    ("creds", "NATS .creds file (JWT and nkey seed, from nsc)"),
-    ("nkey", "NATS nkey seed file (its public key is in the broker's config)"),
-    ("tls-ca", "CA bundle to verify the broker's certificate (implies TLS)"),
-    ("tls-cert", "client certificate for TLS client authentication to the broker (with --nats-tls-key)"),
-    ("tls-key", "private key of --nats-tls-cert"),
-)
-
 
 def servers(urls: str) -> list[str]:
     """The broker URLs of a comma-separated list, each with its scheme: nats-py reads ``HOST:PORT``
@@ -49,15 +36,19 @@ class NatsAuth(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="TOUCHREAL_NATS_", extra="ignore")
 
-    user: str | None = None
-    password: SecretStr | None = None
-    token: SecretStr | None = None
-    creds: Path | None = None
-    nkey: Path | None = None
-    tls: bool = False  #: require TLS with the system's CAs (a ``tls://`` URL requires it too)
-    tls_ca: Path | None = None
-    tls_cert: Path | None = None
-    tls_key: Path | None = None
+    user: str | None = Field(default=None, description="NATS user name (with --nats-password)")
+    password: SecretStr | None = Field(default=None, description="NATS password; prefer the environment variable: "
+                                       "flags show in the process list")
+    token: SecretStr | None = Field(default=None, description="NATS token; prefer the environment variable")
+    creds: Path | None = Field(default=None, description="NATS .creds file (JWT and nkey seed, from nsc)")
+    nkey: Path | None = Field(default=None, description="NATS nkey seed file (its public key is in the broker's "
+                              "config; touchreal gateway credentials issues one)")
+    tls: bool = Field(default=False, description="NATS over TLS with the system's CAs (implied by a tls:// URL or "
+                      "--nats-tls-ca)")
+    tls_ca: Path | None = Field(default=None, description="CA bundle to verify the broker's certificate (implies TLS)")
+    tls_cert: Path | None = Field(default=None, description="client certificate for TLS client authentication to "
+                                  "the broker (with --nats-tls-key)")
+    tls_key: Path | None = Field(default=None, description="private key of --nats-tls-cert")
 
     @field_validator("*", mode="before")
     @classmethod
@@ -116,18 +107,3 @@ class NatsAuth(BaseSettings):
         method = self._method() or " and ".join(in_urls) or "anonymous"
         tls = self.tls or self.tls_ca or self.tls_cert or any(urlsplit(u).scheme == "tls" for u in urls)
         return method + (" over TLS" if tls else "")
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``--nats-*`` flags of ``serve --publish`` and ``gateway``."""
-    for flag, text in _FLAGS:
-        p.add_argument(f"--nats-{flag}", default=None, help=f"{text} (TOUCHREAL_NATS_{flag.upper().replace('-', '_')})")
-    p.add_argument("--nats-tls", action="store_true", default=None, help="NATS over TLS with the system's CAs "
-                   "(TOUCHREAL_NATS_TLS; implied by a tls:// URL or --nats-tls-ca)")
-
-
-def from_args(args: argparse.Namespace) -> NatsAuth:
-    """Flags over the environment."""
-    given = {name: getattr(args, f"nats_{name}") for name in ("user", "password", "token", "creds", "nkey", "tls",
-                                                             "tls_ca", "tls_cert", "tls_key")}
-    return NatsAuth(**{k: v for k, v in given.items() if v is not None})

@@ -35,7 +35,8 @@ from nats.errors import Error as NatsError
 from nats.errors import SlowConsumerError
 from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
 from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
 from touchreal_client.events import wait_set
@@ -47,6 +48,7 @@ from ..server.api_docs import add_docs
 from ..server.browser import SecurityHeaders, server_error
 from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
+from ..server.settings import ServerSettings
 from . import connection, subjects
 from .auth import NatsAuth, servers
 from .demand import DEFAULT_TTL_S, Announced, announcement
@@ -68,31 +70,21 @@ class UpstreamUnavailable(RuntimeError):
     """The publisher did not answer a request (not connected, not running, or too slow)."""
 
 
-class GatewaySettings(BaseSettings):
-    """``touchreal gateway`` settings (environment: ``TOUCHREAL_GATEWAY_<NAME>``)."""
+class GatewaySettings(ServerSettings):
+    """Every setting of ``touchreal gateway``: flag ``--NAME``, environment ``TOUCHREAL_GATEWAY_<NAME>``
+    (the stream settings it shares with ``serve``: :class:`~touchreal.server.settings.ServerSettings`)."""
 
     model_config = SettingsConfigDict(env_prefix="TOUCHREAL_GATEWAY_", extra="ignore")
 
+    port: int = Field(default=8766, ge=0, le=65535, description="port (8766: beside a service on its default 8765)")
     nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
     sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
     gateway_id: str = Field(default="", description="this gateway's identity on the broker: it announces demand on "
                             "touchreal.<sensor>.demand.<gateway_id>, which its broker credentials must allow; "
                             "default HOSTNAME-PORT")
-    host: str = "127.0.0.1"
-    port: int = Field(default=8766, ge=0, le=65535, description="8766: beside a service on its default 8765")
-    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
-                              "(512: 2.6 s of 5 ms hops)")
-    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full, or that takes no frame while frames wait, this long is closed (4008)")
-    max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
-                                    "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
-    max_clients: int = Field(default=1000, ge=1)
     pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
                                 "dropping them (each loss becomes a gap its clients see)")
     demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
-    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
-                                   "client this often (s)")
-    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
-                                  "within this time is closed with 1011 (s)")
 
     @model_validator(mode="after")
     def _identity(self) -> GatewaySettings:
@@ -431,9 +423,11 @@ def create_gateway_app(gateway: Gateway) -> FastAPI:
     app = FastAPI(title="TouchReal gateway", version=__version__, lifespan=lifespan,
                   summary="The /v1/stream spike stream of one sensor, served from NATS (docs/scale-out.md)",
                   docs_url=None, redoc_url=None)  # add_docs: an offline Swagger UI under a strict CSP
-    app.state.service = gateway  # server/ws.py reads it under this name
+    app.state.service = app.state.view = gateway  # server/ws.py reads them under these names
+    app.state.allowed_origins = gateway.settings.allowed_origins  # /v1/stream's Origin check (security.admit)
     app.add_exception_handler(Exception, server_error)
-    app.add_middleware(SecurityHeaders)
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=gateway.settings.allowed_hosts)
+    app.add_middleware(SecurityHeaders)  # outermost: a refused Host's 400 carries the headers too
     app.include_router(router)
     app.include_router(ws.router)
     add_docs(app)

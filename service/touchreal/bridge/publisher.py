@@ -178,7 +178,7 @@ class NatsPublisher:
         """An announcement on ``demand.<gateway_id>``: counted against that gateway, whatever its body says."""
         sender = subjects.last_token(msg.subject)
         try:
-            announced, ttl = parse_announcement(sender, msg.data, self.service.n_taxels)
+            announced, ttl = parse_announcement(sender, msg.data, self.service.view.n_taxels)
             self.demand.announce(sender, announced, ttl, time.monotonic())
         except Rejected as exc:
             self.m_rejected.labels(exc.reason).inc()
@@ -236,7 +236,7 @@ class NatsPublisher:
 
     async def _on_decoders_request(self, msg) -> None:
         if msg.reply:
-            await self.nc.publish(msg.reply, json.dumps(self.service.decoders_view()).encode())
+            await self.nc.publish(msg.reply, json.dumps(self.service.view.decoders_view()).encode())
 
     async def _on_model_request(self, msg) -> None:
         """Reply with the named model's ONNX bytes, or with :data:`.subjects.ERROR_HEADER` saying why not."""
@@ -254,10 +254,10 @@ class NatsPublisher:
         await self.nc.publish(msg.reply, data)
 
     def _hello_bytes(self) -> bytes:
-        return json.dumps(self.service.hello(), separators=(",", ":")).encode()
+        return json.dumps(self.service.view.hello(), separators=(",", ":")).encode()
 
     async def _announce_if_changed(self, params_rev: int) -> None:
-        key = (params_rev, self.service.n_taxels, tuple(self.service.config.classes), tuple(self.service.hub.decoder_names))
+        key = (params_rev, self.service.view.n_taxels, tuple(self.service.config.classes), tuple(self.service.hub.decoder_names))
         if key != self._announced:
             if self._announced is not None:
                 try:

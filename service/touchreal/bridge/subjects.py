@@ -28,6 +28,7 @@ JetStream stream :func:`stream_name`.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 
 SESSION_HEADER = "Touchreal-Session"
 ERROR_HEADER = "Touchreal-Error"
@@ -56,52 +57,36 @@ def check_gateway_id(gateway_id: str) -> str:
     return _check_token("gateway id", gateway_id)
 
 
-def frames(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.frames"
+def subject(sensor_id: str, *tokens: str) -> str:
+    """``touchreal.<sensor_id>.<tokens...>``: a subject of one sensor."""
+    return ".".join(("touchreal", sensor_id, *tokens))
 
 
-def channels(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.channels"
+def _leaf(*tokens: str) -> Callable[[str], str]:
+    """A function of a sensor id giving its subject ``touchreal.<sensor_id>.<tokens...>``."""
+    return lambda sensor_id: subject(sensor_id, *tokens)
 
 
-def hello(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.hello"
-
-
-def hello_request(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.hello.request"
-
-
-def clock(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.clock"
-
-
-def decoders_request(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.decoders.request"
-
-
-def model_request(sensor_id: str) -> str:
-    return f"touchreal.{sensor_id}.model.request"
+frames = _leaf("frames")
+channels = _leaf("channels")
+hello = _leaf("hello")
+hello_request = _leaf("hello", "request")
+clock = _leaf("clock")
+decoders_request = _leaf("decoders", "request")
+model_request = _leaf("model", "request")
+demand_any = _leaf("demand", "*")  #: the wildcard the publisher subscribes to: every gateway's demand subject
+decoded_any = _leaf("decoded", "*")  #: the wildcard a gateway subscribes to: every decoder's subject
 
 
 def demand(sensor_id: str, gateway_id: str) -> str:
     """Where gateway ``gateway_id`` announces its demand (and nobody else may, on a broker with
     :func:`gateway_permissions`)."""
-    return f"touchreal.{sensor_id}.demand.{gateway_id}"
-
-
-def demand_any(sensor_id: str) -> str:
-    """The wildcard the publisher subscribes to: every gateway's demand subject."""
-    return f"touchreal.{sensor_id}.demand.*"
+    return subject(sensor_id, "demand", gateway_id)
 
 
 def decoded(sensor_id: str, decoder: str) -> str:
-    return f"touchreal.{sensor_id}.decoded.{decoder}"
-
-
-def decoded_any(sensor_id: str) -> str:
-    """The wildcard a gateway subscribes to: every decoder's subject."""
-    return f"touchreal.{sensor_id}.decoded.*"
+    """Where decoder ``decoder``'s outputs are published."""
+    return subject(sensor_id, "decoded", decoder)
 
 
 def last_token(subject: str) -> str:

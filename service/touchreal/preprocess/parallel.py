@@ -5,7 +5,7 @@ The kernels are numba functions compiled with ``nogil=True`` (and scipy's FFT, w
 GIL), so the ranges run truly in parallel. Small calls (a few taxels, the 5 ms hop of one taxel
 block) stay on the calling thread: a hand-off costs some 10-50 us, more than their work.
 
-Threads: ``TOUCHREAL_THREADS`` if set (1 turns the pool off), else the CPUs this process may run
+Threads: ``TOUCHREAL_THREADS`` (:class:`~touchreal.settings.ProcessSettings`) if set (1 turns the pool off), else the CPUs this process may run
 on (``os.sched_getaffinity``), at most :data:`MAX_THREADS`; a 1-CPU container runs everything on
 the calling thread. Results do not depend on the thread count (ranges write disjoint columns).
 """
@@ -17,6 +17,10 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
+
+from pydantic import ValidationError
+
+from ..settings import ProcessSettings
 
 MAX_THREADS = 4  #: upper bound of the default thread count
 THREADS_ENV = "TOUCHREAL_THREADS"
@@ -41,12 +45,12 @@ def thread_count() -> int:
 @lru_cache(maxsize=1)
 def default_thread_count() -> int:
     """``TOUCHREAL_THREADS`` (read once), else the usable CPUs, at most :data:`MAX_THREADS`."""
-    text = os.environ.get(THREADS_ENV, "").strip()
-    if text:
-        try:
-            return max(1, int(text))
-        except ValueError:
-            raise ValueError(f"{THREADS_ENV} must be a whole number, got {text!r}") from None
+    try:
+        threads = ProcessSettings().threads
+    except ValidationError:
+        raise ValueError(f"{THREADS_ENV} must be a whole number from 0 to 256") from None
+    if threads is not None:
+        return max(1, threads)
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux

@@ -23,7 +23,6 @@ from .browser import SecurityHeaders, server_error
 from .limits import uvicorn_limits
 from .security import BodyGuard, validation_error
 from .service import Service
-from .settings import ServeSettings
 
 #: The live dashboard: plain static files (no build step), package data of the wheel.
 DASHBOARD_DIR = Path(__file__).with_name("dashboard")
@@ -63,6 +62,7 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
         redoc_url=None,
     )
     app.state.service = service
+    app.state.view = service.view  # what /v1/stream and the read routes report
     app.state.allowed_origins = service.settings.allowed_origins  # /v1/stream's Origin check (security.admit)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(Exception, server_error)
@@ -78,21 +78,19 @@ def create_app(service: Service, companions: Sequence[Companion] = ()) -> FastAP
     return app
 
 
-def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning",
-                   limits: ServeSettings | None = None) -> uvicorn.Config:
-    """The server configuration (``touchreal serve``, the tests and the benchmark use this one):
-    websockets' sans-I/O implementation, client messages capped at the protocol's limit,
-    permessage-deflate only for clients that offer it, the connection limits of ``limits`` (default: the
-    settings' defaults; :mod:`.limits`) and keepalive pings as the app's service's settings say (a client
-    that stops reading is closed with 1011 after at most interval + timeout). The event loop is uvloop
-    where it is installed (a dependency on POSIX): fanning a frame out to a hundred subscribers is a
-    hundred socket writes, and on asyncio's own loop those dominated the event loop's time
-    (docs/benchmarks.md, fan-out)."""
+def uvicorn_config(app: FastAPI, host: str, port: int, log_level: str = "warning") -> uvicorn.Config:
+    """The server configuration (``touchreal serve``, ``touchreal gateway``, the tests and the benchmark
+    use this one): websockets' sans-I/O implementation, client messages capped at the protocol's
+    limit, permessage-deflate only for clients that offer it, and the connection limits
+    (:mod:`.limits`) and keepalive pings of the app's settings (``app.state.service.settings``, a
+    :class:`~.settings.ServerSettings`; a client that stops reading is closed with 1011 after at most
+    interval + timeout). The event loop is uvloop where it is installed (a dependency on POSIX):
+    fanning a frame out to a hundred subscribers is a hundred socket writes, and on asyncio's own loop
+    those dominated the event loop's time (docs/benchmarks.md, fan-out)."""
     s = app.state.service.settings
     return uvicorn.Config(app, host=host, port=port, loop="auto", ws="websockets-sansio", ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
                           ws_per_message_deflate=True, ws_ping_interval=s.ping_interval_s,
-                          ws_ping_timeout=s.ping_timeout_s, log_level=log_level, lifespan="on",
-                          **uvicorn_limits(limits or ServeSettings.model_construct()))
+                          ws_ping_timeout=s.ping_timeout_s, log_level=log_level, lifespan="on", **uvicorn_limits(s))
 
 
 @contextmanager
@@ -103,17 +101,16 @@ def serving(service: Service, host: str = "127.0.0.1", port: int = 0, log_level:
 
     For benchmarks and tests that need the real server next to their own code (``port=0``: a free port).
     """
-    with serving_app(create_app(service, companions), host, port, log_level, service.settings) as addr:
+    with serving_app(create_app(service, companions), host, port, log_level) as addr:
         if not service.opened.wait(120.0):
             raise RuntimeError("the service did not finish its warm-up within 120 s")
         yield addr
 
 
 @contextmanager
-def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning",
-                limits: ServeSettings | None = None) -> Iterator[str]:
+def serving_app(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> Iterator[str]:
     """Run any of our apps (the service, a gateway) under uvicorn on its own thread; yields ``host:port``."""
-    config = uvicorn_config(app, host, port, log_level, limits)
+    config = uvicorn_config(app, host, port, log_level)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="touchreal-uvicorn", daemon=True)
     thread.start()

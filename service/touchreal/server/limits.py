@@ -15,7 +15,7 @@ from typing import Any
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from .settings import ServeSettings
+from .settings import ServerSettings
 
 
 class HeadTimeoutH11Protocol(H11Protocol):
@@ -54,7 +54,7 @@ class HeadTimeoutH11Protocol(H11Protocol):
             self.transport.close()
 
 
-def uvicorn_limits(settings: ServeSettings) -> dict[str, Any]:
+def uvicorn_limits(settings: ServerSettings) -> dict[str, Any]:
     """uvicorn.Config keyword arguments for the settings' connection limits."""
     protocol = type("HeadTimeoutH11Protocol", (HeadTimeoutH11Protocol,), {"head_timeout_s": settings.header_timeout_s,
                                                                           "send_buffer_bytes": settings.send_buffer_bytes})

@@ -30,7 +30,13 @@ _bearer = HTTPBearer(auto_error=False, description="required by write endpoints 
 
 
 def service_of(request: Request):
+    """The service: what the write routes change."""
     return request.app.state.service
+
+
+def view_of(request: Request):
+    """What the service reports: what the read routes show (:class:`~.view.ServiceView`)."""
+    return request.app.state.service.view
 
 
 def require_token(request: Request, cred: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
@@ -69,7 +75,7 @@ def health(request: Request) -> Any:
     """Liveness: the process serves and its acquisition thread has not failed; ``degraded`` while a
     parameter set that failed has been replaced by a fallback (the reason says which)."""
     svc = service_of(request)
-    state = svc.health()
+    state = svc.view.health()
     status, _, reason = state.partition(": ")
     if status == "failed":
         reason = svc.runtime.error
@@ -80,19 +86,19 @@ def health(request: Request) -> Any:
 @router.get("/v1/ready", response_model=Ready, tags=["health"], responses={503: {"model": Ready}})
 def ready(request: Request) -> Any:
     """Readiness: the source delivers and the pipeline is warm (JIT compiled, first update done)."""
-    ok, reason = service_of(request).ready()
+    ok, reason = view_of(request).ready()
     return JSONResponse(Ready(ready=ok, reason=reason).model_dump(), status_code=200 if ok else 503)
 
 
 @router.get("/v1/status", tags=["service"])
 def status(request: Request) -> dict[str, Any]:
     """Source state and counters, pipeline state, current demand, per-client queues and drops; `nats` when publishing."""
-    return service_of(request).status()
+    return view_of(request).status()
 
 
 @router.get("/v1/config", tags=["config"])
 def get_config(request: Request) -> dict[str, Any]:
-    return service_of(request).config_view()
+    return view_of(request).config_view()
 
 
 @router.patch("/v1/config", tags=["config"], dependencies=[Depends(require_token)],
@@ -162,7 +168,7 @@ async def rollback(body: Rollback, request: Request) -> ParamsInfo:
 def decoders(request: Request) -> list[dict[str, Any]]:
     """Installed decoder models (shipped with the package, plus the state directory's models/):
     metadata, and a warning where the active parameters differ from the ones it was trained on."""
-    return service_of(request).decoders_view()
+    return view_of(request).decoders_view()
 
 
 @router.get("/v1/decoders/{name}", tags=["decoders"], responses={404: {"description": "no such decoder"}})

@@ -205,8 +205,9 @@ class BodyGuard:
             await too_large(scope, receive, send)
             return
         why = shape.problem() if shape is not None and body else None
-        if why is not None:
-            await _problem(422, [{"loc": ["body"], "msg": why, "type": "json_invalid"}])(scope, receive, send)
+        if why is not None:  # the rest of a refused body is never read
+            await _problem(422, [{"loc": ["body"], "msg": why, "type": "json_invalid"}],
+                           {"Connection": "close"})(scope, receive, send)
             return
         await self.app(scope, _replay(body, receive), send)
 
@@ -237,7 +238,8 @@ class BodyGuard:
     @staticmethod
     async def _read(receive: Receive, limit: int, shape: JsonShape | None) -> bytes | None:
         """The whole body, or None as soon as it passes ``limit`` (the rest is never read); ``shape``
-        is fed as it arrives, a slice at a time with the event loop free between slices."""
+        is fed as it arrives, a slice at a time with the event loop free between slices, and reading
+        stops at the first problem it finds (what was read is returned)."""
         parts, size = [], 0
         while True:
             msg = await receive()
@@ -251,6 +253,8 @@ class BodyGuard:
             if shape is not None:
                 for i in range(0, len(chunk), SCAN_SLICE_BYTES):
                     shape.feed(chunk[i:i + SCAN_SLICE_BYTES])
+                    if shape.problem() is not None:
+                        return b"".join(parts)
                     await asyncio.sleep(0)
             if not msg.get("more_body", False):
                 break

@@ -1,4 +1,7 @@
-"""The one service object the routers call: source + runtime, hub, parameter store, metrics.
+"""The service's state and what changes it: source + runtime, hub, parameter store, metrics, and the
+changes clients ask for (config, parameters). What it reports (hello, status, readiness, views) is
+:class:`~.view.ServiceView`, ``Service.view``: the routers read through the view and write through
+the service.
 
 Clients are told what they need to trust a spike in time: the source's clock model as a ``clock``
 message (after every ``hello``, at least every :data:`CLOCK_EVERY_US`, and at once when the mapping
@@ -31,17 +34,17 @@ from typing import Any
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
 
-from .. import __version__
 from ..decoding.model import ModelStore, params_warning
 from ..dryrun import prove_runnable
 from ..params import EncoderParams, ParamsError
 from ..redaction import redact
-from .hub import Hub, limits
+from .hub import Hub
 from .metrics import Metrics
 from .params_store import ParamsStore
 from .runtime import Runtime, Update, wall_us
-from .settings import ConfigPatch, RuntimeConfig, ServeSettings
-from .sources import SourceRefused, confine_source, open_source, parse_source
+from .settings import ConfigPatch, RuntimeConfig, ServeSettings, parse_source
+from .sources import SourceRefused, confine_source, open_source
+from .view import ServiceView
 
 log = logging.getLogger("touchreal.server")
 MAX_BACKLOG = 64
@@ -88,6 +91,7 @@ class Service:
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None,
                        refresh_s=settings.hop_ms / 1000)
         self.hub.on_drop = self.metrics.count_drop
+        self.view = ServiceView(self)  #: what this service reports (read-only)
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
@@ -157,22 +161,18 @@ class Service:
             rt, self.runtime = self.runtime, None
             await asyncio.to_thread(rt.stop)
 
-    def hop_ms(self) -> float:
-        """The source's hop (ms): ``hop_ms``, at most the update interval."""
-        return min(self.settings.hop_ms, self.store.active.preprocess.update_ms)
-
     async def _open_runtime(self, device_present: bool = False) -> str | None:
         """Open the configured source and start the runtime on it; returns why it could not open (None: it
         did). ``device_present``: a serial device must be there and free now (:func:`.sources.open_source`)."""
         try:
-            source = await asyncio.to_thread(open_source, self.config, self.settings, self.hop_ms() / 1000.0,
+            source = await asyncio.to_thread(open_source, self.config, self.settings, self.view.hop_ms() / 1000.0,
                                              device_present)
         except (ValueError, OSError) as exc:
             self.source_error = str(exc)
             log.error("cannot open source %s: %s", redact(self.config.source), redact(str(exc)))
             return self.source_error
         self.source_error, self.ended = None, None
-        self.hub.configure(source.n_taxels, self.served_classes(), self.decoder_classes())
+        self.hub.configure(source.n_taxels, self.view.served_classes(), self.view.decoder_classes())
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._fall_back, self._post_end,
                                self.settings.compute_dtype)
@@ -227,7 +227,7 @@ class Service:
         self._delivered += 1
         self._follow_served_classes()  # whichever way a parameter set became active
         self._tell_clock(upd.clock)
-        if self._hello_key != self._describe():
+        if self._hello_key != self.view.describe():
             self.announce_hello()
         for (stream, decoder), n in (lost_before or {}).items():
             self.hub.skip(n, stream, decoder)
@@ -253,7 +253,7 @@ class Service:
             state = str(self.runtime.source.status().get("state"))
             for s in ("connecting", "streaming", "disconnected", "closed", "ended"):
                 m.source_state.labels(s).set(1.0 if s == state else 0.0)
-        m.ready.set(1.0 if self.ready()[0] else 0.0)
+        m.ready.set(1.0 if self.view.ready()[0] else 0.0)
         for sub in self.hub.subscribers.values():
             if sub.dropped:
                 m.client_drops.labels(str(sub.id)).set(sub.dropped)
@@ -271,99 +271,17 @@ class Service:
             for listener in self.clock_listeners:
                 listener(text)
 
-    def clock_message(self) -> str | None:
-        """The current ``clock`` message (None before the first sample)."""
-        return None if self.clock is None else json.dumps(self.clock.to_json(), separators=(",", ":"))
-
-    def _describe(self) -> tuple:
-        """What the hello describes, for change detection."""
-        # windows, latencies, delays and the update interval all follow from the active revision: no need
-        # to recompute them on every hop to notice a change
-        return (self.store.active_rev, tuple(self.config.classes), self.n_taxels, tuple(self.hub.decoder_names))
-
     def announce_hello(self) -> None:
         """Send the current hello (then the clock) to every client."""
-        self._hello_key = self._describe()
-        self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
-        clock = self.clock_message()
+        self._hello_key = self.view.describe()
+        self.hub.broadcast(json.dumps(self.view.hello(), separators=(",", ":")))
+        clock = self.view.clock_message()
         if clock is not None:
             self.hub.broadcast(clock)
 
-    # -- views ----------------------------------------------------------------------------------
-    @property
-    def n_taxels(self) -> int:
-        return self.hub.n_taxels
-
     def _follow_served_classes(self) -> None:
-        if self.served_classes() != self.hub.allowed_classes:
-            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
-
-    def served_classes(self) -> list[str]:
-        """Classes computed for subscribers: those the active parameters define and the config allows."""
-        return [c for c in P.CLASSES if c in self.store.active.classes and c in self.config.classes]
-
-    def latency_us(self) -> dict[str, int]:
-        """Per class of the active set: algorithmic latency of the pipeline (us)."""
-        from ..stream import class_latency_s
-
-        params = self.store.active
-        return {c: int(round(class_latency_s(params, c) * 1e6)) for c in params.classes}
-
-    def hello(self) -> dict[str, Any]:
-        params = self.store.active
-        positions = self.runtime.source.positions_mm if self.runtime is not None else []
-        info = self.store.info()
-        return {
-            "type": "hello",
-            "protocol": P.PROTOCOL,
-            "version": P.VERSION,
-            "versions": list(P.SUPPORTED_VERSIONS),
-            "session": self.session,
-            "server": f"touchreal {__version__}",
-            "units": {"time": "us", "force": "N", "pvdf": "V", "channels": dict(zip(P.CHANNELS, P.CHANNEL_UNITS))},
-            "clock": None if self.clock is None else {k: v for k, v in self.clock.to_json().items() if k != "type"},
-            "update_us": int(round(params.preprocess.update_ms * 1000)),
-            "hop_us": int(round(self.hop_ms() * 1000)),
-            "window_us": {c: int(round(params.window_ms(c) * 1000)) for c in params.classes},
-            "latency_us": self.latency_us(),
-            "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
-            "classes": self.served_classes(),
-            "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
-            "streams": {
-                "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
-                "channels": {"names": list(P.CHANNELS), "units": list(P.CHANNEL_UNITS), "rate_hz": 5000,
-                             "default_decimation": P.Subscription().decimation},
-                "decoded": {"decoders": self.decoder_list()},
-            },
-            "encodings": list(P.ENCODINGS),
-            "default_encoding": "binary",
-            "params": {"rev": info.rev, "sha256": info.sha256},
-            "limits": limits(self.settings),
-        }
-
-    def decoder_classes(self) -> dict[str, list[str]]:
-        """Usable installed decoders (name -> the classes they read), in the hello's order."""
-        return {m["name"]: list(m["classes"]) for m in self.models.list() if "error" not in m}
-
-    def decoders_view(self) -> list[dict[str, Any]]:
-        """Installed decoder models (``GET /v1/decoders``, also through a gateway): metadata, and a
-        warning where the active parameters differ from the ones a model was trained on."""
-        params = self.store.active
-        # a model's file is named, not located: no path of this machine goes out
-        return [{**m, "file": Path(m["file"]).name, "warning": None if "error" in m else params_warning(m, params)}
-                for m in self.models.list()]
-
-    def decoder_list(self) -> list[dict[str, Any]]:
-        """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
-        params = self.store.active
-        out = []
-        for m in self.models.list():
-            if "error" in m:
-                continue
-            out.append({"name": m["name"], "task": m["task"], "outputs": m["output_names"], "classes": m["classes"],
-                        "window_us": int(round(m["window_ms"] * 1000)), "step_us": int(round(m["step_ms"] * 1000)),
-                        "warning": params_warning(m, params)})
-        return out
+        if self.view.served_classes() != self.hub.allowed_classes:
+            self.hub.configure(self.view.n_taxels, self.view.served_classes(), self.view.decoder_classes())
 
     def _make_decoder(self, name: str, taxels: tuple[int, ...]):
         """Called on the acquisition thread when a decoder becomes demanded. The model and its
@@ -384,58 +302,6 @@ class Service:
         _, model, session = cached
         return StreamingDecoder(model, taxels, session=session)
 
-    def status(self) -> dict[str, Any]:
-        """``GET /v1/status``; the source's spec, its texts and the pipeline's error go through
-        :func:`~touchreal.redaction.redact` (a URL source or port may carry credentials)."""
-        rt = self.runtime
-        src = rt.source.status() if rt is not None else {"state": "failed", "error": self.source_error}
-        error = rt.error if rt else self.source_error
-        return {
-            "session": self.session,
-            "source": {k: redact(v) if isinstance(v, str) else v
-                       for k, v in {"spec": self.config.source, **src}.items()},
-            "pipeline": {"state": rt.state if rt else "stopped", "error": error and redact(error),
-                         "updates": rt.update_no if rt else 0, "active": rt.active if rt else None},
-            "demand": {"columns": {c: list(t) for c, t in self.hub.demand.columns.items()},
-                       "channel_taxels": list(self.hub.demand.channel_taxels),
-                       "decoders": {n: list(t) for n, t in self.hub.demand.decoders.items()}},
-            "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
-                        for s in self.hub.subscribers.values()],
-            "faults": dict(rt.counters) if rt else {},
-            "params": {"rev": self.store.active_rev, "sha256": self.store.info().sha256,
-                       "fallback": self.store.fallback_reason},
-            "ended": self.ended,
-            **{name: section() for name, section in self.status_sections.items()},
-        }
-
-    def ready(self) -> tuple[bool, str]:
-        if not self.opened.is_set():
-            return False, "warming up (compiling the pipeline, opening the source)"
-        rt = self.runtime
-        if rt is None:
-            return False, redact(f"source not open: {self.source_error}")
-        if rt.state in ("failed", "stopped"):
-            return False, redact(f"pipeline {rt.state}: {rt.error}")
-        st = rt.source.status().get("state")
-        if st != "streaming":
-            return False, f"source {st}"
-        if rt.state == "starting":
-            return False, "pipeline warming up"
-        return True, self.health()
-
-    def health(self) -> str:
-        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback; ``failed`` once the
-        acquisition thread has failed."""
-        if self.runtime is not None and self.runtime.state == "failed":
-            return "failed"
-        return f"degraded: {self.store.fallback_reason}" if self.store.fallback_reason else "ok"
-
-    def config_view(self) -> dict[str, Any]:
-        p = self.store.active.preprocess
-        return {**self.config.model_dump(), "source": redact(self.config.source), "update_ms": p.update_ms,
-                "window_ms": p.window_ms}
-
-    # -- changes --------------------------------------------------------------------------------
     async def patch_config(self, patch: ConfigPatch) -> dict[str, Any]:
         """Apply a validated patch; returns the new config and what was restarted. Raises ValueError
         (nothing changed), ParamsError (the new preprocessing does not run; nothing changed) or
@@ -468,8 +334,8 @@ class Service:
                                              "again)"))
             restarted.append("source")
         elif "classes" in changes:
-            self.hub.configure(self.n_taxels, self.served_classes(), self.decoder_classes())
-        return {"config": self.config_view(), "restarted": restarted}
+            self.hub.configure(self.view.n_taxels, self.view.served_classes(), self.view.decoder_classes())
+        return {"config": self.view.config_view(), "restarted": restarted}
 
     async def put_params(self, params: EncoderParams, origin: str = "upload") -> int:
         """A validated set, proved runnable (:func:`~touchreal.dryrun.prove_runnable`, raises

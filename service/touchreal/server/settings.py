@@ -1,9 +1,12 @@
-"""Service settings: command-line flags over ``TOUCHREAL_*`` environment variables over defaults.
+"""Settings of the programs that serve ``/v1/stream``: flags over environment variables over defaults.
 
-:class:`ServeSettings` is the one model of ``touchreal serve``: every field is a flag
-(``--state-dir``) and an environment variable (``TOUCHREAL_STATE_DIR``), fixed for the life of the
-process (docs/service.md's table is generated from it: :mod:`.settings_doc`). :class:`RuntimeConfig`
-is the part a client may change at run time (``PATCH /v1/config``); it starts from the settings.
+:class:`ServerSettings` is what every such program shares (bind address, client queues and limits,
+keepalive, connection limits, Host/Origin allowlists); :class:`ServeSettings` (``touchreal serve``,
+environment ``TOUCHREAL_<NAME>``) and the gateway's settings (:mod:`touchreal.bridge.gateway`,
+``TOUCHREAL_GATEWAY_<NAME>``) extend it. Every field is a flag (``--state-dir``) and an environment
+variable, fixed for the life of the process (:mod:`touchreal.commands.flags`; the docs' tables are
+generated from the models: :mod:`touchreal.commands.settings_doc`). :class:`RuntimeConfig` is the
+part a client may change at run time (``PATCH /v1/config``); it starts from the settings.
 """
 
 from __future__ import annotations
@@ -28,7 +31,63 @@ SOURCE_SPEC = "sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT"
 CommaList = Annotated[list[str], NoDecode]
 
 
-class ServeSettings(BaseSettings):
+def parse_source(spec: str) -> tuple[str, str]:
+    """``sim`` | ``replay:DIR[:ID,...]`` | ``serial:PORT`` -> (kind, argument); ValueError otherwise."""
+    kind, _, arg = spec.partition(":")
+    if kind == "sim" and not arg:
+        return kind, ""
+    if kind in ("replay", "serial") and arg:
+        return kind, arg
+    raise ValueError(f"source must be 'sim', 'replay:DATASET_DIR[:TRIAL_ID,...]' or 'serial:PORT', got {spec!r}")
+
+
+class ServerSettings(BaseSettings):
+    """What every program serving ``/v1/stream`` has: flag ``--NAME``, environment ``<PREFIX><NAME>``."""
+
+    model_config = SettingsConfigDict(extra="ignore")
+
+    host: str = Field(default="127.0.0.1", description="bind address")
+    port: int = Field(default=8765, ge=0, le=65535, description="port")
+    log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = Field(
+        default="warning", description="uvicorn log level")
+    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
+                              "(512: 2.6 s of 5 ms hops)")
+    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full, or that takes no "
+                                  "frame while frames wait, this long is closed (4008)")
+    max_clients: int = Field(default=1000, ge=1, description="WebSocket clients at once (more: close 1013)")
+    max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
+                                    "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
+    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
+                                   "client this often (s)")
+    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
+                                  "within this time is closed with 1011 (s)")
+    allowed_hosts: CommaList = Field(default_factory=lambda: ["127.0.0.1", "localhost"], description="Host header "
+                                     "values served (others: 400), e.g. the name behind a proxy; * = any")
+    allowed_origins: CommaList = Field(default_factory=list, description="browser origins (scheme://host[:port]) "
+                                       "that may open /v1/stream besides the server's own; * = any")
+    forwarded_allow_ips: CommaList = Field(default_factory=list, description="addresses of reverse proxies whose "
+                                           "X-Forwarded-For names the client (failed logins are throttled per client "
+                                           "address); empty = the TCP peer is the client")
+    header_timeout_s: float = Field(default=10.0, gt=0, le=300, description="a connection that has not sent "
+                                    "complete request headers this long after connecting (or after its last "
+                                    "response) is closed")
+    send_buffer_bytes: int = Field(default=65536, ge=0, le=1 << 26, description="kernel send buffer of each "
+                                   "connection (SO_SNDBUF; 0 = the kernel's autotuning, which lets a slow reader "
+                                   "fall seconds behind in buffers the server cannot age)")
+    keep_alive_s: int = Field(default=5, ge=1, le=300, description="an idle HTTP keep-alive connection is closed "
+                              "after this")
+    max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20, description="largest request head "
+                                  "(request line + headers, bytes; h11's max incomplete event size)")
+    limit_concurrency: int = Field(default=1200, ge=10, description="open connections (HTTP + WebSocket) before new "
+                                   "requests get 503; keep it above max_clients")
+
+    @field_validator("allowed_hosts", "allowed_origins", "forwarded_allow_ips", mode="before")
+    @classmethod
+    def _comma_list(cls, v: object) -> object:
+        return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
+
+
+class ServeSettings(ServerSettings):
     """Every setting of ``touchreal serve``: flag ``--NAME`` (``_`` -> ``-``), environment ``TOUCHREAL_<NAME>``."""
 
     model_config = SettingsConfigDict(env_prefix="TOUCHREAL_", extra="ignore")
@@ -37,8 +96,6 @@ class ServeSettings(BaseSettings):
     taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
     speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
-    host: str = Field(default="127.0.0.1", description="bind address")
-    port: int = Field(default=8765, ge=0, le=65535, description="port")
     token: str | None = Field(default=None, description="bearer token required by write endpoints; unset or empty = "
                               "writes open to whoever reaches the port")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")
@@ -49,8 +106,6 @@ class ServeSettings(BaseSettings):
     compute_dtype: Literal["float64", "float32"] = Field(default="float64", description="arithmetic of the "
                                                         "preprocessing: float32 takes ~40 % less CPU at 4096 taxels and "
                                                         "gave the same spikes on the measured sets (docs/benchmarks.md, Encoder)")
-    log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = Field(
-        default="warning", description="uvicorn log level")
     publish: str | None = Field(default=None, description="also publish the frames to this NATS URL "
                                 "(docs/scale-out.md), e.g. nats://127.0.0.1:4222")
     sensor_id: str | None = Field(default=None, description="with --publish: subjects touchreal.<ID>.*")
@@ -58,52 +113,23 @@ class ServeSettings(BaseSettings):
                               "gateways forward as demand")
     retain_s: float = Field(default=0.0, ge=0.0, le=3600.0, description="with --publish: keep the last S seconds of "
                             "frames in an in-memory JetStream stream touchreal_<ID> for late joiners")
-    queue_frames: int = Field(default=512, ge=2, le=100000, description="frames queued per client before dropping "
-                              "(512: 2.6 s of 5 ms hops)")
-    slow_timeout_s: float = Field(default=2.0, gt=0, description="a client whose queue stays full, or that takes no frame while frames wait, this long is closed (4008)")
-    max_clients: int = Field(default=1000, ge=1, description="WebSocket clients at once (more: close 1013)")
-    max_frame_age_ms: float = Field(default=250.0, ge=0.0, le=60000.0, description="a frame queued for a client longer "
-                                    "than this is dropped (counted, a seq gap) rather than sent late; 0 = no limit")
     max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
                                 "larger ones get 413 without being read")
-    allowed_hosts: CommaList = Field(default_factory=lambda: ["127.0.0.1", "localhost"], description="Host header "
-                                     "values served (others: 400), e.g. the name behind a proxy; * = any")
-    allowed_origins: CommaList = Field(default_factory=list, description="browser origins (scheme://host[:port]) "
-                                       "that may open /v1/stream besides the service's own; * = any")
-    forwarded_allow_ips: CommaList = Field(default_factory=list, description="addresses of reverse proxies whose "
-                                           "X-Forwarded-For names the client (failed logins are throttled per client "
-                                           "address); empty = the TCP peer is the client")
-    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list, description="folders under which PATCH /v1/config may "
-                                  "open replay: datasets, besides STATE_DIR/datasets and serve's own --source folder")
+    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list, description="folders under which PATCH "
+                                                        "/v1/config may open replay: datasets, besides "
+                                                        "STATE_DIR/datasets and serve's own --source folder")
     serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
                               "serial: ports; they can reach files and hosts")
     source_changes: bool = Field(default=True, description="PATCH /v1/config may change source, taxels, speed, loop")
-    header_timeout_s: float = Field(default=10.0, gt=0, le=300, description="a connection that has not sent "
-                                    "complete request headers this long after connecting (or after its last "
-                                    "response) is closed")
-    send_buffer_bytes: int = Field(default=65536, ge=0, le=1 << 26, description="kernel send buffer of each "
-                                   "connection (SO_SNDBUF; 0 = the kernel's autotuning, which lets a slow reader "
-                                   "fall seconds behind in buffers the server cannot age)")
-    keep_alive_s: int = Field(default=5, ge=1, le=300, description="an idle HTTP keep-alive connection is closed after this")
-    max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20, description="largest request head "
-                                  "(request line + headers, bytes; h11's max incomplete event size)")
-    limit_concurrency: int = Field(default=1200, ge=10, description="open connections (HTTP + WebSocket) before new "
-                                   "requests get 503; keep it above max_clients")
     hop_ms: float = Field(default=5.0, ge=1.0, le=1000.0, description="hop (ms): the source hands over samples and "
                           "the SingleTact-only and short-window classes go out this often (at most update_ms); "
                           "long windows keep update_ms (docs/architecture.md, Latency)")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
-    ping_interval_s: float = Field(default=20.0, gt=0, le=3600, description="WebSocket keepalive: a ping to each "
-                                   "client this often (s)")
-    ping_timeout_s: float = Field(default=20.0, gt=0, le=3600, description="a client that does not answer a ping "
-                                  "within this time is closed with 1011 (s)")
 
     @field_validator("source")
     @classmethod
     def _source(cls, v: str) -> str:
-        from .sources import parse_source  # the spec grammar lives with the sources
-
         parse_source(v)
         return v
 
@@ -115,9 +141,9 @@ class ServeSettings(BaseSettings):
             return None
         return v
 
-    @field_validator("allowed_hosts", "allowed_origins", "forwarded_allow_ips", "data_roots", mode="before")
+    @field_validator("data_roots", mode="before")
     @classmethod
-    def _comma_list(cls, v: object) -> object:
+    def _paths(cls, v: object) -> object:
         return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
 
     def runtime_config(self) -> "RuntimeConfig":

@@ -9,17 +9,7 @@ from pathlib import Path
 
 from ..recording import Dataset
 from ..sensing.live import LiveSource, ReplayLiveSource, SimLiveSource
-from .settings import RuntimeConfig, ServeSettings
-
-
-def parse_source(spec: str) -> tuple[str, str]:
-    """``sim`` | ``replay:DIR[:ID,...]`` | ``serial:PORT`` -> (kind, argument); ValueError otherwise."""
-    kind, _, arg = spec.partition(":")
-    if kind == "sim" and not arg:
-        return kind, ""
-    if kind in ("replay", "serial") and arg:
-        return kind, arg
-    raise ValueError(f"source must be 'sim', 'replay:DATASET_DIR[:TRIAL_ID,...]' or 'serial:PORT', got {spec!r}")
+from .settings import RuntimeConfig, ServeSettings, parse_source
 
 
 class SourceRefused(ValueError):

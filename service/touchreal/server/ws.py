@@ -45,8 +45,9 @@ async def stream(ws: WebSocket) -> None:
         return
     sub = hub.add()
     service.metrics.clients.inc()
-    sub.say(_dumps(service.hello()))
-    clock = service.clock_message()
+    view = ws.app.state.view
+    sub.say(_dumps(view.hello()))
+    clock = view.clock_message()
     if clock is not None:
         sub.say(clock)
     if service.ended is not None:
@@ -108,7 +109,7 @@ async def _receive_loop(ws: WebSocket, sub: Subscriber, service, sender: asyncio
                 s = service.hub.admit(m)
                 service.hub.subscribe(sub, s)
                 sub.say(_dumps({"type": "subscribed", **{k: v for k, v in s.to_json().items() if k != "type"},
-                                "latency_us": service.latency_us()}))
+                                "latency_us": ws.app.state.view.latency_us()}))
             errors = 0
         except P.ProtocolError as exc:
             sub.say(_dumps(P.error_message(exc.code, str(exc))))

@@ -41,11 +41,10 @@ from .clock import ClockMap, ClockPoint
 from .errors import RequestError, ServiceUnavailable, StreamClosed
 from .session import Coverage
 from .stream import AsyncStream, DecodedOutput, wall_us
-from .topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, CLOCK_SCHEMA, CLOCK_TOPIC, DECODED_SCHEMA, SPIKE_SCHEMA,
-                     decoded_topic, spikes_topic)
+from .topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, CLOCK_SCHEMA, CLOCK_TOPIC, DECODED_SCHEMA, PROFILE,
+                     SPIKE_SCHEMA, decoded_topic, spikes_topic)
 from .topics import json_lists as _lists
 
-PROFILE = "touchreal"
 IDLE_POLL_S = 0.2  #: with no frame for this long, the recorder checks whether the stream has ended
 
 

@@ -145,8 +145,7 @@ def read_mcap(path: str | Path) -> Session:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    from .record import PROFILE
-    from .topics import CHANNELS_TOPIC, CLOCK_TOPIC, PREFIX
+    from .topics import CHANNELS_TOPIC, CLOCK_TOPIC, PREFIX, PROFILE
 
     path = Path(path)
     spikes: list[dict[str, Any]] = []

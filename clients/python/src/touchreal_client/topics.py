@@ -20,6 +20,7 @@ import numpy as np
 
 from . import protocol as P
 
+PROFILE = "touchreal"  #: the MCAP profile of a TouchReal recording (:mod:`.record` writes it, :mod:`.session` checks it)
 PREFIX = "/touchreal"
 CLOCK_TOPIC = f"{PREFIX}/clock"
 CHANNELS_TOPIC = f"{PREFIX}/channels"

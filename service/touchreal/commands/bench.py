@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-from . import TARGETS
+from ..bench import TARGETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .plan import TASKS
+from ..decoding.plan import TASKS
 
 
 def _tasks(text: str) -> tuple[str, ...]:
@@ -75,10 +75,10 @@ def _bar(total: int, quiet: bool, desc: str):
 
 def run_train(args: argparse.Namespace) -> int:
     from ..recording import Dataset
-    from .build import train_all
-    from .evaluate import TrialCache
-    from .plan import plan
-    from .windows import require_trials
+    from ..decoding.build import train_all
+    from ..decoding.evaluate import TrialCache
+    from ..decoding.plan import plan
+    from ..decoding.windows import require_trials
 
     ds = Dataset.open(args.dataset)
     params = _params(args.params)
@@ -104,7 +104,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def _load_models(folder: str | None, tasks: tuple[str, ...]):
-    from .model import ModelStore, load_model
+    from ..decoding.model import ModelStore, load_model
 
     if folder is None:
         store = ModelStore()
@@ -122,10 +122,10 @@ def _load_models(folder: str | None, tasks: tuple[str, ...]):
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from ..recording import Dataset, RecordingError
-    from .evaluate import TrialCache, evaluate_models, protocol_of
-    from .model import params_warning
-    from .plan import spec_from_meta
-    from .windows import require_trials, split_entries
+    from ..decoding.evaluate import TrialCache, evaluate_models, protocol_of
+    from ..decoding.model import params_warning
+    from ..decoding.plan import spec_from_meta
+    from ..decoding.windows import require_trials, split_entries
 
     ds = Dataset.open(args.dataset)
     params = _params(args.params)
@@ -157,7 +157,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 def _check_split(models, ds, split: str, cache) -> None:
     """A held-out evaluation on the training dataset must use the split the models were trained with."""
-    from .windows import split_entries
+    from ..decoding.windows import split_entries
 
     if split == "all":
         return
@@ -172,7 +172,7 @@ def _check_split(models, ds, split: str, cache) -> None:
 
 
 def _with_info(metrics: dict[str, Any], ds, split: str, seed: int | None, params) -> dict[str, Any]:
-    from .model import params_hash
+    from ..decoding.model import params_hash
 
     return {**metrics, "info.dataset": str(ds.manifest.get("name", ds.root.name)), "info.dataset_dir": str(ds.root),
             "info.split": split, "info.split_seed": seed, "info.params_sha256": params_hash(params), "info.runtime": "onnxruntime"}
@@ -187,7 +187,7 @@ def _summary(metrics: dict[str, Any]) -> None:
 
 
 def run_list(args: argparse.Namespace) -> int:
-    from .model import ModelStore
+    from ..decoding.model import ModelStore
 
     for m in ModelStore(args.user_dir).list():
         if "error" in m:

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from ..recording import Dataset, RecordingError
 from ..settings import CLASSES
-from .model import ReferenceModel
+from ..reference.model import ReferenceModel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
