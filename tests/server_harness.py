@@ -10,12 +10,16 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import waiting
 import websockets
 from touchreal_client import protocol as P
 
 from touchreal.server.app import serving
 from touchreal.server.service import Service
 from touchreal.server.settings import RuntimeConfig, ServeSettings
+
+#: the tests' one waiting helper (tests/waiting.py), importable from here too
+until, wait_until = waiting.until, waiting.wait_until
 
 
 def free_port() -> int:
@@ -49,14 +53,25 @@ async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:
             return hello, json.loads(msg)
 
 
-async def collect(ws, seconds: float, until=None, clock: list | None = None) -> list:
-    """Frames (decoded) and control messages (dicts) received for ``seconds`` or until ``until(frames)``
-    is true; ``clock`` messages go to the list ``clock`` if one is given, else are left out."""
-    frames: list = []
+async def collect(ws, seconds: float, until=None, clock: list | None = None, *, what: str | None = None,
+                  into: list | None = None) -> list:
+    """Frames (decoded) and control messages (dicts) received until ``until(frames)`` is true;
+    ``clock`` messages go to the list ``clock`` if one is given, else are left out.
+
+    With ``until``, ``seconds`` only bounds a failure: if ``until`` does not hold by then, AssertionError
+    names ``what`` and what did arrive. Without it, everything received for ``seconds``: a fixed window,
+    which a test may assert on only when it measures one (a rate), saying so. To check a property over
+    a stretch of the stream, wait for the stretch: ``until=covers(seconds)``.
+    ``into``: the list to append to (another coroutine's ``until`` may watch it); returned.
+    """
+    frames: list = [] if into is None else into
     end = time.monotonic() + seconds
-    while time.monotonic() < end and not (until and until(frames)):
+    while not (until and until(frames)):
+        left = end - time.monotonic()
+        if left <= 0:
+            break
         try:
-            msg = await asyncio.wait_for(ws.recv(), max(end - time.monotonic(), 0.01))
+            msg = await asyncio.wait_for(ws.recv(), max(left, 0.01))
         except asyncio.TimeoutError:
             break
         if isinstance(msg, bytes):
@@ -68,7 +83,56 @@ async def collect(ws, seconds: float, until=None, clock: list | None = None) -> 
                     clock.append(m)
                 continue
             frames.append(P.frame_from_json(m) if m["type"] in ("spikes", "channels", "decoded") else m)
+    else:
+        return frames
+    if until is not None:
+        raise AssertionError(f"not within {seconds} s: {what or 'the awaited frames'}; got {_tally(frames)}")
     return frames
+
+
+def _tally(frames: list) -> dict[str, int]:
+    """How many of each kind of item ``collect`` got (for its failure message)."""
+    out: dict[str, int] = {}
+    for f in frames:
+        kind = f.get("type", "?") if isinstance(f, dict) else type(f).__name__
+        out[kind] = out.get(kind, 0) + 1
+    return out
+
+
+def _final_us(frame) -> int | None:
+    """The sensor instant (us) a frame is final to: a spikes frame's latest class ``final_us``, a
+    channels frame's last sample, a decoded frame's last step; None for anything else."""
+    if isinstance(frame, P.SpikesFrame):
+        return max((v for v in frame.final_us.values() if v is not None), default=None)
+    if isinstance(frame, P.ChannelsFrame) and frame.data.shape[0]:
+        return int(frame.t0_us) + (frame.data.shape[0] - 1) * int(frame.period_us)
+    if isinstance(frame, P.DecodedFrame) and len(frame.t_us):
+        return int(frame.t_us[-1])
+    return None
+
+
+def covers(seconds: float, where=None):
+    """An ``until`` for :func:`collect`: true once the frames (those ``where(frame)`` accepts, if given)
+    cover ``seconds`` of sensor time, from the earliest to the latest instant they are final to.
+
+    What a test waits for when it checks a property over a stretch of the stream: the same stretch a
+    fixed window of ``seconds`` gave on an unloaded machine (the sensor clock runs at 1x), however long
+    a loaded one takes to deliver it. Incremental: it looks at each frame once, so one predicate
+    serves one ``collect``.
+    """
+    seen, lo, hi = 0, None, None
+
+    def enough(frames: list) -> bool:
+        nonlocal seen, lo, hi
+        for f in frames[seen:]:
+            if where is None or where(f):
+                t = _final_us(f)
+                if t is not None:
+                    lo, hi = (t, t) if lo is None else (min(lo, t), max(hi, t))
+        seen = len(frames)
+        return lo is not None and hi - lo >= seconds * 1e6
+
+    return enough
 
 
 def n_spikes(frames: list) -> int:
@@ -79,8 +143,9 @@ def n_spikes(frames: list) -> int:
 async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[list, object, bool]:
     """Two clients subscribe to a heavy stream (5 kHz channels); one never reads (4 KiB receive buffer).
 
-    Returns the frames the reading client got until the hub closed the stalled one (or ``seconds``),
-    the close frame the stalled client finally reads, and whether it left the hub.
+    Returns the frames the reading client got until the hub closed the stalled one (and it had more
+    than 100; ``seconds`` bounds a failure), the close frame the stalled client finally reads, and
+    whether it left the hub.
     """
     host, port = addr.split(":")
     sock = socket.socket()
@@ -91,28 +156,11 @@ async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[lis
         await hello_and_subscribe(stalled, **sub)
         stalled_id = min(hub.subscribers)  # it connected first
         await hello_and_subscribe(good, **sub)
-        frames = await collect(good, seconds, lambda fs: metrics.kicked._value.get() >= 1 and len(fs) > 100)
+        frames = await collect(good, seconds, lambda fs: metrics.kicked._value.get() >= 1 and len(fs) > 100,
+                               what="the hub closed the stalled client, and the other got over 100 frames")
         gone = stalled_id not in hub.subscribers
         try:  # the stalled client now reads what was buffered, then its close
             while True:
                 await asyncio.wait_for(stalled.recv(), 10)
         except websockets.ConnectionClosed as closed:
             return frames, closed.rcvd, gone
-
-
-async def until(predicate, seconds: float, what: str) -> None:
-    """Poll ``predicate()`` every 20 ms until it is true; fail naming ``what`` after ``seconds``."""
-    end = time.monotonic() + seconds
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"not within {seconds} s: {what}")
-        await asyncio.sleep(0.02)
-
-
-def wait_until(predicate, seconds: float, what: str) -> None:
-    """:func:`until` for synchronous code."""
-    end = time.monotonic() + seconds
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"not within {seconds} s: {what}")
-        time.sleep(0.02)

@@ -20,7 +20,7 @@ import jsonschema
 import numpy as np
 import pytest
 import websockets
-from server_harness import free_port, running_server
+from server_harness import free_port, running_server, until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 
@@ -95,25 +95,17 @@ def server(tmp_path_factory) -> Iterator[tuple[str, Any]]:
         yield addr, svc
 
 
-async def poll(what: Callable[[], Any], seconds: float = 20.0) -> Any:
-    """Wait (polling) until ``what()`` is truthy; returns it."""
-    end = time.monotonic() + seconds
-    while not (v := what()):
-        assert time.monotonic() < end, "condition not met in time"
-        await asyncio.sleep(0.02)
-    return v
-
-
-async def poll_status(addr: str, ok: Callable[[dict], bool], seconds: float = 20.0) -> dict:
-    """GET /v1/status until ``ok(status)``; returns that status."""
-    end = time.monotonic() + seconds
+async def status_when(addr: str, ok: Callable[[dict], bool], what: str, seconds: float = 20.0) -> dict:
+    """The service's /v1/status once ``ok(status)`` holds (``until`` polls it); a failure names ``what``
+    and the last demand seen."""
+    last: dict[str, Any] = {}
     async with httpx.AsyncClient(base_url=f"http://{addr}") as http:
-        while True:
-            status = (await http.get("/v1/status")).json()
-            if ok(status):
-                return status
-            assert time.monotonic() < end, f"status never satisfied the condition: {status['demand']}"
-            await asyncio.sleep(0.05)
+
+        async def get() -> dict | None:
+            last.update((await http.get("/v1/status")).json())
+            return dict(last) if ok(last) else None
+
+        return await until(get, seconds, lambda: f"{what} (demand: {last.get('demand')})", interval=0.05)
 
 
 def _no_demand(status: dict) -> bool:
@@ -135,7 +127,7 @@ async def _stop(task: asyncio.Task) -> None:
 
 def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_then_is_anything_demanded(server):
     addr, svc = server
-    n_taxels = svc.n_taxels
+    n_taxels = svc.view.n_taxels
 
     async def go():
         bridge, task = await _bridge(addr)
@@ -147,12 +139,13 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                 await fox.read_until(lambda: topics <= set(fox.channels), 10)
                 assert fox.channels["/touchreal/spikes/SA1"]["schemaEncoding"] == "jsonschema"
                 # connected and advertised, nothing subscribed: the bridge demands nothing upstream
-                await poll(lambda: bridge.stream is not None and bridge.stream.subscribed is not None)
-                status = await poll_status(addr, lambda s: len(s["clients"]) == 1)
+                await until(lambda: bridge.stream is not None and bridge.stream.subscribed is not None, 20,
+                            "the bridge subscribed upstream")
+                status = await status_when(addr, lambda s: len(s["clients"]) == 1, "the bridge is the one client")
                 assert _no_demand(status), status["demand"]
 
                 sub_id = await fox.subscribe("/touchreal/spikes/SA1")
-                status = await poll_status(addr, lambda s: "SA1" in s["demand"]["columns"])
+                status = await status_when(addr, lambda s: "SA1" in s["demand"]["columns"], "SA1 demanded")
                 assert status["demand"]["columns"] == {"SA1": list(range(n_taxels))}
                 assert not status["demand"]["channel_taxels"] and not status["demand"]["decoders"]
 
@@ -175,7 +168,7 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                     sync_error_us = bridge.stream.clock.offset_error_us
 
                 await fox.unsubscribe("/touchreal/spikes/SA1")
-                await poll_status(addr, _no_demand)
+                await status_when(addr, _no_demand, "nothing demanded")
                 return fox.payloads(sub_id), frames, mapped, sync_error_us
         finally:
             await _stop(task)
@@ -197,7 +190,7 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
 
 def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(server):
     addr, svc = server
-    decoders = [d["name"] for d in svc.hello()["streams"]["decoded"]["decoders"]]
+    decoders = [d["name"] for d in svc.view.hello()["streams"]["decoded"]["decoders"]]
     if not decoders:
         pytest.skip("the service has no usable decoder installed")
     name = decoders[0]
@@ -210,12 +203,13 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
                 topics = ["/touchreal/force", "/touchreal/channels", f"/touchreal/decoded/{name}"]
                 await fox.read_until(lambda: set(topics) <= set(fox.channels), 10)
                 ids = {t: await fox.subscribe(t) for t in topics}
-                status = await poll_status(addr, lambda s: s["demand"]["channel_taxels"] and name in s["demand"]["decoders"])
+                status = await status_when(addr, lambda s: s["demand"]["channel_taxels"] and name in s["demand"]["decoders"],
+                                           f"channels and {name} demanded")
                 assert status["demand"]["columns"].keys() <= set(P.CLASSES)
                 await fox.read_until(lambda: all(len(fox.payloads(i)) >= 10 for i in ids.values()), 30)
                 for t in topics:
                     await fox.unsubscribe(t)
-                await poll_status(addr, _no_demand)
+                await status_when(addr, _no_demand, "nothing demanded")
                 schemas = {t: json.loads(fox.channels[t]["schema"]) for t in topics}
                 return {t: fox.payloads(i) for t, i in ids.items()}, schemas
         finally:
@@ -233,7 +227,7 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
         if m["t_us"] in chans:
             assert m["force_N"] == chans[m["t_us"]]["ST"] and m["taxels"] == chans[m["t_us"]]["taxels"]
     dec = [m for _, m in msgs[f"/touchreal/decoded/{name}"]]
-    step = next(d["step_us"] for d in svc.hello()["streams"]["decoded"]["decoders"] if d["name"] == name)
+    step = next(d["step_us"] for d in svc.view.hello()["streams"]["decoded"]["decoders"] if d["name"] == name)
     assert all(m["t_us"] % step == 0 for m in dec) and np.all(np.diff([m["t_us"] for m in dec]) > 0)
 
 
@@ -276,16 +270,17 @@ def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path)
             task = asyncio.create_task(bridge.run())
             try:
                 await asyncio.wait_for(bridge.ready.wait(), 30)
-                await poll(lambda: bridge.stream.subscribed is not None)
+                await until(lambda: bridge.stream.subscribed is not None, 20, "the bridge subscribed upstream")
                 assert not svc.hub.demand.columns  # connected through the gateway, nothing subscribed
                 async with foxglove_connect(bridge.port) as ws:
                     fox = FoxgloveClient(ws)
                     await fox.read_until(lambda: "/touchreal/spikes/PC" in fox.channels, 10)
                     sub_id = await fox.subscribe("/touchreal/spikes/PC")
-                    await poll(lambda: set(svc.hub.demand.columns) == {"PC"})  # forwarded to the service over NATS
+                    await until(lambda: set(svc.hub.demand.columns) == {"PC"}, 20,  # forwarded to the service over NATS
+                                "PC demanded of the service")
                     await fox.read_until(lambda: len(fox.payloads(sub_id)) >= 20, 30)
                     await fox.unsubscribe("/touchreal/spikes/PC")
-                    await poll(lambda: not svc.hub.demand.columns)
+                    await until(lambda: not svc.hub.demand.columns, 20, "nothing demanded of the service")
                     mapped = [(ns / 1000.0, bridge.stream.clock.to_server_wall_us(m["t_us"])) for ns, m in fox.payloads(sub_id)]
                     return fox.payloads(sub_id), mapped, bridge.stream.clock.offset_error_us
             finally:
@@ -302,9 +297,6 @@ def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path)
 def test_after_the_service_restarts_foxglove_clients_get_the_new_session_and_data_again(tmp_path):
     port = free_port()
 
-    async def until(fox: FoxgloveClient, done) -> None:
-        await fox.read_until(done, 60)
-
     with running_server(tmp_path / "a", port=port) as (addr, svc):
         loop = asyncio.new_event_loop()
         bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
@@ -312,16 +304,17 @@ def test_after_the_service_restarts_foxglove_clients_get_the_new_session_and_dat
         loop.run_until_complete(asyncio.wait_for(bridge.ready.wait(), 30))
         ws = loop.run_until_complete(foxglove_connect(bridge.port).__aenter__())
         fox = FoxgloveClient(ws)
-        loop.run_until_complete(until(fox, lambda: fox.server_info is not None and "/touchreal/spikes/SA1" in fox.channels))
+        loop.run_until_complete(fox.read_until(lambda: fox.server_info is not None
+                                               and "/touchreal/spikes/SA1" in fox.channels, 60))
         assert fox.server_info["sessionId"] == svc.session
         sub_id = loop.run_until_complete(fox.subscribe("/touchreal/spikes/SA1"))
-        loop.run_until_complete(until(fox, lambda: len(fox.payloads(sub_id)) >= 5))
+        loop.run_until_complete(fox.read_until(lambda: len(fox.payloads(sub_id)) >= 5, 60))
     try:
         with running_server(tmp_path / "b", port=port) as (_, svc2):
             assert svc2.session != svc.session
-            loop.run_until_complete(until(fox, lambda: fox.server_info["sessionId"] == svc2.session))
+            loop.run_until_complete(fox.read_until(lambda: fox.server_info["sessionId"] == svc2.session, 60))
             n = len(fox.payloads(sub_id))  # the bridge re-subscribed upstream for the Foxglove client: spikes again
-            loop.run_until_complete(until(fox, lambda: len(fox.payloads(sub_id)) >= n + 5))
+            loop.run_until_complete(fox.read_until(lambda: len(fox.payloads(sub_id)) >= n + 5, 60))
     finally:
         loop.run_until_complete(ws.close())
         loop.run_until_complete(_stop(task))
@@ -346,7 +339,7 @@ def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_client
                     sub_id = await good.subscribe("/touchreal/spikes/RA")
                     await good.read_until(lambda: len(good.payloads(sub_id)) >= 3, 30)
             assert not task.done()
-            await poll_status(addr, _no_demand)  # both gone: nothing demanded
+            await status_when(addr, _no_demand, "nothing demanded")  # both gone
         finally:
             await _stop(task)
 

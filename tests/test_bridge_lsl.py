@@ -5,13 +5,12 @@ liblsl) and pylsl inlets on this machine; the spikes and channels are compared w
 from __future__ import annotations
 
 import asyncio
-import time
 import uuid
 import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from server_harness import running_server
+from server_harness import running_server, until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 
@@ -71,13 +70,14 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
                               for f in frames if isinstance(f, P.SpikesFrame) for t, x, c in zip(f.t_us, f.taxel, f.cls)]
                     chans = [(wall(int(f.t0_us + k * f.period_us)) / 1e6 + offset, f.taxels, f.data[k])
                              for f in frames if isinstance(f, P.ChannelsFrame) for k in range(f.data.shape[0])]
-                    end = time.monotonic() + 10  # the bridge pushes what the direct client has seen
-                    while (not lsl_spike_ts or lsl_spike_ts[-1] < spikes[-1][3] - TOLERANCE_S) and time.monotonic() < end:
-                        await asyncio.sleep(0.02)
+                    def pushed() -> bool:  # the bridge has pushed what the direct client has seen
                         _pull(s_inlet, lsl_spikes, lsl_spike_ts)
                         _pull(c_inlet, lsl_chans, lsl_chan_ts)
+                        return bool(lsl_spike_ts) and lsl_spike_ts[-1] >= spikes[-1][3] - TOLERANCE_S
+
+                    await until(pushed, 30, "the inlet got the direct client's last spike")
                     return (spikes, chans, lsl_spikes, lsl_spike_ts, lsl_chans, lsl_chan_ts,
-                            s_info.as_xml(), c_info.as_xml(), svc.n_taxels, tolerance)
+                            s_info.as_xml(), c_info.as_xml(), svc.view.n_taxels, tolerance)
             finally:
                 task.cancel()
                 await asyncio.gather(task, return_exceptions=True)

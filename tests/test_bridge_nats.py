@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from server_harness import collect, connect, hello_and_subscribe, stall_one_of_two, until, wait_until
+from server_harness import collect, connect, covers, hello_and_subscribe, stall_one_of_two, until, wait_until
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 
@@ -65,10 +65,7 @@ def gateway(url: str, port: int = 0, auth: NatsAuth | None = None, **settings) -
     """A gateway on 127.0.0.1 that has the publisher's hello; yields (addr, gateway)."""
     gw = Gateway(GatewaySettings(nats=url, sensor_id=SENSOR, host="127.0.0.1", port=port, **settings), auth)
     with serving_app(create_gateway_app(gw), port=port) as addr:
-        deadline = time.monotonic() + 10
-        while not gw.ready()[0]:
-            assert time.monotonic() < deadline, gw.ready()[1]
-            time.sleep(0.02)
+        wait_until(lambda: gw.ready()[0], 10, lambda: f"the gateway is ready: {gw.ready()[1]}")
         yield addr, gw
 
 
@@ -85,6 +82,17 @@ def _consecutive(frames) -> bool:
     return seqs == list(range(seqs[0], seqs[0] + len(seqs)))
 
 
+def _has_gap(frames) -> bool:
+    """Whether the frames' seq jumps anywhere."""
+    return any(b.header.seq != a.header.seq + 1 for a, b in zip(frames, frames[1:]))
+
+
+def _shared(via: list, direct: list, kind: type) -> int:
+    """How many frames of ``kind`` in ``via`` carry an update the ``direct`` ones carry too."""
+    updates = {f.header.update for f in direct if isinstance(f, kind)}
+    return sum(isinstance(f, kind) and f.header.update in updates for f in via)
+
+
 def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp_path, nats_url):
     with publishing(tmp_path, nats_url, RuntimeConfig(taxels=4)) as (addr, svc, pub), \
             gateway(nats_url) as (ga, g1), gateway(nats_url) as (gb, g2):
@@ -97,7 +105,15 @@ def test_frames_arrive_in_order_through_two_gateways_and_demand_is_forwarded(tmp
                 await until(lambda: len(pub.demand.gateways) == 2, 10, "both gateways' demand reached the publisher")
                 await until(lambda: dict(svc.hub.demand.columns) == {c: (0, 1, 2, 3) for c in P.CLASSES}, 10,
                             "the service computes the union of both")
-                f1, f2, fd = await asyncio.gather(collect(w1, 3.0), collect(w2, 3.0), collect(direct, 3.0))
+                f1, f2, fd = [], [], []
+                spans = [covers(3.0) for _ in range(3)]
+
+                def enough(_) -> bool:  # 3 s of the stream on each, over 60 frames of each kind both ways
+                    return (all(c(fs) for c, fs in zip(spans, (f1, f2, fd))) and len(_spikes(f1)) > 60
+                            and _shared(f2, fd, P.ChannelsFrame) > 60 and _shared(f2, fd, P.SpikesFrame) > 60)
+
+                await asyncio.gather(*(collect(ws, 60.0, enough, into=fs, what="3 s of frames, over 60 shared ones")
+                                       for ws, fs in ((w1, f1), (w2, f2), (direct, fd))))
             # the gateways withdraw their demand as soon as their clients leave: the publisher no longer subscribes
             await until(lambda: not pub.demand.gateways, 10, "the gateways withdrew their demand")
             return h1, h2, f1, f2, fd, [s.subscription for s in pub.lanes.values()]
@@ -145,7 +161,7 @@ def test_replayed_trials_through_a_gateway_equal_touchreal_encode(tmp_path, nats
         async def go():
             async with connect(ga) as ws:
                 await hello_and_subscribe(ws)
-                return _spikes(await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended"))
+                return _spikes(await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended", what="the replay's end"))
 
         frames = run(go())
         offsets = [0, svc.runtime.source.offset_us]
@@ -164,7 +180,7 @@ def test_stalled_gateway_client_is_dropped_without_delaying_others(tmp_path, nat
     with publishing(tmp_path, nats_url, RuntimeConfig(taxels=16)) as (addr, svc, _), \
             gateway(nats_url, queue_frames=48, slow_timeout_s=0.5) as (ga, gw):
 
-        frames, rcvd, gone = run(stall_one_of_two(ga, gw.hub, gw.metrics, 10.0))
+        frames, rcvd, gone = run(stall_one_of_two(ga, gw.hub, gw.metrics, 30.0))
         lost = gw.upstream.lost + gw.upstream_channels.lost
     assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and gone
     ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
@@ -178,9 +194,13 @@ def test_slow_nats_subscriber_drops_become_gaps_the_client_sees(tmp_path, nats_u
         async def go():
             async with connect(ga) as ws:
                 await hello_and_subscribe(ws)
-                before = _spikes(await collect(ws, 1.0))
+                before = _spikes(await collect(ws, 30.0, covers(1.0), what="1 s of the stream"))
                 gw.loop.call_soon_threadsafe(time.sleep, 0.8)  # the gateway stalls: ~25 frames pile up in NATS
-                after = _spikes(await collect(ws, 2.0))
+                cover = covers(2.0)
+                # the slow consumer counted, its gap seen, and the stream on for 2 s (stall included) since
+                after = _spikes(await collect(ws, 30.0, lambda fs: cover(fs) and gw.m_slow._value.get() > 0
+                                              and _has_gap(before + _spikes(fs)),
+                                              what="the stall's losses, then 2 s of the stream"))
                 return before, after
 
         before, after = run(go())
@@ -202,6 +222,11 @@ def _decoded(frames):
     return [f for f in frames if isinstance(f, P.DecodedFrame)]
 
 
+def _steps(frames) -> set[int]:
+    """The steps (us) of the decoded frames among ``frames``."""
+    return {int(t) for f in _decoded(frames) for t in f.t_us}
+
+
 def test_decoded_outputs_cross_nats_on_demand_and_equal_the_service_direct(tmp_path, nats_url):
     with publishing(tmp_path, nats_url, RuntimeConfig(taxels=4)) as (addr, svc, pub), gateway(nats_url) as (ga, gw):
 
@@ -214,7 +239,14 @@ def test_decoded_outputs_cross_nats_on_demand_and_equal_the_service_direct(tmp_p
                             and sorted(svc.runtime.decoders) == ["force"], 10, "the decoder's lane is subscribed")
                 lanes = {k: v.subscription for k, v in pub.lanes.items()}
                 demand, running = dict(svc.hub.demand.decoders), sorted(svc.runtime.decoders)
-                fv, fd = await asyncio.gather(collect(via, 3.0), collect(direct, 3.0))
+                fv, fd = [], []
+                spans = covers(3.0), covers(3.0)
+
+                def enough(_) -> bool:  # 3 s of outputs on each, over 60 steps both got
+                    return spans[0](fv) and spans[1](fd) and len(_steps(fv) & _steps(fd)) > 60
+
+                await asyncio.gather(collect(via, 60.0, enough, into=fv, what="3 s of outputs, over 60 shared steps"),
+                                     collect(direct, 60.0, enough, into=fd, what="3 s of outputs, over 60 shared steps"))
                 announced = gw.status()["demand"]
             # both clients gone: the lane idles and the decoder stops
             await until(lambda: pub.lanes[subject].subscription is None and not svc.runtime.decoders, 10,
@@ -249,9 +281,12 @@ def test_a_decoders_frames_lost_on_the_hop_become_gaps_its_subscribers_see(tmp_p
         async def go():
             async with connect(ga) as ws:
                 hello, _ = await hello_and_subscribe(ws, streams=["decoded"], decoders=["force_sa1"])
-                before = _decoded(await collect(ws, 1.0))
+                before = _decoded(await collect(ws, 30.0, covers(1.0), what="1 s of outputs"))
                 gw.loop.call_soon_threadsafe(time.sleep, 0.8)  # the gateway stalls: frames pile up in NATS
-                after = _decoded(await collect(ws, 2.0))
+                cover = covers(2.0)
+                # the stall's gap seen, and the outputs on for 2 s (stall included) since
+                after = _decoded(await collect(ws, 30.0, lambda fs: cover(fs) and _has_gap(before + _decoded(fs)),
+                                               what="the stall's losses, then 2 s of outputs"))
                 return hello, before, after
 
         hello, before, after = run(go())
@@ -275,20 +310,28 @@ def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path
             with gateway(nats_url, port=port) as (ga, g1):
                 async with connect(ga) as ws:
                     hello, _ = await hello_and_subscribe(ws)
-                    return hello, _spikes(await collect(ws, 1.5)), g1.id
+                    return hello, _spikes(await collect(ws, 30.0, covers(1.5), what="1.5 s of the stream")), g1.id
 
         async def go():
             async with connect(gb) as steady:
                 await hello_and_subscribe(steady)
-                collecting = asyncio.create_task(collect(steady, 6.0))
+                got: list = []
+                back: list[int] = []  # how many frames the steady client had once the restarted gateway served
+                since = covers(1.0)
+                # the steady client reads through the whole restart and 1 s of the stream after it (a pause
+                # the restart caused shows), and for over 150 frames
+                collecting = asyncio.create_task(collect(
+                    steady, 60.0, lambda fs: bool(back) and len(fs) > 150 and since(fs[back[0]:]), into=got,
+                    what="the restart over, then 1 s of the stream, over 150 frames"))
                 h1, f1, id1 = await first_life()  # the gateway goes away with its client...
                 await until(lambda: len(pub.demand.gateways) == 1, 10, "the publisher saw it go")
                 with gateway(nats_url, port=port) as (ga, g1):  # ...and comes back on the same address
                     async with connect(ga) as ws:
                         h2, _ = await hello_and_subscribe(ws)
-                        f2 = _spikes(await collect(ws, 1.5))
-                        back = pub.demand.gateways
-                return h1, f1, h2, f2, _spikes(await collecting), (id1, g1.id, back)
+                        f2 = _spikes(await collect(ws, 30.0, covers(1.5), what="1.5 s of the stream"))
+                        live = pub.demand.gateways
+                back.append(len(got))
+                return h1, f1, h2, f2, _spikes(await collecting), (id1, g1.id, live)
 
         h1, f1, h2, f2, steady, (id1, id2, back) = run(go())
     assert id1 == id2 and id1 in back  # the same identity (HOSTNAME-PORT): it renewed its own place
@@ -347,10 +390,13 @@ def test_a_late_joiner_catches_up_on_the_retained_seconds(tmp_path, nats_js_url)
         async def go():
             nc = await nats.connect(nats_js_url)
             js = nc.jetstream()
-            end = time.monotonic() + 30
-            while (info := await js.stream_info(f"touchreal_{SENSOR}")).state.first_seq <= 1:  # wait for expiry:
-                assert time.monotonic() < end, info  # the service has published longer than the retention
-                await asyncio.sleep(0.1)
+
+            async def expired():  # the stream's info once its first frames expired
+                info = await js.stream_info(f"touchreal_{SENSOR}")
+                return info if info.state.first_seq > 1 else None
+
+            # the service has published longer than the retention
+            info = await until(expired, 30, "the first retained frames to expire")
             live: list[bytes] = []
 
             async def on_live(msg):
@@ -359,13 +405,18 @@ def test_a_late_joiner_catches_up_on_the_retained_seconds(tmp_path, nats_js_url)
             joined_us = wall_us()
             await nc.subscribe(subject, cb=on_live)  # an ordinary subscriber joining now: live frames only
             late = await js.subscribe(subject, ordered_consumer=True, deliver_policy=DeliverPolicy.ALL)
-            caught: list = []
-            end = time.monotonic() + 1.5
-            while time.monotonic() < end:
+            caught, caught_seqs = [], set()
+
+            async def caught_up() -> bool:  # one more message; true once it got over 20 of the live ones
                 try:
-                    caught.append(await late.next_msg(timeout=0.5))
+                    msg = await late.next_msg(timeout=0.5)
                 except nats.errors.TimeoutError:
-                    pass
+                    return False
+                caught.append(msg)
+                caught_seqs.add(P.decode_header(msg.data).seq)
+                return len(live) > 20 and sum(P.decode_header(d).seq in caught_seqs for d in live) > 20
+
+            await until(caught_up, 30, "the late joiner caught up with over 20 live frames", interval=0)
             await nc.close()
             return info, joined_us, live, caught
 
@@ -387,10 +438,7 @@ def test_retention_without_jetstream_is_reported_and_publishing_goes_on(tmp_path
     import httpx
 
     with publishing(tmp_path, nats_url, publisher={"publish_all": True, "retain_s": 2.0}) as (addr, svc, pub):
-        deadline = time.monotonic() + 20
-        while pub.published < 20:
-            assert time.monotonic() < deadline, pub.status()
-            time.sleep(0.05)
+        wait_until(lambda: pub.published >= 20, 20, lambda: f"20 frames published; {pub.status()}")
         status = httpx.get(f"http://{addr}/v1/status").json()["nats"]
     assert status["retain"]["seconds"] == 2.0 and "-js" in status["retain"]["error"]
     assert status["connected"] and status["published"] >= 20  # the service's own /v1/status tells

@@ -26,7 +26,7 @@ from server_harness import collect, connect, hello_and_subscribe, n_spikes, unti
 from test_bridge_nats import SENSOR, gateway, nats_url, publishing  # noqa: F401 (nats_url is a fixture)
 from touchreal_client import protocol as P
 
-from touchreal.bridge import command as gateway_command
+from touchreal.commands import gateway as gateway_command
 from touchreal.bridge import natsd, subjects
 from touchreal.bridge.auth import NatsAuth
 from touchreal.bridge.credentials import issue, permissions_entry
@@ -121,7 +121,7 @@ def test_authenticated_publisher_and_gateway_stream_and_nobody_else_gets_in(tmp_
         async def go():
             async with connect(ga) as ws:
                 hello, _ = await hello_and_subscribe(ws, taxels=[1])
-                frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 30)
+                frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 30, what="30 spikes frames")
             with pytest.raises((NatsError, OSError)):  # no credentials: the broker refuses the connection
                 await nats.connect(broker.url, max_reconnect_attempts=0, connect_timeout=2, allow_reconnect=False)
             wrong = NatsAuth(user="publisher", password="not-the-password")
@@ -166,7 +166,7 @@ def test_a_gateway_cannot_silence_another(tmp_path, broker):
             async def flood():  # up to 200 announcements a second, for as long as the client collects
                 while True:
                     await attacker.publish(subjects.demand(SENSOR, "gateway-1"), silence)
-                    await asyncio.sleep(1 / 200)
+                    await asyncio.sleep(1 / 200)  # the flood's pace, not a wait
 
             async with connect(gb) as ws:
                 await hello_and_subscribe(ws)
@@ -174,7 +174,8 @@ def test_a_gateway_cannot_silence_another(tmp_path, broker):
                 refused = await _refused_publish(broker.url, g1, subjects.demand(SENSOR, victim), silence)
                 flooding = asyncio.create_task(flood())
                 try:
-                    frames = await collect(ws, 30.0, lambda fs: mismatched() >= 400)
+                    frames = await collect(ws, 30.0, lambda fs: mismatched() >= 400,
+                                           what="400 fake withdrawals dropped")
                     live = pub.demand.gateways
                 finally:
                     flooding.cancel()
@@ -210,7 +211,7 @@ def test_one_identity_holds_one_place_and_a_restarted_gateway_gets_its_own_back(
                     body = announcement("gateway-1" if i % 2 else f"fake{i}", Announced({"SA1": [0]}), ttl_s=60.0)
                     await flooder.publish(subjects.demand(SENSOR, "gateway-1"), body)
                     await flooder.publish(subjects.demand(SENSOR, f"fake{i}"), body)  # the broker drops these
-                    await asyncio.sleep(1 / 200)
+                    await asyncio.sleep(1 / 200)  # the flood's pace (200 a second), not a wait
 
             flooding = asyncio.create_task(flood())
             try:
@@ -226,7 +227,7 @@ def test_one_identity_holds_one_place_and_a_restarted_gateway_gets_its_own_back(
                                                     gateway(broker.url, auth=g2, gateway_id="gateway-2"))
                     async with connect(gb) as ws:
                         await hello_and_subscribe(ws, taxels=[3], classes=["PC"])
-                        frames = _spikes(await collect(ws, 20.0, lambda fs: n_spikes(fs) >= 30))
+                        frames = _spikes(await collect(ws, 20.0, lambda fs: n_spikes(fs) >= 30, what="30 spikes frames"))
                         lane, live = pub.lanes[subjects.frames(SENSOR)].subscription, pub.demand.gateways
             finally:
                 flooding.cancel()
@@ -263,7 +264,8 @@ def test_issued_credentials_admit_a_new_gateway_under_its_id(tmp_path, capsys):
         async def go():
             async with connect(ga) as ws:
                 hello, _ = await hello_and_subscribe(ws)
-                return hello, await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10), pub.demand.gateways
+                return hello, await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10, what="10 spikes frames"), \
+                    pub.demand.gateways
 
         hello, frames, live = run(go())
     assert hello["session"] == svc.session and n_spikes(frames) >= 10 and live == ["gateway-3"]
@@ -387,7 +389,7 @@ def test_grasp_force_example_runs_through_a_gateway(tmp_path, broker):
         direct = httpx.get(f"http://{addr}/v1/decoders/force/model.onnx")
         run_ = subprocess.run([sys.executable, example, "--url", f"http://{ga}", "--seconds", "5", "--check"],
                               capture_output=True, text=True, timeout=120)
-    assert listed == json.loads(json.dumps(svc.decoders_view())) and one.json()["name"] == "force"
+    assert listed == json.loads(json.dumps(svc.view.decoders_view())) and one.json()["name"] == "force"
     assert missing.status_code == 404 and "nope" in missing.json()["detail"]
     assert onnx.status_code == 200 and onnx.content == direct.content and len(onnx.content) > 1000
     assert run_.returncode == 0, run_.stderr
@@ -416,7 +418,7 @@ def test_no_password_is_shown_anywhere(tmp_path, caplog):
             async def hellos():
                 async with connect(addr) as direct, connect(ga) as via:
                     (hd, _), (hv, _) = await hello_and_subscribe(direct), await hello_and_subscribe(via)
-                    return [hd, hv], await collect(via, 10.0, lambda fs: n_spikes(fs) >= 10)
+                    return [hd, hv], await collect(via, 10.0, lambda fs: n_spikes(fs) >= 10, what="10 spikes frames")
 
             (hd, hv), frames = run(hellos())
             shown = [httpx.get(f"http://{a}{path}").text for a in (addr, ga)
@@ -470,7 +472,7 @@ def test_publisher_and_gateway_over_tls(tmp_path):
             async def go():
                 async with connect(ga) as ws:
                     hello, _ = await hello_and_subscribe(ws)
-                    frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10)
+                    frames = await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 10, what="10 spikes frames")
                 with pytest.raises((NatsError, OSError)):  # no TLS: refused
                     await nats.connect(plain_url, max_reconnect_attempts=0, connect_timeout=2, allow_reconnect=False,
                                        user="publisher", password=env["TOUCHREAL_NATS_PUBLISHER_PASSWORD"])

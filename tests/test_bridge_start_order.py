@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from contextlib import AsyncExitStack
 
 import pytest
-from server_harness import connect
+from server_harness import collect, connect, n_spikes
 from test_bridge_nats import SENSOR, nats_url, publishing  # noqa: F401 (nats_url is a fixture)
 from touchreal_client import protocol as P
 
@@ -21,7 +20,7 @@ FRAMES = 10  #: spike frames the client must receive
 
 async def _start_in_order(order: tuple[str, ...], state_dir, url: str, stack: AsyncExitStack) -> tuple[list, list, object]:
     """Start each of "service", "gateway", "client" in ``order`` (nothing waits for anything upstream);
-    then poll, with a deadline, until the client holds a hello with taxels and FRAMES spike frames.
+    then read until the client holds a hello with taxels and FRAMES spike frames (30 s bound a failure).
     Returns (the client's hellos, its spike frames, the service)."""
     gw = Gateway(GatewaySettings(nats=url, sensor_id=SENSOR, host="127.0.0.1", port=0))
     svc, ws, ga = None, None, None
@@ -33,20 +32,13 @@ async def _start_in_order(order: tuple[str, ...], state_dir, url: str, stack: As
         else:
             ws = await stack.enter_async_context(connect(ga))
             await ws.send(json.dumps({"type": "subscribe"}))
-    hellos, frames = [], []
-    deadline = time.monotonic() + 30.0
-    while time.monotonic() < deadline and not (hellos and hellos[-1]["taxels"] and len(frames) >= FRAMES):
-        try:
-            msg = await asyncio.wait_for(ws.recv(), max(deadline - time.monotonic(), 0.01))
-        except asyncio.TimeoutError:
-            break
-        if isinstance(msg, bytes):
-            f = P.decode_frame(msg)
-            if isinstance(f, P.SpikesFrame):
-                frames.append(f)
-        elif json.loads(msg)["type"] == "hello":
-            hellos.append(json.loads(msg))
-    return hellos, frames, svc
+
+    def hellos_in(got: list) -> list[dict]:
+        return [m for m in got if isinstance(m, dict) and m["type"] == "hello"]
+
+    got = await collect(ws, 30.0, lambda fs: (h := hellos_in(fs)) and h[-1]["taxels"] and n_spikes(fs) >= FRAMES,
+                        what=f"a hello with taxels and {FRAMES} spikes frames")
+    return hellos_in(got), [f for f in got if isinstance(f, P.SpikesFrame)], svc
 
 
 def _check(hellos: list, frames: list, svc) -> None:

@@ -8,6 +8,7 @@ import asyncio
 
 import pytest
 from touchreal_client.events import wait_set
+from waiting import until
 
 
 @pytest.mark.parametrize("yields", [0, 1, 2, 3])
@@ -21,7 +22,8 @@ def test_a_waiting_loop_stops_at_the_first_cancel_whenever_the_event_is_set(yiel
                 ev.clear()
 
         task = asyncio.create_task(loop())
-        await asyncio.sleep(0.01)
+        # the loop is inside wait_set, its waiter on the event (asyncio.Event keeps its waiters in _waiters)
+        await until(lambda: ev._waiters, 5, "the loop to wait on the event")
         ev.set()
         for _ in range(yields):  # let the set travel part of the way through the waiter
             await asyncio.sleep(0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import quantities as pq
 from elephant.statistics import mean_firing_rate, time_histogram
-from server_harness import running_server
+from server_harness import covers, running_server
 from touchreal_client import Client, SpikesFrame, Subscription
 from touchreal_client import protocol as P
 from touchreal_client.neo import spiketrains
@@ -22,11 +22,13 @@ from touchreal.server.settings import RuntimeConfig
 def test_spike_frames_and_a_recording_become_neo_spiketrains(tmp_path):
     with running_server(tmp_path / "state", RuntimeConfig(taxels=2)) as (addr, svc):
         with Client(f"http://{addr}") as tr, tr.stream(Subscription(classes=["SA1", "PC"])) as s:
-            frames, end = [], time.monotonic() + 2.0
+            # 2 s of the stream (the trains' duration is checked below), spikes among it; 60 s bound a failure
+            frames, cover, end = [], covers(2.0), time.monotonic() + 60
             for f in s.frames():
                 frames.append(f)
-                if time.monotonic() > end and sum(x.t_us.size for x in frames if isinstance(x, SpikesFrame)) > 0:
+                if cover(frames) and sum(x.t_us.size for x in frames if isinstance(x, SpikesFrame)) > 0:
                     break
+                assert time.monotonic() < end, "not within 60 s: 2 s of the stream, with spikes"
             hello = s.hello
         assert main(["record", f"http://{addr}", "--out", str(tmp_path / "r.mcap"), "--seconds", "1.5",
                      "--streams", "spikes"]) == 0

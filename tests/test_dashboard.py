@@ -8,19 +8,18 @@ service's Content-Security-Policy: a violation is an error in the browser log an
 Set TOUCHREAL_DASHBOARD_SCREENSHOT to a path to keep the screenshot (docs/img/dashboard.png is
 made that way).
 
-tests/test_server_browser.py reuses :func:`browser`, :func:`wait_for` and :func:`csp_violations`.
+tests/test_server_browser.py reuses :func:`browser`, :func:`in_page` and :func:`csp_violations`.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
-import time
 from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import running_server
+from server_harness import running_server, wait_until
 
 from touchreal.server.settings import RuntimeConfig
 
@@ -66,18 +65,15 @@ def browser(tmp_path):
         driver.quit()
 
 
-def wait_for(driver, script: str, seconds: float = 30.0):
-    """The first truthy value of ``script`` in the page, polled every 0.2 s; fails after ``seconds``
-    with the dashboard's message list (if the page has one) and the browser log."""
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        value = driver.execute_script(script)
-        if value:
-            return value
-        time.sleep(0.2)
-    page_log = driver.execute_script("const log = document.getElementById('log'); return log && log.innerText")
-    raise AssertionError(f"timed out waiting for: {script}\npage log:\n{page_log}\n"
-                         f"browser log:\n{driver.get_log('browser')}")
+def in_page(driver, script: str, seconds: float = 30.0):
+    """The first truthy value of ``script`` in the page (``wait_until`` polls it every 0.2 s); a failure
+    shows the dashboard's message list (if the page has one) and the browser log."""
+
+    def awaited() -> str:
+        page_log = driver.execute_script("const log = document.getElementById('log'); return log && log.innerText")
+        return f"{script}\npage log:\n{page_log}\nbrowser log:\n{driver.get_log('browser')}"
+
+    return wait_until(lambda: driver.execute_script(script), seconds, awaited, interval=0.2)
 
 
 def csp_violations(entries: list[dict]) -> list[dict]:
@@ -92,21 +88,21 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
 
     with running_server(tmp_path / "state", RuntimeConfig(taxels=3), token="tok") as (addr, svc):
         browser.get(f"http://{addr}/")
-        wait_for(browser, "return window.touchreal && window.touchreal.connected")
+        in_page(browser, "return window.touchreal && window.touchreal.connected")
         # spikes drawn on the raster, the force trace filled from the channels stream
-        wait_for(browser, "const s = window.touchreal; return s.drawnSpikes > 20 && s.frames > 60 && s.force.size === 3")
+        in_page(browser, "const s = window.touchreal; return s.drawnSpikes > 20 && s.frames > 60 && s.force.size === 3")
         # the decoded force (the shipped force model, run by the service) is drawn and shown in N
-        wait_for(browser, "return window.touchreal.decodedForce.size > 0 && "
+        in_page(browser, "return window.touchreal.decodedForce.size > 0 && "
                           "document.getElementById('decoded-force').textContent.includes(' N (force')")
         shot = tmp_path / "dashboard.png"
         frames = browser.execute_script("return window.touchreal.frames")  # a little more history on the canvases
-        wait_for(browser, f"return window.touchreal.frames > {frames + 150}")
+        in_page(browser, f"return window.touchreal.frames > {frames + 150}")
         browser.save_screenshot(str(shot))
         stats = browser.execute_script("const s = window.touchreal; return [s.events, s.gaps, s.hello.session, "
                                        "document.getElementById('delivery').textContent]")
         assert stats[0] > 20 and stats[1] == 0 and stats[2] == svc.session and stats[3].endswith("ms")
         # latency per class from the clock model: the page maps with the service's own line
-        wait_for(browser, "return window.touchreal.spikeLatency.SA1.length > 10")
+        in_page(browser, "return window.touchreal.spikeLatency.SA1.length > 10")
         line, lat_sa1, shown = browser.execute_script(
             "const s = window.touchreal, c = s.clocks[s.clocks.length - 1], a = [...s.spikeLatency.SA1].sort((x, y) => x - y);"
             "return [c.wall_us - c.sensor_us, a[a.length >> 1], document.getElementById('latency').textContent]")
@@ -123,11 +119,9 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
         taxels = browser.find_element(By.ID, "taxels")
         taxels.clear()
         taxels.send_keys("1,2", Keys.ENTER)
-        wait_for(browser, "const s = window.touchreal.subscribed; return s && s.classes.join() === 'PC'")
-        deadline = time.monotonic() + 10
-        while dict(svc.hub.demand.columns) != {"PC": (1, 2)} and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert dict(svc.hub.demand.columns) == {"PC": (1, 2)}
+        in_page(browser, "const s = window.touchreal.subscribed; return s && s.classes.join() === 'PC'")
+        wait_until(lambda: dict(svc.hub.demand.columns) == {"PC": (1, 2)}, 10,
+                   lambda: f"PC of taxels 1 and 2 demanded: {dict(svc.hub.demand.columns)}")
 
         # causal window: refused without the token (logged, nothing changes), applied with it
         def apply_window(ms: str) -> None:
@@ -136,12 +130,12 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
             win.send_keys(ms, Keys.ENTER)  # submits through the apply button
 
         apply_window("64")
-        wait_for(browser, "return document.getElementById('log').textContent.includes('HTTP 401')")
-        assert svc.config_view()["window_ms"] == 128
+        in_page(browser, "return document.getElementById('log').textContent.includes('HTTP 401')")
+        assert svc.view.config_view()["window_ms"] == 128
         browser.find_element(By.ID, "token").send_keys("tok")
         apply_window("64")
-        wait_for(browser, "return document.getElementById('config').textContent.includes('window 64 ms')")
-        assert svc.config_view()["window_ms"] == 64
+        in_page(browser, "return document.getElementById('config').textContent.includes('window 64 ms')")
+        assert svc.view.config_view()["window_ms"] == 64
 
         entries = browser.get_log("browser")
     assert csp_violations(entries) == []

@@ -10,7 +10,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, covers, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
 from touchreal_client.features import CLASSES, StreamBinner
 
@@ -132,13 +132,16 @@ def test_served_stateful_decoder_equals_a_client_running_the_downloaded_file(tmp
         blob = httpx.get(f"http://{addr}/v1/decoders/force_fast/model.onnx").content
         meta = httpx.get(f"http://{addr}/v1/decoders/force_fast").json()
 
+        cover = covers(5.0)
+
         async def go():
             async with connect(addr) as ws:
                 hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
-                                                     decoders=["force_fast"])
-                return hello, await collect(ws, 5.0)
+                                                     decoders=["force_fast"])  # its only decoder: every output is it
+                return hello, await collect(ws, 60.0, lambda fs: cover(fs) and sum(
+                    isinstance(f, P.DecodedFrame) for f in fs) > 80, what="5 s of the stream, over 80 outputs")
 
-        hello, frames = asyncio.run(asyncio.wait_for(go(), 30))
+        hello, frames = asyncio.run(asyncio.wait_for(go(), 90))
     names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
     fast = [f for f in frames if isinstance(f, P.DecodedFrame) and names[f.decoder] == "force_fast"]
     assert len(fast) > 80

@@ -17,12 +17,11 @@ import shlex
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import yaml
-from server_harness import free_port
+from server_harness import free_port, wait_until
 from touchreal_client import Client
 
 from touchreal.commands import serve as command
@@ -180,13 +179,15 @@ def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_whe
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
             with Client(f"http://127.0.0.1:{port}") as tr:
-                deadline = time.monotonic() + 120
-                while True:
+                def up() -> bool:
+                    assert proc.poll() is None, "the entrypoint exited"
                     try:
                         tr.wait_ready(5)
-                        break
                     except Exception:
-                        assert proc.poll() is None and time.monotonic() < deadline, "the entrypoint did not come up"
+                        return False
+                    return True
+
+                wait_until(up, 120, "the entrypoint came up")
                 page = httpx.get(f"http://127.0.0.1:{port}/", timeout=10)
                 hc = [r for w, r in dockerfile() if w == "HEALTHCHECK"][0]
                 hc_cmd = json.loads(hc[hc.index("CMD") + 3:].strip())

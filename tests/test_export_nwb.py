@@ -60,7 +60,7 @@ def test_a_recording_of_a_live_server_exports_to_nwb(tmp_path):
         assert st.starting_time == pytest.approx((s.channels.t_us[0] - origin) / 1e6)
         np.testing.assert_array_equal(misc["decoded_force"].data[:], s.decoded["force"].values)
         revs = misc["parameter_revisions"].to_dataframe()
-        assert revs["sha256"].tolist() == [svc.hello()["params"]["sha256"]] and revs["rev"].tolist() == [1]
+        assert revs["sha256"].tolist() == [svc.view.hello()["params"]["sha256"]] and revs["rev"].tolist() == [1]
         assert json.loads(nwb.scratch["parameters_rev1"].data) == s.params[0]["params"]
         clock = misc["clock"].to_dataframe()
         assert clock["sensor_us"].tolist() == [p.sensor_us for p in s.clock]

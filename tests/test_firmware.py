@@ -16,7 +16,6 @@ import struct
 import subprocess
 import sys
 import threading
-import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ import httpx
 import numpy as np
 import pytest
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, running_server, wait_until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -334,10 +333,8 @@ def test_firmware_bytes_through_a_pty_into_touchreal_serve_give_the_recording_sp
     end_us = schedule[-1][0]
     try:
         with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{path}")) as (addr, _svc):
-            deadline = time.monotonic() + 20
-            while not (port.host_attached() and httpx.get(f"http://{addr}/v1/status").json()["source"]["connects"]):
-                assert time.monotonic() < deadline, "the service did not open the port"
-                time.sleep(0.02)
+            wait_until(lambda: port.host_attached() and httpx.get(f"http://{addr}/v1/status").json()["source"]["connects"],
+                       20, "the service opened the port")
 
             def settled(frames) -> bool:
                 finals = [f.final_us for f in frames if isinstance(f, P.SpikesFrame)]
@@ -347,7 +344,7 @@ def test_firmware_bytes_through_a_pty_into_touchreal_serve_give_the_recording_sp
                 async with connect(addr) as ws:
                     await hello_and_subscribe(ws, streams=["spikes"])
                     player.start()
-                    return await collect(ws, 30.0, settled)
+                    return await collect(ws, 30.0, settled, what="the service got through the recording")
 
             frames = asyncio.run(asyncio.wait_for(go(), 40))
             status = httpx.get(f"http://{addr}/v1/status").json()

@@ -7,7 +7,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 
 import httpx
 import jsonschema
@@ -15,7 +14,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Attachment, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
-from server_harness import free_port, running_server
+from server_harness import free_port, running_server, wait_until
 from test_bridge_nats import gateway, nats_url, publishing  # noqa: F401 (nats_url: a fixture)
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
@@ -130,7 +129,8 @@ def test_each_parameter_revision_the_frames_carry_is_attached(tmp_path):
         recorder = threading.Thread(target=lambda: done.append(main(
             ["record", f"http://{addr}", "--out", str(out), "--seconds", "3", "--streams", "spikes"])))
         recorder.start()
-        _wait_for_frames(svc, 200)  # about a second of 5 ms hops: spikes of revision 1
+        # about a second of 5 ms hops: spikes of revision 1
+        wait_until(_sent_over(svc, 200), 20, "the recorder got 200 frames")
         changed = {**first["params"], "provenance": {**first["params"]["provenance"], "note": "uploaded mid-recording"}}
         put = httpx.put(f"http://{addr}/v1/params", json=changed).json()
         recorder.join(30)
@@ -151,7 +151,7 @@ def test_recording_through_a_gateway_gives_the_same_spikes_and_the_hellos_parame
     with publishing(tmp_path / "state", nats_url, RuntimeConfig(source=f"replay:{ds}", speed=8.0)) as (addr, svc, _), \
             gateway(nats_url) as (ga, _gw):
         assert main(["record", f"ws://{ga}/v1/stream", "--out", str(out), "--seconds", "3", "--streams", "spikes"]) == 0
-        offsets, state, sha = [0, svc.runtime.source.offset_us], svc.runtime.state, svc.hello()["params"]["sha256"]
+        offsets, state, sha = [0, svc.runtime.source.offset_us], svc.runtime.state, svc.view.hello()["params"]["sha256"]
     assert state == "ended"
     rec = read_mcap(out)
     _assert_trials_are_encodes(rec, trials, offsets, tmp_path / "enc")
@@ -170,11 +170,9 @@ def _assert_trials_are_encodes(rec, trials, offsets: list[int], enc, nonempty: b
             assert (got.size or not nonempty) and np.array_equal(got, want[want >= 0]), (name, cls, got[:5], want[:5])
 
 
-def _wait_for_frames(svc, n: int) -> None:
-    deadline = time.monotonic() + 20
-    while not any(sub.sent > n for sub in list(svc.hub.subscribers.values())):
-        assert time.monotonic() < deadline, "the recorder never received frames"
-        time.sleep(0.05)
+def _sent_over(svc, n: int):
+    """A predicate: the service has sent a client (the recorder) over ``n`` frames."""
+    return lambda: any(sub.sent > n for sub in list(svc.hub.subscribers.values()))
 
 
 def test_a_recording_continues_across_a_server_restart(tmp_path):
@@ -186,10 +184,10 @@ def test_a_recording_continues_across_a_server_restart(tmp_path):
     sessions = []
     with running_server(tmp_path / "s1", port=port) as (addr, svc):
         recorder.start()
-        _wait_for_frames(svc, 200)  # about a second of 5 ms hops
+        wait_until(_sent_over(svc, 200), 20, "the recorder got 200 frames")  # about a second of 5 ms hops
         sessions.append(svc.session)
     with running_server(tmp_path / "s2", port=port) as (addr, svc):
-        _wait_for_frames(svc, 200)  # about a second of 5 ms hops
+        wait_until(_sent_over(svc, 200), 20, "the recorder got 200 frames")  # about a second of 5 ms hops
         sessions.append(svc.session)
         recorder.join(30)
     assert done == [0] and sessions[0] != sessions[1]
@@ -219,7 +217,7 @@ def test_ctrl_c_leaves_a_complete_file(tmp_path):
         proc = subprocess.Popen([sys.executable, "-m", "touchreal", "record", f"http://{addr}", "--out", str(out),
                                  "--streams", "spikes"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            _wait_for_frames(svc, 10)
+            wait_until(_sent_over(svc, 10), 20, "the recorder got 10 frames")
             proc.send_signal(signal.SIGINT)
             stdout, stderr = proc.communicate(timeout=30)
         finally:

@@ -7,12 +7,11 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import time
 
 import httpx
 import numpy as np
 import pytest
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, running_server, until
 from touchreal_client import protocol as P
 from touchreal_client.stream import AsyncStream
 
@@ -82,7 +81,8 @@ def test_cut_trials_replay_equal_encode(tmp_path, cut_dataset, encoding):
         async def client() -> tuple[list, dict]:
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, encoding=encoding)
-                msgs = await collect(ws, 40.0, lambda fs: any(isinstance(m, dict) and m.get("type") == "ended" for m in fs))
+                msgs = await collect(ws, 40.0, lambda fs: any(isinstance(m, dict) and m.get("type") == "ended" for m in fs),
+                                     what="the `ended` message")
             return [m for m in msgs if isinstance(m, P.SpikesFrame)], next(m for m in msgs if isinstance(m, dict)
                                                                             and m.get("type") == "ended")
 
@@ -92,9 +92,7 @@ def test_cut_trials_replay_equal_encode(tmp_path, cut_dataset, encoding):
                 while first[-1]["type"] != "ended" and len(first) < 3:  # hello, clock, ended
                     first.append(json.loads(await ws.recv()))
             async with AsyncStream(f"http://{addr}", reconnect=False) as s:  # the client library keeps it
-                deadline = time.monotonic() + 10.0
-                while s.ended is None and time.monotonic() < deadline:
-                    await asyncio.sleep(0.01)
+                await until(lambda: s.ended is not None, 10, "the client library's `ended`")
                 return first, s.ended
 
         frames, ended = asyncio.run(asyncio.wait_for(client(), 60))

@@ -33,7 +33,7 @@ def test_sim_hop_ends_a_chunk_with_each_singletact_sample(seed):
 def test_a_consumer_that_fell_behind_gets_the_due_hops_in_one_chunk():
     src = SimLiveSource(1, 0.005, seed=1)
     first = src.next_chunk()
-    time.sleep(0.1)  # ~20 hops come due meanwhile
+    time.sleep(0.1)  # the stimulus, not a wait: the consumer falls behind while ~20 hops come due
     late = src.next_chunk()
     assert 15 <= late.pvdf_t.size // 10 <= 64  # the due hops at once, not one per call
     assert np.allclose(np.diff(np.concatenate([first.pvdf_t, late.pvdf_t])), 0.0005)

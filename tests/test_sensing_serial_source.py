@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import synthetic_trial
+from waiting import wait_until
 
 from touchreal.encoding.encoder import SpikeEvents
 from touchreal.params import default_params
@@ -27,13 +28,6 @@ from touchreal.stream import StreamEncoder, encode_trial
 SPEED = 6.0  # playback speed: a 1.5 s trial streams in 0.25 s
 
 
-def wait_until(cond: Callable[[], bool], timeout_s: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.005)
-
-
 @contextmanager
 def reading(path: Path, n_taxels: int = 1) -> Iterator[tuple[PtyPort, SerialSource]]:
     """A plugged emulated port and a SerialSource that has opened it (and flushed its input)."""
@@ -41,7 +35,7 @@ def reading(path: Path, n_taxels: int = 1) -> Iterator[tuple[PtyPort, SerialSour
     port.plug()
     src = SerialSource(str(path), n_taxels=n_taxels, update_s=0.02)
     try:
-        wait_until(lambda: src.status()["connects"] > 0)
+        wait_until(lambda: src.status()["connects"] > 0, 5, "the source opened the port", interval=0.005)
         yield port, src
     finally:
         src.close()
@@ -125,7 +119,7 @@ def test_missing_port_never_raises_and_close_ends_the_stream(tmp_path):
     assert chunk is not None and chunk.st_t.size == chunk.pvdf_t.size == 0
     status = src.status()
     assert status["state"] in ("connecting", "disconnected") and status["connects"] == 0
-    wait_until(lambda: "could not open port" in src.status()["last_error"])
+    wait_until(lambda: "could not open port" in src.status()["last_error"], 5, "the open failed", interval=0.005)
     assert src.clock() is None and src.status()["clock_error_us"] == -1
     src.close()
     assert src.next_chunk() is None and src.status()["state"] == "closed"
@@ -163,9 +157,9 @@ def test_a_step_of_the_wall_clock_moves_the_mapping_in_a_new_epoch(tmp_path):
     port.plug()
     src = SerialSource(str(port.path), update_s=0.02, wall_ns=lambda: time.time_ns() + step_ns)
     try:
-        wait_until(lambda: src.status()["connects"] > 0)
+        wait_until(lambda: src.status()["connects"] > 0, 5, "the source opened the port", interval=0.005)
         with emulated(port, [synthetic_trial(duration_s=1.0)], speed=1.0):
-            wait_until(lambda: src.clock() is not None)
+            wait_until(lambda: src.clock() is not None, 5, "a clock point", interval=0.005)
             before = src.clock()
             step_ns = 5_000_000_000  # the wall clock is stepped 5 s ahead (NTP at boot)
             after, again = src.clock(), src.clock()
@@ -180,7 +174,8 @@ def test_a_step_of_the_wall_clock_moves_the_mapping_in_a_new_epoch(tmp_path):
 def test_a_second_reader_of_the_same_port_is_refused_and_says_why(tmp_path):
     with reading(tmp_path / "ttyTR0") as (port, first):
         second = SerialSource(str(port.path), update_s=0.01)
-        wait_until(lambda: "lock" in second.status()["last_error"])
+        wait_until(lambda: "lock" in second.status()["last_error"], 5, "the second source refused by the lock",
+                   interval=0.005)
         status = second.status()
         second.close()
     assert first.status()["connects"] == 1 and not port.host_attached()

@@ -15,7 +15,6 @@ import asyncio
 import json
 import re
 import threading
-import time
 from collections.abc import Iterator
 from html.parser import HTMLParser
 from types import SimpleNamespace
@@ -25,8 +24,8 @@ import httpx
 import pytest
 from fastapi import FastAPI
 from fastapi.responses import StreamingResponse
-from server_harness import connect, free_port, running_server
-from test_dashboard import browser, csp_violations, wait_for  # noqa: F401  (browser: the Chromium fixture)
+from server_harness import connect, free_port, running_server, wait_until
+from test_dashboard import browser, csp_violations, in_page  # noqa: F401  (browser: the Chromium fixture)
 
 from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
 from touchreal.server.app import serving_app
@@ -199,15 +198,15 @@ def test_headers_on_an_unhandled_error_and_a_streamed_body_is_not_held_back():
             assert b"".join(chunks) == b"second"
 
 
-def browser_log_until(driver, predicate, seconds: float = 10.0) -> list[dict]:
-    """Browser log entries gathered until ``predicate(entries)`` holds; fails after ``seconds``."""
+def browser_log_where(driver, predicate, seconds: float = 10.0) -> list[dict]:
+    """Browser log entries, gathered (``wait_until`` polls the log) until ``predicate(entries)`` holds."""
     entries: list[dict] = []
-    end = time.monotonic() + seconds
-    while not predicate(entries):
-        if time.monotonic() > end:
-            raise AssertionError(f"not within {seconds} s; browser log: {entries}")
-        time.sleep(0.1)
-        entries += driver.get_log("browser")
+
+    def gathered() -> bool:
+        entries.extend(driver.get_log("browser"))
+        return predicate(entries)
+
+    wait_until(gathered, seconds, lambda: f"the browser log to show it; browser log: {entries}", interval=0.1)
     return entries
 
 
@@ -226,12 +225,12 @@ def test_docs_render_offline_in_chromium_under_the_csp(browser, app_addr):  # no
 
     browser.get(f"http://{app_addr}/docs")
     path = "[data-path='/v1/health']"
-    wait_for(browser, f"return document.querySelector(\"#swagger-ui .opblock-summary-path{path}\")")
+    in_page(browser, f"return document.querySelector(\"#swagger-ui .opblock-summary-path{path}\")")
     # run GET /v1/health from the page: Try it out, Execute, the answer shown (connect-src 'self')
     browser.find_element(By.CSS_SELECTOR, f".opblock-summary-path{path}").click()
-    wait_for(browser, "return document.querySelector('.opblock.is-open .try-out__btn')").click()
-    wait_for(browser, "return document.querySelector('.opblock.is-open .execute')").click()
-    status = wait_for(browser, "const c = document.querySelector('.opblock.is-open .live-responses-table "
+    in_page(browser, "return document.querySelector('.opblock.is-open .try-out__btn')").click()
+    in_page(browser, "return document.querySelector('.opblock.is-open .execute')").click()
+    status = in_page(browser, "const c = document.querySelector('.opblock.is-open .live-responses-table "
                                "tr.response .response-col_status'); return c && c.textContent.trim()")
     assert status == "200"
     entries = browser.get_log("browser")
@@ -241,4 +240,4 @@ def test_docs_render_offline_in_chromium_under_the_csp(browser, app_addr):  # no
     browser.execute_script("const s = document.createElement('script'); s.textContent = 'window.inlineRan = 1';"
                            "document.body.append(s)")
     assert browser.execute_script("return window.inlineRan") is None
-    assert csp_violations(browser_log_until(browser, csp_violations))
+    assert csp_violations(browser_log_where(browser, csp_violations))

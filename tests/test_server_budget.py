@@ -80,7 +80,9 @@ def test_subscription_changes_within_the_refresh_interval_are_one_demand_rebuild
 async def _steady(addr: str, seconds: float) -> tuple[float, list[float]]:
     """A client of SA1 and RA spikes for ``seconds``: (spikes frames per second, the latency of each
     spike in ms: its receipt minus the acquisition of its causing sample, mapped by the stream's
-    clock model on this client's clock)."""
+    clock model on this client's clock).
+
+    A fixed window, on purpose: it measures a rate (frames per second of wall time)."""
     async with connect(addr) as ws:
         hello, _ = await hello_and_subscribe(ws, classes=["SA1", "RA"])
         delay = np.array([hello["delay_us"].get(c, 0) for c in P.CLASSES], np.float64)
@@ -137,7 +139,7 @@ async def main(addr, kind, seconds, mode):
         end, n = time.monotonic() + seconds, 0
         while time.monotonic() < end and not reader.done():
             if n and mode == "hold":
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(0.05)  # holding: idle until the end (not a wait for anything)
                 continue
             await ws.send(msgs[n % 2])
             if kind == "toggle":
@@ -171,13 +173,15 @@ def test_a_steady_clients_frame_rate_and_latency_hold_while_another_floods_subsc
     with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
 
         async def go():
-            await until(lambda: svc.ready()[0], 60, "the service to be ready")
+            await until(lambda: svc.view.ready()[0], 60, "the service to be ready")
             results = {}
             for mode in ("hold", "flood"):
                 others = await _others(addr, mode, 7.0)
                 await until(lambda: len(svc.hub.subscribers) == 2 and all(
                     s.subscription is not None for s in svc.hub.subscribers.values()), 20, "the other clients")
-                await _steady(addr, 1.0)  # settle: decoders and columns the others demand are running
+                # settle (a measurement's warm-up, kept as a window): decoders and columns the others demand
+                # are running and past their first calls before the measured window
+                await _steady(addr, 1.0)
                 results[mode] = (await _steady(addr, 4.0), await _sent(others))
                 await until(lambda: not svc.hub.subscribers, 20, "the other clients to leave")
             return results

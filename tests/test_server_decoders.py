@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import onnx
 import onnxruntime as ort
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, covers, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
 from touchreal_client.features import StreamBinner
 
@@ -44,13 +44,22 @@ def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_s
         blob = httpx.get(f"http://{addr}/v1/decoders/force/model.onnx").content
         meta = httpx.get(f"http://{addr}/v1/decoders/force").json()
 
+        cover = covers(6.0)
+
         async def go():
             async with connect(addr) as ws:
                 hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
                                                      decoders=["force", "texture"])
-                return hello, await collect(ws, 6.0)
+                names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
 
-        hello, frames = asyncio.run(asyncio.wait_for(go(), 30))
+                def enough(fs) -> bool:  # 6 s of the stream, over 100 force outputs and a texture one
+                    decoded = [names[f.decoder] for f in fs if isinstance(f, P.DecodedFrame)]
+                    return decoded.count("force") > 100 and "texture" in decoded
+
+                return hello, await collect(ws, 60.0, lambda fs: cover(fs) and enough(fs),
+                                            what="6 s of the stream, over 100 force outputs and a texture one")
+
+        hello, frames = asyncio.run(asyncio.wait_for(go(), 90))
     names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
     decoded = [f for f in frames if isinstance(f, P.DecodedFrame)]
     force = [f for f in decoded if names[f.decoder] == "force"]

@@ -8,13 +8,12 @@ import json
 import logging
 import select
 import socket
-import time
 from pathlib import Path
 
 import httpx
 import pytest
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, n_spikes, running_server, wait_until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -32,24 +31,14 @@ def params_json(**preprocess) -> dict:
 UNSTABLE_NOTCHES = {"notch_q": 0.5001, "notch_harmonics": list(range(1, 20))}
 
 
-def wait_for(predicate, seconds: float = 20.0, what: str = "condition"):
-    """Poll ``predicate()`` until it returns something truthy; fail after ``seconds``."""
-    deadline = time.monotonic() + seconds
-    while True:
-        got = predicate()
-        if got:
-            return got
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
-
-
-def spikes_frames(addr: str, seconds: float = 3.0, **sub) -> list:
-    """Spike frames a fresh client gets within ``seconds`` of a subscription (bare by default)."""
+def spikes_frames(addr: str, seconds: float = 20.0, **sub) -> list:
+    """The first 5 spike frames a fresh client gets after a subscription (bare by default); ``seconds``
+    bounds a failure."""
 
     async def go():
         async with connect(addr) as ws:
             await hello_and_subscribe(ws, **sub)
-            got = await collect(ws, seconds, lambda fs: sum(isinstance(f, P.SpikesFrame) for f in fs) >= 5)
+            got = await collect(ws, seconds, lambda fs: n_spikes(fs) >= 5, what="5 spikes frames")
             return [f for f in got if isinstance(f, P.SpikesFrame)]
 
     return asyncio.run(asyncio.wait_for(go(), seconds + 30))
@@ -85,7 +74,8 @@ def test_a_pipeline_failure_falls_back_to_the_last_good_revision_and_keeps_strea
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws)
                 return await collect(ws, 20.0, lambda fs: svc.store.fallback_reason is not None
-                                     and sum(rev_of(f) == good + 2 for f in fs) >= 3)
+                                     and sum(rev_of(f) == good + 2 for f in fs) >= 3,
+                                     what="the fallback, and 3 frames of its copy")
 
         frames = asyncio.run(asyncio.wait_for(stream_through_the_failure(), 60))
         assert any(rev_of(f) == good + 2 for f in frames)  # the fallback copy streams
@@ -117,7 +107,7 @@ def test_a_persisted_set_that_no_longer_validates_falls_back_at_start_and_says_s
     _persist(tmp_path, params_json(mains_hz=1e-300))
     caplog.set_level(logging.ERROR, "touchreal.server")
     with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
-        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="ready")
+        wait_until(lambda: http.get("/v1/ready").status_code == 200, 20, "ready")
         health = http.get("/v1/health").json()
         assert health["status"] == "degraded" and "revision 2 cannot be used" in health["reason"]
         assert "preprocess.mains_hz" in health["reason"]
@@ -129,7 +119,7 @@ def test_a_persisted_set_that_no_longer_validates_falls_back_at_start_and_says_s
 def test_a_persisted_set_that_does_not_run_falls_back_to_the_shipped_set_at_start(tmp_path):
     _persist(tmp_path, params_json(**UNSTABLE_NOTCHES))
     with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
-        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="ready")
+        wait_until(lambda: http.get("/v1/ready").status_code == 200, 20, "ready")
         health = http.get("/v1/health").json()
         assert health["status"] == "degraded" and "revision 2 does not run" in health["reason"]
         assert http.get("/v1/params").json()["params"] == json.loads(default_params().to_json())
@@ -160,7 +150,7 @@ def test_config_patches_are_validated_and_a_source_that_cannot_open_keeps_the_ol
         r = http.patch("/v1/config", json={"source": f"replay:{not_a_dataset}"})
         assert r.status_code == 409 and "the previous source 'sim' runs again" in r.json()["detail"]
         assert http.get("/v1/config").json()["source"] == "sim"
-        wait_for(lambda: http.get("/v1/ready").status_code == 200, what="the old source to stream again")
+        wait_until(lambda: http.get("/v1/ready").status_code == 200, 20, "the old source to stream again")
         assert http.get("/v1/health").json()["status"] == "ok" and spikes_frames(addr)
         r = http.patch("/v1/config", json={"update_ms": 1.0, "window_ms": 512.0})
         assert r.status_code == 200 and r.json()["restarted"] == ["pipeline", "source"]

@@ -9,7 +9,7 @@ import os
 import httpx
 import schemathesis
 from hypothesis import HealthCheck, given, settings
-from server_harness import connect, hello_and_subscribe, running_server
+from server_harness import connect, hello_and_subscribe, running_server, wait_until
 
 from touchreal.params import default_params
 from touchreal.server.settings import RuntimeConfig
@@ -26,12 +26,8 @@ def test_health_ready_status_and_metrics(tmp_path):
     with running_server(tmp_path) as (addr, svc):
         with httpx.Client(base_url=f"http://{addr}") as http:
             assert http.get("/v1/health").json() == {"status": "ok", "session": svc.session, "reason": None}
-            for _ in range(50):
-                r = http.get("/v1/ready")
-                if r.status_code == 200:
-                    break
-                asyncio.run(asyncio.sleep(0.1))
-            assert r.status_code == 200 and r.json()["ready"] is True
+            r = wait_until(lambda: (got := http.get("/v1/ready")).status_code == 200 and got, 20, "ready")
+            assert r.json()["ready"] is True
             st = http.get("/v1/status").json()
             assert st["source"]["state"] == "streaming" and st["pipeline"]["state"] in ("idle", "starting")
             text = http.get("/metrics").text

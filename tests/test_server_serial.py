@@ -6,12 +6,11 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
-import time
 
 import httpx
 import numpy as np
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server
+from server_harness import collect, connect, hello_and_subscribe, running_server, wait_until
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
 
@@ -30,20 +29,36 @@ def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an
            "--clock-drift-ppm", "-100", "--jitter-ms", "1", "--truth", str(tmp_path / "truth.csv"), "--seed", "1"]  # fmt: skip
     emu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 30
-        while not port.exists():
-            assert time.monotonic() < deadline and emu.poll() is None, "emulator did not create its port"
-            time.sleep(0.05)
+        def port_created() -> bool:
+            assert emu.poll() is None, "the emulator exited"
+            return port.exists()
+
+        wait_until(port_created, 30, "the emulator created its port")
         with running_server(tmp_path / "state", RuntimeConfig(source=f"serial:{port}")) as (addr, svc):
 
             clocks: list[dict] = []
 
+            def enough(frames) -> bool:
+                """What the checks below need: faults and an unplug (a new clock epoch) flagged, over 50 clean
+                frames after the first gap, and 3 clock messages 3 s of the device clock after the first one."""
+                if len(clocks) < 6 or clocks[-1]["epoch"] <= clocks[0]["epoch"] or sum(
+                        m["sensor_us"] >= clocks[0]["sensor_us"] + 3_000_000 for m in clocks) < 3:
+                    return False
+                spikes = [f for f in frames if isinstance(f, P.SpikesFrame)]
+                gap = next((f.header.update for f in spikes if "source_gap" in f.header.flag_names()), None)
+                if len(spikes) <= 100 or gap is None or sum(
+                        f.header.update > gap and "source_gap" not in f.header.flag_names() for f in spikes) <= 50:
+                    return False
+                faults = svc.runtime.counters  # what /v1/status shows as "faults"
+                return all(faults.get(f"source_{k}", 0) >= 1 for k in ("reconnects", "crc_errors", "gaps"))
+
             async def go():
                 async with connect(addr) as ws:
                     await hello_and_subscribe(ws, streams=["spikes", "channels"])
-                    return await collect(ws, 8.0, clock=clocks)
+                    return await collect(ws, 60.0, enough, clock=clocks,
+                                         what="faults, an unplug, the stream after them, 3 s of clock messages")
 
-            frames = asyncio.run(asyncio.wait_for(go(), 40))
+            frames = asyncio.run(asyncio.wait_for(go(), 90))
             status = httpx.get(f"http://{addr}/v1/status").json()
             metrics = httpx.get(f"http://{addr}/metrics").text
     finally:

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import websockets
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, running_server, stall_one_of_two, until
+from server_harness import (collect, connect, covers, hello_and_subscribe, n_spikes, running_server, stall_one_of_two,
+                            until)
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -28,6 +29,10 @@ def _spikes(frames):
     return [f for f in frames if isinstance(f, P.SpikesFrame)]
 
 
+def _channels(frames):
+    return [f for f in frames if isinstance(f, P.ChannelsFrame)]
+
+
 def test_hello_bare_subscribe_and_time_sync(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 
@@ -38,9 +43,10 @@ def test_hello_bare_subscribe_and_time_sync(tmp_path):
                 assert hello["session"] == svc.session and hello["taxels"][0]["id"] == 0
                 assert set(hello["latency_us"]) == {"SA1", "RA", "PC"} and hello["update_us"] == 32000
                 assert sub["taxels"] is None and sub["classes"] == ["SA1", "RA", "PC"] and sub["encoding"] == "binary"
-                frames = _spikes(await collect(ws, 3.0))
+                frames = _spikes(await collect(ws, 30.0, covers(3.0), what="3 s of the stream"))
                 await ws.send(json.dumps({"type": "time", "id": 7, "t0_us": 123}))
-                reply = next(m for m in await collect(ws, 2.0, lambda fs: any(isinstance(x, dict) for x in fs))
+                reply = next(m for m in await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) for x in fs),
+                                                      what="the time reply")
                              if isinstance(m, dict))
                 return frames, reply
 
@@ -66,10 +72,11 @@ def test_subscription_filters_and_changes_what_is_computed(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, taxels=[1, 2], classes=["SA1"], encoding="json")
-                first = _spikes(await collect(ws, 2.0))
+                first = _spikes(await collect(ws, 30.0, covers(2.0), what="2 s of the stream"))
                 demand = dict(svc.hub.demand.columns)
                 await ws.send(json.dumps({"type": "subscribe", "classes": ["PC"], "taxels": [3]}))
-                second = _spikes(await collect(ws, 2.5))
+                # the frames of the new subscription (PC final) over 2 s of the stream
+                second = _spikes(await collect(ws, 30.0, covers(2.0, where=_pc_final), what="2 s of PC frames"))
                 return first, demand, second
 
         first, demand, second = run(go())
@@ -78,6 +85,10 @@ def test_subscription_filters_and_changes_what_is_computed(tmp_path):
     assert all(f.final_us["RA"] is None and f.final_us["SA1"] is not None for f in first)
     late = [f for f in second if f.final_us["PC"] is not None]
     assert late and all(set(f.cls.tolist()) <= {2} and set(f.taxel.tolist()) <= {3} for f in late)
+
+
+def _pc_final(frame) -> bool:
+    return isinstance(frame, P.SpikesFrame) and frame.final_us["PC"] is not None
 
 
 def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
@@ -89,7 +100,7 @@ def test_nothing_is_computed_while_nobody_is_subscribed(tmp_path):
             idle = rt.state, rt.encoder.active, rt.encoder.running
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, classes=["SA1"])
-                frames = _spikes(await collect(ws, 1.0))
+                frames = _spikes(await collect(ws, 10.0, lambda fs: n_spikes(fs) >= 1, what="the first frame"))
                 busy = rt.state, rt.encoder.active
             await until(lambda: rt.state == "idle", 10, "the runtime idles again once the client left")
             return idle, frames, busy, (rt.state, rt.encoder.active, rt.encoder.running)
@@ -116,7 +127,7 @@ def _replayed_trains(addr, svc, n_trials):
     async def go():
         async with connect(addr) as ws:
             await hello_and_subscribe(ws)
-            return await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended")
+            return await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended", what="the replay's end")
 
     frames = _spikes(run(go()))
     # trial boundaries: the source's segment offsets, in the order played
@@ -160,7 +171,9 @@ def test_sensor_clock_runs_past_2_to_the_32_microseconds(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 50})
-                return await collect(ws, 2.5)
+                return await collect(ws, 30.0, lambda fs: any((f.final_us["SA1"] or 0) > 2**32 for f in _spikes(fs))
+                                     and any(f.t0_us > 2**32 for f in _channels(fs)),
+                                     what="spikes and channels past 2**32 us")
 
         frames = run(go())
     ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
@@ -173,10 +186,14 @@ def test_sensor_clock_runs_past_2_to_the_32_microseconds(tmp_path):
 def test_a_channels_only_subscriber_gets_continuous_channels_and_nothing_is_encoded(tmp_path):
     with running_server(tmp_path) as (addr, svc):
 
+        cover = covers(2.0)
+
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, streams=["channels"], channels={"decimation": 25})
-                frames = await collect(ws, 2.0)
+                # over 40 channels frames and 2 s of them: no spikes frame came among them
+                frames = await collect(ws, 30.0, lambda fs: len(_channels(fs)) > 40 and cover(fs),
+                                       what="over 40 channels frames, 2 s of them")
                 return frames, svc.runtime.active, svc.runtime.encoder.running
 
         frames, active, running = run(go())
@@ -189,11 +206,13 @@ def test_a_channels_only_subscriber_gets_continuous_channels_and_nothing_is_enco
 
 def test_taxel_blocks_nobody_subscribes_to_run_nothing(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=8), taxel_block=4) as (addr, svc):
+        cover = covers(2.0)
 
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, taxels=[5], classes=["SA1"], streams=["spikes", "channels"])
-                frames = await collect(ws, 2.0)
+                frames = await collect(ws, 30.0, lambda fs: len(_channels(fs)) > 40 and cover(fs),
+                                       what="over 40 channels frames, 2 s of the stream")
                 return frames, [b.pre.running for b in svc.runtime.encoder.blocks]
 
         frames, blocks = run(go())
@@ -210,8 +229,8 @@ def test_float32_compute_runs_the_pipeline_in_float32(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, streams=["spikes", "channels"])
-                frames = await collect(ws, 20.0, lambda fs: len(_spikes(fs)) >= 10
-                                       and sum(isinstance(f, P.ChannelsFrame) for f in fs) >= 5)
+                frames = await collect(ws, 20.0, lambda fs: len(_spikes(fs)) >= 10 and len(_channels(fs)) >= 5,
+                                       what="10 spikes and 5 channels frames")
                 return frames, svc.runtime.encoder.dtype, [b.pre.dtype for b in svc.runtime.encoder.blocks]
 
         frames, dtype, block_dtypes = run(go())
@@ -281,7 +300,7 @@ def test_malformed_messages_get_errors_and_documented_closes(tmp_path):
 def test_stalled_client_is_dropped_and_others_are_unaffected(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=48, slow_timeout_s=0.5) as (addr, svc):
 
-        frames, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 8.0))
+        frames, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 30.0))
         kicked = svc.metrics.kicked._value.get()
     assert rcvd is not None and rcvd.code == P.CLOSE_SLOW_CONSUMER and "slow consumer" in rcvd.reason
     assert kicked == 1 and gone
@@ -299,9 +318,13 @@ def test_updates_an_overloaded_loop_drops_are_seq_gaps_every_client_sees(tmp_pat
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, streams=["spikes"])
-                frames = _spikes(await collect(ws, 1.0))
+                frames = _spikes(await collect(ws, 30.0, covers(1.0), what="1 s of the stream"))
                 svc.loop.call_soon_threadsafe(time.sleep, 0.8)  # the server's loop, not ours
-                return frames + _spikes(await collect(ws, 2.0))
+                cover = covers(2.0)
+                # the overload counted, its gap seen, and the stream on for 2 s (stall included) since
+                after = await collect(ws, 30.0, lambda fs: cover(fs) and svc.metrics.overload._value.get() > 0
+                                      and _has_gap(frames + _spikes(fs)), what="the stall's drops, then 2 s of the stream")
+                return frames + _spikes(after)
 
         frames = run(go())
         lost = int(svc.metrics.overload._value.get())
@@ -318,6 +341,11 @@ def test_updates_an_overloaded_loop_drops_are_seq_gaps_every_client_sees(tmp_pat
     assert dropped[0] == 0 and np.array_equal(dropped[at + 1] - dropped[at], gaps[at]) and dropped[-1] == client
 
 
+def _has_gap(frames) -> bool:
+    """Whether the frames' seq jumps anywhere."""
+    return any(b.header.seq != a.header.seq + 1 for a, b in zip(frames, frames[1:]))
+
+
 def test_many_subscribers_lose_nothing(tmp_path):
     n = 25
     # the 25 clients share this process (and its GIL) with the server: a frame can wait more than the
@@ -325,9 +353,11 @@ def test_many_subscribers_lose_nothing(tmp_path):
     with running_server(tmp_path, max_frame_age_ms=2000) as (addr, svc):
 
         async def one():
+            cover = covers(3.0)  # a predicate per client
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws)
-                return _spikes(await collect(ws, 3.0))
+                return _spikes(await collect(ws, 60.0, lambda fs: len(fs) > 40 and cover(fs),
+                                             what="over 40 frames, 3 s of the stream"))
 
         async def go():
             return await asyncio.gather(*(one() for _ in range(n)))
@@ -354,9 +384,12 @@ def test_parameter_upload_while_streaming_swaps_between_updates(tmp_path):
         async def go():
             async with connect(addr) as ws, httpx.AsyncClient(base_url=f"http://{addr}") as http:
                 await hello_and_subscribe(ws)
-                before = _spikes(await collect(ws, 1.0))
+                before = _spikes(await collect(ws, 30.0, covers(1.0), what="1 s of the stream"))
                 r = await http.put("/v1/params", json=json.loads(new.to_json()))
-                after = _spikes(await collect(ws, 1.5))
+                cover = covers(1.5)
+                after = _spikes(await collect(ws, 30.0, lambda fs: cover(fs) and any(
+                    isinstance(f, P.SpikesFrame) and f.header.params_rev == 2 for f in fs),
+                    what="frames of revision 2, and 1.5 s of the stream"))
                 return before, r, after
 
         before, r, after = run(go())
@@ -395,7 +428,7 @@ def test_nan_and_inf_from_the_source_are_repaired_flagged_and_counted(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 5})
-                return await collect(ws, 20.0, lambda fs: svc.runtime.state == "ended")
+                return await collect(ws, 20.0, lambda fs: svc.runtime.state == "ended", what="the replay's end")
 
         frames = run(go())
         faults = httpx.get(f"http://{addr}/v1/status").json()["faults"]
@@ -419,7 +452,7 @@ def test_each_class_goes_out_as_soon_as_it_is_final(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 hello, sub = await hello_and_subscribe(ws)
-                return hello, sub, _spikes(await collect(ws, 3.0))
+                return hello, sub, _spikes(await collect(ws, 30.0, covers(3.0), what="3 s of the stream"))
 
         hello, sub, frames = run(go())
     lat = hello["latency_us"]
@@ -459,7 +492,7 @@ def test_a_slow_reader_gets_no_backlog_and_is_closed_as_slow(tmp_path):
                             if svc.hub.subscribers:
                                 sub = next(iter(svc.hub.subscribers.values()))
                                 in_flight = max(in_flight, sub.sent - len(frames))
-                        await asyncio.sleep(0.1)
+                        await asyncio.sleep(0.1)  # the stimulus, not a wait: this client reads 10 frames/s
                 except websockets.ConnectionClosed as closed:
                     code = closed.rcvd.code if closed.rcvd else None
             return frames, sizes, in_flight, code

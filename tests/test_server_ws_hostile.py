@@ -10,7 +10,8 @@ import socket
 import httpx
 import psutil
 import websockets
-from server_harness import collect, connect, hello_and_subscribe, n_spikes, running_server, stall_one_of_two, until
+from server_harness import (collect, connect, covers, hello_and_subscribe, n_spikes, running_server, stall_one_of_two,
+                            until)
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -66,7 +67,7 @@ def test_hostile_json_gets_bad_message_and_the_connection_stays(tmp_path):
                     replies[name] = await _next_control(ws)
                 await ws.send(json.dumps({"type": "time", "id": "still-here", "t0_us": 5}))
                 answer = await _next_control(ws)
-                frames = await collect(ws, 1.5)
+                frames = await collect(ws, 30.0, lambda fs: n_spikes(fs) >= 1, what="a spikes frame")
             return replies, answer, frames
 
         replies, answer, frames = run(go())
@@ -96,8 +97,8 @@ def test_classes_and_taxels_not_served_get_an_error_and_the_stream_goes_on(tmp_p
                 for bad in ({"classes": ["SA1", "RA"]}, {"taxels": [0, 3]}, {"streams": ["decoded"], "decoders": ["nope"]}):
                     await ws.send(json.dumps({"type": "subscribe", **bad}))
                     refused.append(await _next_control(ws))
-                frames = await collect(ws, 2.0, lambda fs: sum(isinstance(f, P.SpikesFrame) and f.t_us.size > 0
-                                                               for f in fs) >= 5)
+                frames = await collect(ws, 30.0, lambda fs: sum(isinstance(f, P.SpikesFrame) and f.t_us.size > 0
+                                                                for f in fs) >= 5, what="5 frames with spikes")
                 state = svc.runtime.state, svc.runtime.error  # while subscribed (after it, the pipeline idles)
                 return hello, bare, refused, frames, state
 
@@ -147,12 +148,12 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
         async def go():
             async with connect(addr) as good:
                 await hello_and_subscribe(good)
-                await collect(good, 0.5)
+                await collect(good, 30.0, covers(0.5), what="0.5 s of the stream")  # the baseline: streaming
                 before = proc.memory_info().rss
                 results, done = [], False
                 # the other client reads on through both floods, and for at least 20 frames
-                reading = asyncio.create_task(collect(good, 120.0, lambda fs: done and sum(
-                    isinstance(f, P.SpikesFrame) for f in fs) >= 20))
+                reading = asyncio.create_task(collect(good, 120.0, lambda fs: done and n_spikes(fs) >= 20,
+                                                      what="both floods over, 20 frames"))
                 for message in (json.dumps({"type": "time", "id": "x" * P.MAX_TIME_ID_CHARS, "t0_us": 1}),
                                 json.dumps({"type": "time", "id": "x" * 60000})):
                     results.append(await flood(message))
@@ -183,7 +184,7 @@ def _metric(addr: str, name: str, labels: str = "") -> float:
 def test_dropped_frames_are_counted_by_reason_and_stay_after_the_client_left(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=16), queue_frames=8, slow_timeout_s=0.5) as (addr, svc):
         assert _metric(addr, "touchreal_dropped_frames_total", 'reason="queue_full"') == 0
-        _, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 8.0))
+        _, rcvd, gone = run(stall_one_of_two(addr, svc.hub, svc.metrics, 30.0))
         queue_full = _metric(addr, "touchreal_dropped_frames_total", 'reason="queue_full"')
         upstream = _metric(addr, "touchreal_dropped_frames_total", 'reason="upstream_loss"')
         slow = _metric(addr, "touchreal_clients_closed_slow_total")
@@ -211,7 +212,8 @@ def test_a_client_that_stops_reading_is_closed_by_the_keepalive_with_1011(tmp_pa
                 hello, _ = await hello_and_subscribe(stalled)
                 stalled_id = min(svc.hub.subscribers)
                 await hello_and_subscribe(good)
-                frames = await collect(good, 30.0, lambda fs: stalled_id not in svc.hub.subscribers and n_spikes(fs) > 60)
+                frames = await collect(good, 30.0, lambda fs: stalled_id not in svc.hub.subscribers and n_spikes(fs) > 60,
+                                       what="the stalled client closed, over 60 frames")
                 gone = stalled_id not in svc.hub.subscribers
                 try:
                     while True:

@@ -65,7 +65,10 @@ def test_clock_map_maps_each_segment_with_its_own_point_and_applies_the_offset()
 # -- a real server ----------------------------------------------------------------------------------------
 async def _stream(addr: str, seconds: float, **sub) -> tuple[dict, ClockMap, list[tuple[P.SpikesFrame, int]], list[dict]]:
     """Connect, subscribe, and keep every spikes frame with this client's receive time (us) and every
-    clock message, mapping with a ClockMap as a client written from the docs would."""
+    clock message, mapping with a ClockMap as a client written from the docs would.
+
+    A fixed window of ``seconds``, on purpose: the tests count the clock messages it brings (a rate,
+    ">= 1 Hz"), which only a stretch of wall time can show."""
     async with connect(addr) as ws:
         hello = json.loads(await ws.recv())
         cm, clocks, frames = ClockMap(), [], []
@@ -144,7 +147,7 @@ def test_the_clock_point_is_when_the_chunk_was_in_hand(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws, classes=["SA1"])
-                await collect(ws, 30.0, lambda fs: len(seen) >= 60)
+                await collect(ws, 30.0, lambda fs: len(seen) >= 60, what="60 updates")
 
         run(go())
     err = np.array([acq - clock.wall_us for acq, clock in seen]) / 1000.0
@@ -163,19 +166,22 @@ def test_a_new_hello_follows_a_parameter_upload_and_a_window_change(tmp_path):
                 async with httpx.AsyncClient() as http:
                     r = await http.put(base + "/v1/params", json=json.loads(p.to_json()))
                     assert r.status_code == 200, r.text
-                    got = await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello" for x in fs))
+                    got = await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello" for x in fs),
+                                        what="a new hello")
                     first = next(x for x in got if isinstance(x, dict) and x.get("type") == "hello")
                     r = await http.patch(base + "/v1/config", json={"window_ms": 64})
                     assert r.status_code == 200, r.text
                     got = await collect(ws, 15.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello"
-                                                                 and x["window_us"]["PC"] == 64000 for x in fs))
+                                                                 and x["window_us"]["PC"] == 64000 for x in fs),
+                                        what="a hello with the 64 ms window")
                     second = next(x for x in got if isinstance(x, dict) and x.get("type") == "hello"
                                   and x["window_us"]["PC"] == 64000)
                     r = await http.post(base + "/v1/params/rollback", json={"rev": 1})
                     assert r.status_code == 200, r.text
                     rev = r.json()["rev"]  # a rollback is recorded as a new revision
                     got = await collect(ws, 10.0, lambda fs: any(isinstance(x, dict) and x.get("type") == "hello"
-                                                                 and x["params"]["rev"] == rev for x in fs))
+                                                                 and x["params"]["rev"] == rev for x in fs),
+                                        what=f"a hello of revision {rev}")
                     assert any(isinstance(x, dict) and x.get("type") == "hello" and x["params"]["rev"] == rev
                                and x["window_us"]["PC"] == 128000 for x in got)
                 return first, second
@@ -222,7 +228,7 @@ def test_a_replay_states_its_speed_and_a_new_epoch_for_each_trial(tmp_path):
             async with connect(addr) as ws:
                 await hello_and_subscribe(ws)
                 clocks: list[dict] = []
-                await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended", clock=clocks)
+                await collect(ws, 30.0, lambda fs: svc.runtime.state == "ended", clock=clocks, what="the replay's end")
                 return clocks
 
         clocks = run(go())
