@@ -9,7 +9,7 @@ import pytest
 
 from touchreal.cli import main
 from touchreal.decoding.model import load_model
-from touchreal.sensing.simulate import simulate_dataset
+from touchreal.simulator.simulate import simulate_dataset
 
 
 @pytest.fixture(scope="module")

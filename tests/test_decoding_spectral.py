@@ -19,7 +19,7 @@ from touchreal.decoding.streaming import StreamingDecoder
 from touchreal.decoding.train import feature_spec, fit_pipeline, metadata, windows
 from touchreal.decoding.windows import encode
 from touchreal.params import default_params
-from touchreal.sensing.simulate import simulate_dataset
+from touchreal.simulator.simulate import simulate_dataset
 
 FREQS = np.arange(SPECTRUM_HZ[0], SPECTRUM_HZ[1] + SPECTRUM_HZ[2] / 2, SPECTRUM_HZ[2])
 

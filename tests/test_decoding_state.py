@@ -23,7 +23,7 @@ from touchreal.decoding.streaming import StreamingDecoder
 from touchreal.decoding.train import feature_spec, fit_pipeline, metadata, windows
 from touchreal.decoding.windows import encode
 from touchreal.params import default_params
-from touchreal.sensing.simulate import simulate_dataset
+from touchreal.simulator.simulate import simulate_dataset
 
 TAUS = (32.0, 256.0)
 

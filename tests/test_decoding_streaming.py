@@ -12,7 +12,7 @@ from touchreal.decoding.streaming import StreamingDecoder
 from touchreal.decoding.train import windows
 from touchreal.decoding.windows import encode
 from touchreal.params import default_params
-from touchreal.sensing.simulate import simulate_dataset
+from touchreal.simulator.simulate import simulate_dataset
 
 
 @pytest.fixture(scope="module")

@@ -29,9 +29,9 @@ from touchreal_client import protocol as P
 
 from touchreal.params import default_params
 from touchreal.recording import Dataset, Trial, write_dataset
-from touchreal.sensing.mcu_emulator import PtyPort, frame_schedule, play
-from touchreal.sensing.serial_frame import PERIOD_US, Channel, Frame, FrameParser, Gap, encode_frame
-from touchreal.sensing.serial_source import SampleCollector
+from touchreal.device.mcu_emulator import PtyPort, frame_schedule, play
+from touchreal.device.serial_frame import PERIOD_US, Channel, Frame, FrameParser, Gap, encode_frame
+from touchreal.device.serial_source import SampleCollector
 from touchreal.server.settings import RuntimeConfig
 from touchreal.settings import CLASSES
 from touchreal.stream import encode_chunks, encode_trial

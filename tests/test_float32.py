@@ -9,7 +9,8 @@ from touchreal.encoding.encoder import SpikeEvents
 from touchreal.params import default_params
 from touchreal.preprocess.resample import pchip_eval
 from touchreal.preprocess.stft_gate import StftGate
-from touchreal.sensing.scene import SceneSource, taxel_grid
+from touchreal.raw import taxel_grid
+from touchreal.simulator.scene import SceneSource
 from touchreal.settings import CLASSES
 from touchreal.stream import StreamEncoder
 

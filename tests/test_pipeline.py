@@ -6,8 +6,8 @@ import pytest
 from touchreal.params import EncoderParams, PreprocessParams, default_params
 from touchreal.preprocess.gate import calibrate
 from touchreal.preprocess.pipeline import Channels, Preprocessor, preprocess_trial, preprocess_trial_windows
-from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.replay import ReplaySource
+from touchreal.raw import RawChunk
+from touchreal.sources.replay import ReplaySource
 from touchreal.settings import CLASSES
 from touchreal.stream import encode_chunks, encode_trial
 

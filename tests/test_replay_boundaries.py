@@ -19,8 +19,8 @@ from touchreal.cli import main
 from touchreal.params import ClassParams
 from touchreal.preprocess.pipeline import Preprocessor
 from touchreal.recording import Trial, write_dataset
-from touchreal.sensing.live import SEGMENT_GRID_US, SEGMENT_GUARD_US
-from touchreal.sensing.simulate import conditions, simulate_trial
+from touchreal.sources.live import SEGMENT_GRID_US, SEGMENT_GUARD_US
+from touchreal.simulator.simulate import conditions, simulate_trial
 from touchreal.server.settings import RuntimeConfig
 from touchreal.stream import OUT_FS_HZ
 

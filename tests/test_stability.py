@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from touchreal.params import default_params
-from touchreal.sensing.raw import RawChunk
+from touchreal.raw import RawChunk
 from touchreal.stream import StreamEncoder
 
 

@@ -6,8 +6,8 @@ import pytest
 from touchreal.encoding.encoder import Encoder, SpikeEvents
 from touchreal.params import default_params
 from touchreal.preprocess.pipeline import Channels, preprocess_trial, preprocess_trial_windows
-from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.replay import ReplaySource
+from touchreal.raw import RawChunk
+from touchreal.sources.replay import ReplaySource
 from touchreal.settings import CLASSES
 from touchreal.stream import StreamEncoder, class_source, encode_chunks
 
@@ -105,7 +105,8 @@ def test_pvdf_free_classes_run_no_pvdf_branch_and_match_the_window_path():
 
 
 def _scene_chunks(seconds, chunk_s=0.001, n_taxels=1, seed=0):
-    from touchreal.sensing.scene import SceneSource, taxel_grid
+    from touchreal.raw import taxel_grid
+    from touchreal.simulator.scene import SceneSource
 
     src = SceneSource(taxels_xy_mm=taxel_grid(n_taxels), seed=seed)
     return [src.read(chunk_s) for _ in range(int(round(seconds / chunk_s)))]

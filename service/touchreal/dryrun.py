@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .params import EncoderParams, ParamsError
-from .sensing.raw import RawChunk
+from .raw import RawChunk
 from .settings import PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N
 from .stream import StreamEncoder
 

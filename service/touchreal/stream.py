@@ -19,8 +19,8 @@ from .preprocess.parallel import split_run
 from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .preprocess.stft_gate import frame_length
 from .recording import Trial
-from .sensing.raw import RawChunk
-from .sensing.replay import ReplaySource
+from .raw import RawChunk
+from .sources.replay import ReplaySource
 from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
 _BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per block range from which taxel blocks run on both cores (~0.3 ms of work)

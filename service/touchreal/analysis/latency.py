@@ -21,7 +21,7 @@ import numpy as np
 
 from ..params import EncoderParams
 from ..recording import Trial
-from ..sensing.replay import ReplaySource
+from ..sources.replay import ReplaySource
 from ..settings import CLASSES
 from ..stream import StreamEncoder
 

@@ -45,8 +45,8 @@ from ..analysis.spiketrains import vr_distance
 from ..params import EncoderParams, default_params
 from ..preprocess import parallel
 from ..recording import Dataset
-from ..sensing.raw import RawChunk
-from ..sensing.replay import ReplaySource
+from ..raw import RawChunk
+from ..sources.replay import ReplaySource
 from ..settings import CLASSES, shared_dir
 from ..stream import StreamEncoder, encode_chunks
 
@@ -82,7 +82,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0) -> list[RawChunk]:
-    from ..sensing.scene import SceneSource, taxel_grid
+    from ..raw import taxel_grid
+    from ..simulator.scene import SceneSource
 
     src = SceneSource(taxels_xy_mm=taxel_grid(n_taxels), seed=seed)
     return [src.read(update_s) for _ in range(int(round(seconds / update_s)))]
@@ -176,7 +177,7 @@ def hop_cost(params: EncoderParams, taxels: list[int], seconds: float, hops_ms: 
 def served_latency(params: EncoderParams, taxels: list[int], seconds: float, hop_ms: float = 5.0) -> None:
     """Per class: emission (the hop's newest sample + compute) minus the causing sample, as the service
     chunks the sim."""
-    from ..sensing.live import SimLiveSource
+    from ..sources.live import SimLiveSource
 
     update_s = params.preprocess.update_ms / 1000.0
     delay = np.array([params.classes[c].delay_ms / 1000.0 if c in params.classes else 0.0 for c in CLASSES])
@@ -227,7 +228,7 @@ def measure_latency(params: EncoderParams, seconds: float, chunk_s: float = 0.00
     """Emission minus stamp (s) of every spike per class, raw (``delay_ms`` included), for the live
     scene fed in ``chunk_s`` chunks (spikes emitted in the first ``skip_s`` are left out: stream
     start), and the mean compute time per chunk (s)."""
-    from ..sensing.scene import SceneSource
+    from ..simulator.scene import SceneSource
 
     se = StreamEncoder(params, 1)
     src = SceneSource(seed=0)
@@ -284,7 +285,7 @@ def _sweep_dataset(n_trials: int) -> tuple[Dataset, str]:
     rig = shared_dir() / "datasets" / "rig-v1"
     if (rig / "manifest.json").is_file():
         return Dataset.open(rig), f"rig-v1 ({rig})"
-    from ..sensing.simulate import simulate_dataset
+    from ..simulator.simulate import simulate_dataset
 
     out = Path(tempfile.mkdtemp(prefix="touchreal-bench-"))
     for proto in ("ramp", "sine"):
@@ -355,7 +356,7 @@ def _errors(got: list[dict[str, np.ndarray]], ref: list[dict[str, np.ndarray]]) 
 
 
 def soak(params: EncoderParams, hours: float) -> None:
-    from ..sensing.scene import SceneSource
+    from ..simulator.scene import SceneSource
 
     se = StreamEncoder(params, 1)
     src = SceneSource(seed=1)

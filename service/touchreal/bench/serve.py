@@ -467,7 +467,8 @@ def _decoded(paths: list[tuple[str, str]], args, decoder: str = "force") -> None
 
 
 def _part3(params: EncoderParams, n_taxels: int) -> None:
-    from ..sensing.scene import SceneSource, taxel_grid
+    from ..raw import taxel_grid
+    from ..simulator.scene import SceneSource
     from ..stream import StreamEncoder
 
     n = max(n_taxels, 16)

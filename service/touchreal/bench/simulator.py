@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from touchreal.sensing.scene import SceneSource, default_scene, taxel_grid
+    from touchreal.raw import taxel_grid
+    from touchreal.simulator.scene import SceneSource, default_scene
 
     warm = SceneSource(seed=0)  # load/compile every kernel and code path once (one loop of the scene)
     for _ in range(int((warm.scene.loop_s or 20.0) / 0.032) + 1):

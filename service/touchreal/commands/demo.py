@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..sensing.scene import SceneSource, taxel_grid
+    from ..raw import taxel_grid
+    from ..simulator.scene import SceneSource
     from ..bench.encoder import warmup_updates
     from ..encoding.encoder import SpikeEvents
     from ..stream import StreamEncoder

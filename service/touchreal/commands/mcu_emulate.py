@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import TextIO
 
 from ..recording import Dataset
-from ..sensing.mcu_emulator import Faults, Link, PtyPort, frame_schedule, play
-from ..sensing.serial_frame import MAX_TAXELS, MAX_VALUES
+from ..device.mcu_emulator import Faults, Link, PtyPort, frame_schedule, play
+from ..device.serial_frame import MAX_TAXELS, MAX_VALUES
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from ..sensing.simulate import PROTOCOL_GROUPS
+from ..simulator.simulate import PROTOCOL_GROUPS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -52,7 +52,7 @@ def build_from_args(args: argparse.Namespace):
     """The build the options name (None: nominal, nothing asked)."""
     import dataclasses
 
-    from ..sensing.build import SensorBuild, load_build
+    from ..simulator.build import SensorBuild, load_build
 
     over = {name: getattr(args, f"build_{name}") for name, _, _ in BUILD_OPTIONS if getattr(args, f"build_{name}") is not None}
     if args.build is None and not over:
@@ -77,7 +77,7 @@ def _trial_counts(text: str) -> int | dict[str, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..sensing.simulate import simulate_dataset
+    from ..simulator.simulate import simulate_dataset
 
     if isinstance(args.trials, dict):
         unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS["spatial"]) - set(PROTOCOL_GROUPS["texture-fine"])

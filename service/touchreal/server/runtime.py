@@ -32,8 +32,8 @@ from touchreal_client.protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_
 from ..encoding.encoder import SpikeEvents
 from ..params import EncoderParams
 from ..preprocess.pipeline import Channels
-from ..sensing.live import LiveSource
-from ..sensing.raw import RawChunk
+from ..sources.live import LiveSource
+from ..raw import RawChunk
 from ..settings import CLASSES
 from ..stream import StreamEncoder
 from .demand import Demand

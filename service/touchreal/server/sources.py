@@ -1,4 +1,4 @@
-"""``--source`` specs -> live sources (:mod:`touchreal.sensing.live`, the serial reader), and the
+"""``--source`` specs -> live sources (:mod:`touchreal.sources.live`, the serial reader), and the
 confinement of specs a client sends (:func:`confine_source`)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..recording import Dataset
-from ..sensing.live import LiveSource, ReplayLiveSource, SimLiveSource
+from ..sources.live import LiveSource, ReplayLiveSource, SimLiveSource
 from .settings import RuntimeConfig, ServeSettings, parse_source
 
 
@@ -55,7 +55,7 @@ def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float, de
             raise ValueError(f"replay dataset folder not found: {folder}")
         trial_ids = [t for t in ids.split(",") if t] or None
         return ReplayLiveSource(Dataset.open(folder), trial_ids, hop_s, config.speed, config.loop)
-    from ..sensing.serial_source import SerialSource, check_device
+    from ..device.serial_source import SerialSource, check_device
 
     if device_present and "://" not in arg:
         check_device(arg)

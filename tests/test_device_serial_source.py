@@ -19,10 +19,10 @@ from waiting import wait_until
 from touchreal.encoding.encoder import SpikeEvents
 from touchreal.params import default_params
 from touchreal.recording import Trial, write_dataset
-from touchreal.sensing.mcu_emulator import STALL_JITTERS, Faults, Link, PtyPort, departures, frame_schedule, play
-from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.serial_frame import Channel, Frame, FrameParser, encode_frame
-from touchreal.sensing.serial_source import SampleCollector, SerialSource
+from touchreal.device.mcu_emulator import STALL_JITTERS, Faults, Link, PtyPort, departures, frame_schedule, play
+from touchreal.raw import RawChunk
+from touchreal.device.serial_frame import Channel, Frame, FrameParser, encode_frame
+from touchreal.device.serial_source import SampleCollector, SerialSource
 from touchreal.stream import StreamEncoder, encode_trial
 
 SPEED = 6.0  # playback speed: a 1.5 s trial streams in 0.25 s

@@ -2,7 +2,7 @@
 
 :class:`SceneSource` plays a :class:`Scene` (stimuli at given onsets and contact positions, looped
 or not) through the robot dynamics and the e-skin physics of N taxels. ``advance(n)`` /
-``read(duration_s)`` return the next raw samples as a :class:`~touchreal.sensing.raw.RawChunk`
+``read(duration_s)`` return the next raw samples as a :class:`~touchreal.raw.RawChunk`
 (SingleTact at 100 Hz in N, PVDF at 2 kHz in V, times in s on one clock), continuing seamlessly
 from the previous call; nothing sleeps. Same seed -> identical arrays, however the reads are split.
 
@@ -23,7 +23,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from .eskin import FS_HZ, ContactInput, ESkin, SkinParams
-from .raw import RawChunk
+from ..raw import RawChunk
 from .stimuli import RampHold, Robot, RobotParams, SineBurst, Stimulus, TextureSlide, executed_command
 
 _LEAD_S = 0.05  # a tick belongs to the next event this long before its onset (robot latency margin)
@@ -91,16 +91,6 @@ class Scene:
             out["comb"][sel] = ev.stimulus.contactor == "comb"
             out["spacing"][sel] = ev.stimulus.spacing_mm
         return out
-
-
-def taxel_grid(n: int, pitch_mm: float = 10.0) -> np.ndarray:
-    """(n, 2) taxel centres (mm): a near-square grid of pitch ``pitch_mm`` centred on (0, 0)."""
-    if n < 1:
-        raise ValueError("n must be >= 1")
-    cols = math.ceil(math.sqrt(n))
-    rows = math.ceil(n / cols)
-    ij = np.array([(i % cols, i // cols) for i in range(n)], float)
-    return (ij - [(cols - 1) / 2, (rows - 1) / 2]) * pitch_mm
 
 
 def default_scene(positions_mm: Sequence[Sequence[float]] = ((0.0, 0.0),), skin: SkinParams | None = None) -> Scene:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from touchreal.sensing.eskin import FS_HZ
-from touchreal.sensing.raw import RawChunk
-from touchreal.sensing.scene import RealTimePacer, Scene, SceneEvent, SceneSource, default_scene, taxel_grid
-from touchreal.sensing.stimuli import RampHold, RobotParams, SineBurst, TextureSlide
+from touchreal.simulator.eskin import FS_HZ
+from touchreal.raw import RawChunk
+from touchreal.raw import taxel_grid
+from touchreal.simulator.scene import RealTimePacer, Scene, SceneEvent, SceneSource, default_scene
+from touchreal.simulator.stimuli import RampHold, RobotParams, SineBurst, TextureSlide
 
 
 def short_scene() -> Scene:

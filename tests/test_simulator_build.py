@@ -11,8 +11,8 @@ import pytest
 
 from touchreal.cli import main
 from touchreal.recording import Dataset
-from touchreal.sensing.build import LIMITS, REAL_RANGES, SensorBuild, builds, load_build
-from touchreal.sensing.simulate import conditions, simulate_trial
+from touchreal.simulator.build import LIMITS, REAL_RANGES, SensorBuild, builds, load_build
+from touchreal.simulator.simulate import conditions, simulate_trial
 
 QUIET = {"pvdf_noise": 0.0, "st_noise": 0.0, "mains_level": 0.0}  # isolate one factor from the noise
 

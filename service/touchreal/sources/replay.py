@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from ..recording import Trial
-from .raw import RawChunk
+from ..raw import RawChunk
 
 
 class ReplaySource:

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchreal.sensing.clock_estimate import FLOOR_US, HORIZON_US, WINDOW_US, ClockEstimate, DeviceClock
+from touchreal.device.clock_estimate import FLOOR_US, HORIZON_US, WINDOW_US, ClockEstimate, DeviceClock
 
 SETTLE_S = 3.0  #: the documented settling time (s of device time)
 BOUND_US = 1000  #: the documented error bound after settling (jitter mean <= 5 ms, stalls, |drift| <= 200 ppm)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from touchreal.sensing.eskin import (
+from touchreal.simulator.eskin import (
     ADC_STEP_V,
     FS_HZ,
     ContactInput,
@@ -16,9 +16,9 @@ from touchreal.sensing.eskin import (
     tooth_relief,
     vibration_drive_mm,
 )
-from touchreal.sensing.scene import Scene, SceneEvent, SceneSource
-from touchreal.sensing.simulate import conditions, simulate_trial
-from touchreal.sensing.stimuli import RampHold, Robot, RobotParams, SineBurst
+from touchreal.simulator.scene import Scene, SceneEvent, SceneSource
+from touchreal.simulator.simulate import conditions, simulate_trial
+from touchreal.simulator.stimuli import RampHold, Robot, RobotParams, SineBurst
 
 
 def tone(x: np.ndarray, f: float, fs: float) -> float:

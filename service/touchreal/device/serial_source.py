@@ -1,8 +1,8 @@
 """Live source reading the microcontroller over a serial port (pyserial), reconnecting on unplug.
 
-A reader thread opens the port, feeds a :class:`~touchreal.sensing.serial_frame.FrameParser` and
+A reader thread opens the port, feeds a :class:`~touchreal.device.serial_frame.FrameParser` and
 collects the decoded samples; :meth:`SerialSource.next_chunk` hands them out once per update
-interval (default 32 ms) as a :class:`~touchreal.sensing.raw.RawChunk` on the sensor clock
+interval (default 32 ms) as a :class:`~touchreal.raw.RawChunk` on the sensor clock
 (s = device us / 1e6). On a read error or unplug the thread closes the port and retries with
 exponential backoff (0.1 s doubling to 2 s); the samples lost meanwhile are simply absent and the
 preprocessing's ``Sanitizer`` interpolates and counts the gap. Nothing here raises for device
@@ -11,7 +11,7 @@ trouble: it is visible in :meth:`SerialSource.status`.
 Values are passed through unchanged, NaN and Inf included: the ``Sanitizer`` holds the last good
 value and counts them (docs/architecture.md, input policy).
 
-The device clock is mapped onto the host's by a :class:`~touchreal.sensing.clock_estimate.DeviceClock`
+The device clock is mapped onto the host's by a :class:`~touchreal.device.clock_estimate.DeviceClock`
 fed every frame's newest sample time and its arrival on the host's monotonic clock;
 :meth:`SerialSource.clock` states it on the wall clock (docs/serial-protocol.md, host clock).
 """
@@ -31,8 +31,7 @@ import serial
 from touchreal_client.clock import ClockPoint
 
 from .clock_estimate import ClockEstimate, DeviceClock
-from .raw import RawChunk
-from .scene import taxel_grid
+from ..raw import RawChunk, taxel_grid
 from .serial_frame import MAX_TAXELS, PERIOD_US, Channel, Event, Frame, FrameParser, Restart
 
 DEFAULT_BAUDRATE = 921_600

@@ -1,7 +1,9 @@
-"""The raw sample block every sensor source produces (simulated e-skin, replay, serial)."""
+"""The raw sample block every sensor source produces (simulated e-skin, replay, serial), and the
+taxel grid they place their taxels on."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -38,3 +40,13 @@ class RawChunk:
     def concat(chunks: Sequence["RawChunk"]) -> "RawChunk":
         """Join consecutive chunks of one source into one."""
         return RawChunk(*(np.concatenate([getattr(c, f) for c in chunks]) for f in ("st_t", "st", "pvdf_t", "pvdf")))
+
+
+def taxel_grid(n: int, pitch_mm: float = 10.0) -> np.ndarray:
+    """(n, 2) taxel centres (mm): a near-square grid of pitch ``pitch_mm`` centred on (0, 0)."""
+    if n < 1:
+        raise ValueError("n must be >= 1")
+    cols = math.ceil(math.sqrt(n))
+    rows = math.ceil(n / cols)
+    ij = np.array([(i % cols, i // cols) for i in range(n)], float)
+    return (ij - [(cols - 1) / 2, (rows - 1) / 2]) * pitch_mm

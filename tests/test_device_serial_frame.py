@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from touchreal.sensing.serial_frame import (
+from touchreal.device.serial_frame import (
     HEADER,
     HEADER_SIZE,
     MAX_VALUES,

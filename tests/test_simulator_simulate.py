@@ -11,7 +11,7 @@ from conftest import shared_path
 
 from touchreal.cli import main as cli_main
 from touchreal.recording import Dataset
-from touchreal.sensing.simulate import REFERENCE_REPEATS, conditions, pick_trials, simulate_dataset, simulate_trial
+from touchreal.simulator.simulate import REFERENCE_REPEATS, conditions, pick_trials, simulate_dataset, simulate_trial
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_FIELDS = {

@@ -40,7 +40,7 @@ from scipy import signal
 
 from ..preprocess.filters import SosFilter
 from ..settings import PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N, ST_RESOLUTION_N
-from .raw import RawChunk
+from ..raw import RawChunk
 
 FS_HZ = PVDF_FS_HZ  #: internal tick rate (Hz) = PVDF sample rate
 ST_DECIMATION = int(round(FS_HZ / ST_FS_HZ))  #: ticks per SingleTact sample (20)
@@ -70,7 +70,7 @@ class SkinParams:
     st_latency_s: float = 0.007  #: sensor output latency (s) (fit: ST onset vs PVDF onset)
     st_offset_n: float = 0.037  #: mean zero-force baseline (N) (fit: pre-contact baseline)
     st_offset_sd_n: float = 0.012  #: sd of the baseline between instances (N) (fit)
-    st_gain: float = 1.0  #: sensitivity: reading per N of contact force (1 for the rig-v1 build; see sensing/build.py)
+    st_gain: float = 1.0  #: sensitivity: reading per N of contact force (1 for the rig-v1 build; see simulator/build.py)
     st_noise_n: float = 0.004  #: white noise sd before quantisation (N) (fit: baseline sd 0.005 N)
     st_wander_n: float = 0.004  #: baseline wander sd (N) (assumed)
     st_wander_tau_s: float = 2.0  #: baseline wander time constant (s) (assumed)
@@ -354,7 +354,7 @@ class ESkin:
             exciter probe resting on the skin); states start relaxed at that contact.
 
     ``process(contact)`` consumes the next ``len(contact)`` ticks and returns a
-    :class:`~touchreal.sensing.raw.RawChunk` (``st`` (m, N) N, ``pvdf`` (n, N) V, float32).
+    :class:`~touchreal.raw.RawChunk` (``st`` (m, N) N, ``pvdf`` (n, N) V, float32).
     """
 
     def __init__(

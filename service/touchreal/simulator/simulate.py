@@ -1,6 +1,6 @@
 """Offline simulated datasets: rig protocols -> trials in the recording format (with reference spikes).
 
-Each trial is one stimulus played by :class:`~touchreal.sensing.scene.SceneSource` (robot dynamics
+Each trial is one stimulus played by :class:`~touchreal.simulator.scene.SceneSource` (robot dynamics
 + e-skin physics, one taxel at the sensor centre), recorded like rig-v1: the stimulus starts 0.2-0.5
 s into the recording, a 0.3-0.6 s tail follows (texture recordings are 3.0 s), SingleTact at 100 Hz
 (N), PVDF at 2 kHz (V), the commanded indentation at 5 kHz (mm) and TouchSim reference spike trains
@@ -286,14 +286,14 @@ def simulate_dataset(
     counts = {p: sum(e["id"].rsplit("_", 1)[0] == p for e in entries) for p in protos}
     manifest = {
         "name": Path(out).name,
-        "description": "Simulated e-skin recordings (touchreal.sensing: robot dynamics + SingleTact/PVDF physics), "
+        "description": "Simulated e-skin recordings (touchreal.simulator: robot dynamics + SingleTact/PVDF physics), "
         f"trials per protocol {per_protocol}, seed {seed}. Not rig data.",
         "channels": _CHANNELS,
         "clock": "one recording clock for all channels, t = 0 at recording start; st and pvdf sample times are given explicitly",
         "protocols": {k: v for k, v in PROTOCOL_DESIGN.items() if k in protos or k in ("offsets", "spatial_offsets")},
         "reference": _reference_meta(reference),
         "counts": counts,
-        "simulator": {"module": "touchreal.sensing", "seed": seed, "trials_per_protocol": trials,
+        "simulator": {"module": "touchreal.simulator", "seed": seed, "trials_per_protocol": trials,
                       "build": (build or SensorBuild()).to_json()},
         "trials": entries,
     }

@@ -1,6 +1,6 @@
 """Compare the simulated e-skin with the rig-v1 recordings: statistics table and figures.
 
-    python -m touchreal.sensing.compare --shared DIR --out docs/img [--seed S] [--json FILE]
+    python -m touchreal.analysis.compare --shared DIR --out docs/img [--seed S] [--json FILE]
 
 For a subset of rig-v1 trials, the same conditions are simulated (no reference spikes) and the
 same statistics are computed on both: hold force vs depth, SingleTact baseline and noise, PVDF
@@ -8,7 +8,7 @@ noise floor and mains harmonics, sine PVDF amplitude per frequency, ramp timing 
 transients, radial profiles, texture responses. Prints a markdown table (pasted into
 docs/simulator.md) and writes ``simulator-comparison.png`` and ``simulator-traces.png`` to
 ``--out``. Nothing from the recordings is copied into the simulator: only these statistics were
-used to choose a few physical constants (see :class:`~touchreal.sensing.eskin.SkinParams`).
+used to choose a few physical constants (see :class:`~touchreal.simulator.eskin.SkinParams`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from scipy import signal
 
 from ..recording import Dataset, Trial
 from ..settings import shared_dir
-from .simulate import Condition, conditions, simulate_trial
+from ..simulator.simulate import Condition, conditions, simulate_trial
 
 _NOTCH = np.vstack([signal.tf2sos(*signal.iirnotch(50.0 * h, 15.0, fs=2000.0)) for h in range(1, 9)])
 
@@ -353,7 +353,7 @@ def _jsonable(x: Any) -> Any:
 
 
 def main(argv: Iterable[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m touchreal.sensing.compare", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m touchreal.analysis.compare", description=__doc__.splitlines()[0])
     ap.add_argument("--shared", type=Path, default=None, help="shared data folder (default: TOUCHREAL_SHARED or ../shared)")
     ap.add_argument("--out", type=Path, default=Path("docs/img"), help="folder for the PNG figures")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated trials")

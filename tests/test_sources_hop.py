@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from touchreal.sensing.live import SimLiveSource
+from touchreal.sources.live import SimLiveSource
 
 
 @pytest.mark.parametrize("seed", [0, 3])

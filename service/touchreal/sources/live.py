@@ -1,6 +1,6 @@
 """Live sources for the service: the blocking layer over the sans-I/O sources.
 
-Every live source hands the acquisition thread one :class:`~touchreal.sensing.raw.RawChunk` per
+Every live source hands the acquisition thread one :class:`~touchreal.raw.RawChunk` per
 hop (``touchreal serve --hop-ms``, 5 ms by default) through ``next_chunk()`` (blocking about one
 hop; ``None`` once the source has ended or was closed), and reports its state and counters through
 ``status()``. The simulated e-skin ends a hop with each SingleTact sample and halfway between, so
@@ -31,9 +31,9 @@ from touchreal_client.clock import ClockPoint
 
 from ..recording import Dataset, Trial
 from ..settings import PVDF_FS_HZ
-from .raw import RawChunk
+from ..raw import RawChunk, taxel_grid
 from .replay import ReplaySource
-from .scene import SceneSource, default_scene, taxel_grid
+from ..simulator.scene import SceneSource, default_scene
 
 
 MAX_CATCH_UP_HOPS = 64  #: a sim that fell behind hands over up to this many hops at once
@@ -118,7 +118,7 @@ class _Paced:
 
 
 class SimHops:
-    """The simulated e-skin cut into hops, unpaced (sans-I/O): :func:`~touchreal.sensing.scene.default_scene`
+    """The simulated e-skin cut into hops, unpaced (sans-I/O): :func:`~touchreal.simulator.scene.default_scene`
     over ``n_taxels`` taxels (a grid of 10 mm pitch), looping forever. With several taxels the script
     is played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
     feel each touch differently (the skin's spatial response).
@@ -239,7 +239,7 @@ class SimLiveSource:
 
     ``own_process``: simulate in a process of its own (:class:`SimHopsProcess`; the service does),
     so the acquisition thread only receives hops; otherwise in this thread (``scene`` is then the
-    :class:`~touchreal.sensing.scene.SceneSource`)."""
+    :class:`~touchreal.simulator.scene.SceneSource`)."""
 
     segment = 0
 
