@@ -14,7 +14,7 @@ distributed = pytest.importorskip("distributed")
 
 from touchreal.fitting import fit as F  # noqa: E402
 from touchreal.params import EncoderParams  # noqa: E402
-from touchreal.sensing.simulate import simulate_dataset  # noqa: E402
+from touchreal.simulator.simulate import simulate_dataset  # noqa: E402
 
 CFG = dict(classes=("SA1", "RA"), popsize=6, max_generations=3, restarts=0, saturated_classes=("SA1",), progress=False, seed=1,
            input_stage_classes=("RA",), holdout=False)  # SA1 from its saturated start too: two runs side by side
