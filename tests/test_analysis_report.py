@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from test_fitting_fit import tiny_rig_subset
+from touchreal import splits
 from touchreal.analysis import metrics as M
 from touchreal.analysis import report as R
 from touchreal.analysis import trials as T
-from touchreal.fitting import fit as F
 from touchreal.params import default_params
 from touchreal.settings import CHANNELS, CLASSES
 
@@ -109,10 +109,10 @@ def test_held_out_selection_follows_the_fit_provenance(tiny):
     p = default_params()
     held, all_e, note = T.select_held_out(tiny, p)
     assert len(held) == len(all_e) == len(entries) and "not fitted" in note
-    prov = dict(p.provenance, fitted_by="touchreal fit", split_method=F.SPLIT_METHOD, dataset="rig-v1-tiny", split_seed=7)
+    prov = dict(p.provenance, fitted_by="touchreal fit", split_method=splits.SPLIT_METHOD, dataset="rig-v1-tiny", split_seed=7)
     fitted = p.model_copy(update={"provenance": prov})
     held, _, note = T.select_held_out(tiny, fitted)
-    _, expected = F.split_repeats(entries, 7)
+    _, expected = splits.split_repeats(entries, 7)
     assert [e["id"] for e in held] == [e["id"] for e in expected]
     assert "seed 7" in note
     held_all, _, _ = T.select_held_out(tiny, fitted, "all")

@@ -10,7 +10,8 @@ import pytest
 
 from touchreal.cli import main
 from touchreal.fitting.calibration import calibrate_pvdf, contact_snr, mains_residual, noise_rms, singletact_noise
-from touchreal.fitting.config import FitConfig
+from touchreal.fitting.policy import resolve
+from touchreal.fitting.profile import BuildProfile
 from touchreal.fitting.trials import baseline_segments
 from touchreal.params import PreprocessParams
 from touchreal.preprocess.gate import calibrate, filter_segments
@@ -53,11 +54,10 @@ def _contact_snr(tmp_path, build: str) -> float:
 def test_the_contact_snr_tells_a_noisy_amplifier_from_the_nominal_build(tmp_path, corner_build):
     nominal, noisy = _contact_snr(tmp_path, "nominal"), _contact_snr(tmp_path, "noisy-amplifier")
     assert 2.0 < nominal / noisy < 4.5  # the noisy build has 3x the PVDF noise, the same film
-    cfg = FitConfig()
-    assert not cfg.weak_signal(nominal) and cfg.weak_signal(noisy)
     weakest = _contact_snr(tmp_path, str(corner_build))  # half the coupling on the noisy amplifier
     assert 1.5 < noisy / weakest < 2.5  # half the film's signal over the same noise
-    assert cfg.film_limited(weakest) and not cfg.film_limited(noisy)  # PC's film-limited settings on the corner only
+    rules = [[r.name for r in resolve(BuildProfile(contact_snr=snr), ("PC",)).rules] for snr in (nominal, noisy, weakest)]
+    assert rules == [[], ["weak-signal"], ["film-limited"]]  # PC's film-limited settings on the corner only
     assert contact_snr([np.zeros(4000)], [4000], calibrate_pvdf([np.random.default_rng(0).normal(0, 1e-3, 4000)], PreprocessParams())) is None
 
 
@@ -80,10 +80,9 @@ def test_the_singletact_noise_tells_the_noisy_singletacts_from_the_quiet_ones(tm
     quiet = [_singletact_noise(tmp_path, b) for b in ("nominal", "stiff-film-slow-rig")]  # 1x and 0.5x the noise
     noisy = [_singletact_noise(tmp_path, b) for b in ("noisy-amplifier", str(corner_build))]  # 2x and 3x
     assert 0.002 < quiet[1] < quiet[0] < 0.007 and quiet[0] < noisy[0] < noisy[1] < 0.02
-    cfg = FitConfig()
-    assert [cfg.noisy_singletact(n) for n in quiet + noisy] == [False, False, True, True]
-    assert [cfg.for_singletact(n).restarts for n in quiet + noisy] == [{}, {}, {"SA1": 1}, {"SA1": 1}]
-    assert [cfg.for_singletact(n).saturated_classes for n in quiet + noisy] == [(), (), ("SA1",), ("SA1",)]
+    plans = [resolve(BuildProfile(st_noise_n=n), ("SA1", "RA")).plan.classes for n in quiet + noisy]
+    assert [(p["SA1"].restarts, p["SA1"].saturated_starts) for p in plans] == [(0, ()), (0, ()), (1, (-2.0,)), (1, (-2.0,))]
+    assert all(p["RA"].restarts == 0 for p in plans)
 
 
 def test_the_singletact_noise_is_the_sample_noise_whatever_the_drift():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from touchreal.fitting import search as S
-from touchreal.fitting.config import FitConfig
-from touchreal.fitting.space import ParamSpace
+from touchreal.fitting.policy import default_plan
+from touchreal.fitting.space import Coord, ParamSpace
 
 SPACE = ParamSpace.for_class("RA", [8.0, 60.0, 0.2, 200.0], input_stage=True)
 
@@ -50,8 +50,7 @@ def test_interleaved_runs_draw_the_same_candidates_as_runs_alone_and_as_a_global
 
 def test_restarts_run_side_by_side_independently_and_the_best_point_wins():
     x0 = SPACE.initial(100.0)
-    cfg = FitConfig(classes=("RA",), popsize=6, max_generations=12, restarts=1, seed=4, progress=False)
-    fit = S.fit_class("RA", SPACE, _sphere, cfg, [x0], 100.0)
+    fit = S.fit_class("RA", SPACE, _sphere, S.Budget(6, 12, restarts=1), [x0], 100.0, seed=4)
     assert [(r.popsize, r.budget, r.generations) for r in fit.runs] == [(6, 12, 12), (12, 6, 6)]
     grid = S.start_grid(SPACE, [x0], 100.0)
     start = grid[int(np.argmin([f for f, _ in _sphere("RA", grid)]))]
@@ -76,8 +75,8 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
         return [(float(np.sum((x - centre) ** 2)), {}) for x in np.asarray(xs)]
 
     x0 = SPACE.initial(100.0)
-    cfg = FitConfig(classes=("RA",), popsize=6, max_generations=30, seed=4, progress=False, refine={"RA": 3.0})
-    fit = S.search_and_refine("RA", SPACE, two_objectives, cfg, [x0], 100.0)
+    plan = default_plan(("RA",)).overridden({"popsize": 6, "generations": 30})  # RA is refined
+    fit = S.search_and_refine("RA", SPACE, two_objectives, plan, [x0], 100.0, seed=4)
     assert fit.cls == "RA" and fit.search is not None and fit.search.search is None
     on_refinement = lambda x: two_objectives("RA:refine", np.array([x]))[0][0]  # noqa: E731
     # the search's best point is on the refinement's start grid: the refinement starts no worse than it
@@ -85,8 +84,8 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
     assert on_refinement(fit.x) < on_refinement(fit.search.x)
     assert fit.runs[0].history[-1] <= fit.start_loss
     # a class not refined is searched once
-    plain = S.search_and_refine("RA", SPACE, two_objectives, FitConfig(classes=("RA",), popsize=6, max_generations=3, seed=4,
-                                                                       progress=False, refine={}), [x0], 100.0)
+    plain = S.search_and_refine("RA", SPACE, two_objectives, plan.overridden({"generations": 3, "classes": {"RA": {"refine": None}}}), [x0], 100.0,
+                                seed=4)
     assert plain.search is None
     # the refinement draws from streams of its own
     assert S.cma_seed(4, "RA:refine") != S.cma_seed(4, "RA") == S.cma_seed(4, "RA", 0)
@@ -96,21 +95,18 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     sa1 = ParamSpace.for_class("SA1", [8.0, 60.0, 0.2, 200.0])
     starts = [sa1.initial(100.0, v) for v in range(2)]
     own, saturated = S.start_grid(sa1, starts, 100.0), S.start_grid(sa1, starts, 100.0, -2.0)
-    assert np.all(own[:, 12] == 3.0) and np.all(saturated[:, 12] == -2.0)  # each start's own i_sat (e^3), and e^-2
-    np.testing.assert_array_equal(np.delete(own, 12, axis=1), np.delete(saturated, 12, axis=1))  # the same points otherwise
-    cfg = FitConfig(classes=("SA1",), popsize=6, max_generations=10, restarts=1, saturated_classes=("SA1",), seed=4, progress=False)
-    fit = S.fit_class("SA1", sa1, _sphere, cfg, starts, 100.0)
+    assert np.all(own[:, Coord.LOG_ISAT] == 3.0) and np.all(saturated[:, Coord.LOG_ISAT] == -2.0)  # each start's own i_sat (e^3), and e^-2
+    np.testing.assert_array_equal(np.delete(own, Coord.LOG_ISAT, axis=1), np.delete(saturated, Coord.LOG_ISAT, axis=1))  # the same points otherwise
+    plan = default_plan(("SA1",)).overridden({"popsize": 6, "generations": 10, "classes": {"SA1": {"restarts": 1, "saturated_starts": [-2.0]}}})
+    fit = S.fit_class("SA1", sa1, _sphere, S.Budget.of(plan, "SA1"), starts, 100.0, seed=4)
     assert [(r.popsize, r.budget) for r in fit.runs] == [(6, 10), (12, 5), (6, 10)]  # the search, its restart, the saturated run
     x_sat = saturated[int(np.argmin([f for f, _ in _sphere("SA1", saturated)]))]
     alone = S.run_cma("SA1", sa1, _sphere, x_sat, 6, 10, S.cma_seed(4, "SA1", 2))
     assert alone.history == fit.runs[2].history  # from the best saturated grid point, on a stream of its own
     assert fit.evaluations == len(own) + len(saturated) + 6 * 10 + 12 * 5 + 6 * 10
     assert min(r.best_loss for r in fit.runs) == pytest.approx(float(np.sum((fit.x - 0.3) ** 2)))  # the best run wins
-    refined = S.fit_class("SA1:refine", sa1, _sphere, cfg, [fit.x], 100.0)
-    assert [(r.popsize, r.budget) for r in refined.runs] == [(6, 10), (12, 5)]  # a refinement keeps the search's saturation
-    ra = S.fit_class("RA", SPACE, _sphere, FitConfig(classes=("RA",), popsize=6, max_generations=4, progress=False), [SPACE.initial(100.0)], 100.0)
-    assert len(ra.runs) == 1  # the other classes search as they did
-    quiet = S.fit_class("SA1", sa1, _sphere, FitConfig(classes=("SA1",), popsize=6, max_generations=4, progress=False), starts, 100.0)
+    assert S.Budget.of(plan, "SA1:refine") == S.Budget(6, 10, restarts=1)  # a refinement keeps the search's saturation
+    refined = S.fit_class("SA1:refine", sa1, _sphere, S.Budget.of(plan, "SA1:refine"), [fit.x], 100.0, seed=4)
+    assert [(r.popsize, r.budget) for r in refined.runs] == [(6, 10), (12, 5)]
+    quiet = S.fit_class("SA1", sa1, _sphere, S.Budget(6, 4), starts, 100.0, seed=4)
     assert len(quiet.runs) == 1 and quiet.evaluations == len(own) + 6 * 4  # not asked for (a quiet SingleTact): one run from its own grid
-    with pytest.raises(ValueError, match="saturated_classes"):
-        FitConfig(saturated_classes=("PC",))  # PC has no saturated start

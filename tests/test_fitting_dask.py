@@ -4,6 +4,7 @@ CLI fits several datasets side by side on one cluster."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -16,8 +17,9 @@ from touchreal.fitting import fit as F  # noqa: E402
 from touchreal.params import EncoderParams  # noqa: E402
 from touchreal.simulator.simulate import simulate_dataset  # noqa: E402
 
-CFG = dict(classes=("SA1", "RA"), popsize=6, max_generations=3, restarts=0, saturated_classes=("SA1",), progress=False, seed=1,
-           input_stage_classes=("RA",), holdout=False)  # SA1 from its saturated start too: two runs side by side
+#: SA1 from its saturated start too: two runs side by side
+RECIPE = {"popsize": 6, "generations": 3, "classes": {"SA1": {"saturated_starts": [-2.0]}}}
+CFG = dict(classes=("SA1", "RA"), progress=False, seed=1, holdout=False, recipe=RECIPE)
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +129,9 @@ def test_cli_fits_several_datasets_on_one_cluster(client, datasets, local_fits, 
     from touchreal.cli import main
 
     # SA1 alone: a class's fit does not depend on the other classes fitted with it
-    args = ["--classes", "SA1", "--popsize", "6", "--generations", "3", "--restarts", "0", "--saturated-classes", "SA1", "--seed", "1",
-            "--input-stage-classes", "RA", "--no-holdout", "--quiet", "--scheduler", client.scheduler.address]
+    recipe = tmp_path / "recipe.json"
+    recipe.write_text(json.dumps(RECIPE))
+    args = ["--classes", "SA1", "--recipe", str(recipe), "--seed", "1", "--no-holdout", "--quiet", "--scheduler", client.scheduler.address]
     assert main(["fit", *map(str, datasets), "--out", str(tmp_path), *args]) == 0
     for d, local in zip(datasets, local_fits):
         p = EncoderParams.load(tmp_path / f"{d.name}.json")

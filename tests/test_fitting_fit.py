@@ -14,16 +14,16 @@ from touchreal.cli import main
 from touchreal.encoding.encoder import encode_population
 from touchreal.fitting import fit as F
 from touchreal.fitting import search as S
-from touchreal.fitting.command import parse_restarts
 from touchreal.fitting.config import FitConfig
 from touchreal.fitting.executor import FitState, LocalExecutor
-from touchreal.fitting.split import split_repeats
-from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
 from touchreal.fitting.objective import evaluate_loss
+from touchreal.fitting.policy import default_plan
 from touchreal.fitting.space import INITIAL_WEIGHTS, N_DIM, ParamSpace
+from touchreal.fitting.trials import TrialData, TrialSet, build_trial_set, simulate
 from touchreal.params import ClassParams, EncoderParams, PreprocessParams
 from touchreal.recording import write_dataset
 from touchreal.settings import CLASSES
+from touchreal.splits import split_repeats
 
 
 def tiny_rig_subset(rig, root, sine_repeats: int = 4):
@@ -184,9 +184,10 @@ def test_synthetic_fit_recovers_the_generating_parameters():
                 refs.append(np.sort(base + rng.normal(0, 0.002, base.size)))
         trials.append(TrialData(f"t{i}", f"c{i}", "ramp", onset, 50, ch, {"SA1": refs}, {"SA1": 4}))
     tset = TrialSet(trials, [f"c{i}" for i in range(8)], np.arange(8))
-    cfg = FitConfig(classes=("SA1",), popsize=8, max_generations=40, workers=1, progress=False)
-    refs = tset.reference_set("SA1", cfg.objective.kernel_tau_s, 80)
-    ev = LocalExecutor(FitState(spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, objectives={"SA1": cfg.objective_of("SA1")}, lag_s=0.0), 1)
+    plan = default_plan(("SA1",)).overridden({"popsize": 8, "generations": 40})
+    objective = plan.objective_of("SA1")
+    refs = tset.reference_set("SA1", objective.kernel_tau_s, 80)
+    ev = LocalExecutor(FitState(plan=plan, spaces={"SA1": space}, refs={"SA1": refs}, train={"SA1": tset}, lag_s=0.0), 1)
 
     def loss(x):
         return ev("SA1", np.array([x]))[0][0]
@@ -195,7 +196,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     x_start = space.initial(10.0)
     x_start[:8] = [0.5, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     l_start = loss(x_start)
-    fit = S.fit_class("SA1", space, ev, cfg, [x_start], 0.0)
+    fit = S.fit_class("SA1", space, ev, S.Budget.of(plan, "SA1"), [x_start], 0.0, seed=0)
     for run in fit.runs:
         assert run.history == sorted(run.history, reverse=True)  # best-so-far never increases
     l_fit = loss(fit.x)
@@ -206,159 +207,100 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     assert l_fit <= min(r.best_loss for r in fit.runs) + 1e-12
     # identifiable behaviour: spike counts per condition match the references' (tau and the
     # weights trade off against each other, so they are not compared one by one)
-    terms = evaluate_loss(simulate(trials, [fit.params])[0], tset.cond_index, refs, cfg.objective)
+    terms = evaluate_loss(simulate(trials, [fit.params])[0], tset.cond_index, refs, objective)
     assert np.mean(np.abs(terms.n_s - terms.n_t) / terms.n_t) < 0.15
 
 
 # ------------------------------------------------------------------------ rig-v1, end to end
 
 
+def _recipe(tmp_path, name: str, recipe: dict) -> str:
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(recipe))
+    return str(path)
+
+
 @pytest.mark.shared
-def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path):
+def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path, capsys):
     ds = tiny_rig_subset(rig, tmp_path / "tiny")
-    cfg = FitConfig(popsize=6, max_generations=2, workers=2, progress=False, seed=1)
+    cfg = FitConfig(recipe={"popsize": 6, "generations": 2}, workers=2, progress=False, seed=1)
     res = F.fit_dataset(ds.root, cfg)
     p = res.params
     assert set(p.classes) == set(CLASSES)
     assert p.preprocess.gate is not None  # calibrated from the baselines
     prov = p.provenance
     assert prov["dataset"] == "rig-v1-tiny" and prov["split_seed"] == 1
-    assert 0.004 < prov["st_noise_n"] < prov["noisy_st_noise_n"] == 0.0065 and not prov["noisy_singletact"]  # rig-v1's: 5 mN
-    assert prov["optimizer"]["restarts"] == {"SA1": 0, "RA": 0, "PC": 0}  # a quiet SingleTact: no restart
-    assert prov["optimizer"]["saturated_classes"] == []  # nor a saturated start
+    assert 0.004 < prov["profile"]["st_noise_n"] < 0.0065 and prov["profile"]["contact_snr"] > 50  # rig-v1's: 5 mN, a strong film
+    assert prov["rules"] == [] and prov["recipe"] == {"popsize": 6, "generations": 2}  # no rule applies: the defaults
+    assert prov["plan"] == res.resolution.plan.model_dump(mode="json") and prov["plan"]["gate_factor"] == 3.0 == p.preprocess.gate.factor
+    assert {c: (cp["restarts"], cp["saturated_starts"]) for c, cp in prov["plan"]["classes"].items()} == {c: (0, []) for c in CLASSES}
     assert res.n_train > 0 and res.n_validation > 0
     for c, f in res.classes.items():
         assert f.train is not None and f.validation is not None and np.isfinite(f.validation.total)
-        # search: start grid (directions x 81) + 2 generations of 6 per run (on a noisy SingleTact SA1 also
-        # restarts, 1 generation of 12, and runs from its saturated grid); RA and PC (the default) are then
+        # search: start grid (directions x 81) + 2 generations of 6; RA and PC (the default) are then
         # refined from the search's best point: a grid of 81 around it + 2 generations of 6
         search = f.search if c in ("RA", "PC") else f
         assert (f.search is not None) == (c in ("RA", "PC"))
-        saturated = len(S.SATURATED_STARTS.get(c, ())) if c in prov["optimizer"]["saturated_classes"] else 0
-        plan = [(6, 2)] + [(12, 1)] * prov["optimizer"]["restarts"][c] + [(6, 2)] * saturated
-        grid = len(INITIAL_WEIGHTS[c]) * 81 * (1 + saturated)
-        assert [(r.popsize, r.budget) for r in search.runs] == plan
-        assert grid < search.evaluations <= grid + sum(p * g for p, g in plan) and search.generations <= sum(g for _, g in plan)
+        grid = len(INITIAL_WEIGHTS[c]) * 81
+        assert [(r.popsize, r.budget) for r in search.runs] == [(6, 2)]
+        assert grid < search.evaluations <= grid + 12 and search.generations <= 2
         if f.search is not None:
             assert 81 < f.evaluations <= 81 + 2 * 6 and f.generations <= 2
-        # the input stage is fitted for RA and PC only (FitConfig default); no input high-pass off a film-limited build
+        # the input stage is fitted for RA and PC only (the default); no input high-pass off a film-limited build
         assert (f.params.lowpass_hz is not None) == (c in ("RA", "PC"))
         assert f.params.highpass_hz is None
     # reproducible
-    res2 = F.fit_dataset(ds.root, FitConfig(popsize=6, max_generations=2, workers=1, progress=False, seed=1))
+    res2 = F.fit_dataset(ds.root, FitConfig(recipe={"popsize": 6, "generations": 2}, workers=1, progress=False, seed=1))
     for c in CLASSES:
         assert res2.params.classes[c] == p.classes[c]
     # the CLI writes a loadable file; --classes keeps the others from --init
     out = tmp_path / "p.json"
     p.save(tmp_path / "init.json")
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]) == 0
+    short = _recipe(tmp_path, "short", {"generations": 1, "popsize": 4})
+    fit = ["fit", str(ds.root), "--out", str(out), "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]
+    assert main([*fit, "--classes", "RA", "--recipe", short]) == 0
     q = EncoderParams.load(out)
     for c in ("SA1", "PC"):  # kept: the same class, re-expressed on the new alignment (same reference-clock spikes)
         assert q.classes[c].model_copy(update={"delay_ms": 0.0}) == p.classes[c].model_copy(update={"delay_ms": 0.0})
         assert q.classes[c].delay_ms - q.alignment.lag_ms == pytest.approx(p.classes[c].delay_ms - p.alignment.lag_ms, abs=1e-9)
     assert min(cp.delay_ms for cp in q.classes.values()) == 0.0  # the smallest alignment with every delay >= 0
-    assert json.loads(out.read_text())["provenance"]["fitted_classes"] == ["RA"]
+    prov = q.provenance
+    assert prov["fitted_classes"] == ["RA"] and list(prov["plan"]["classes"]) == ["RA"]
     assert q.window_ms("RA") == 16.0 and q.window_ms("PC") == 128.0  # the default: the shipped windows (fast path)
-    objective = json.loads(out.read_text())["provenance"]["objective"]
-    assert objective["count_weight"] == 1.0 and objective["refine"] == {"RA": 3.0}  # the defaults: the paper's search, then RA refined
-    assert objective["vr_distance_classes"] == []  # RA's refinement keeps the kernel distance
-    assert objective["excitatory_classes"] == ["RA"] and min(q.classes["RA"].weights[4:6]) >= 0.0  # pressing and releasing both excite RA
-    assert objective["refine_sine_count_weights"] == {}  # on this build every count term weighs the sines as its distance
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["contact_snr"] > prov["weak_signal_snr"] == 50.0 and not prov["weak_signal"]  # rig-v1's film stands well out of its noise
-    assert prov["gate_factor"] == 3.0 == q.preprocess.gate.factor  # so the gate keeps its factor
-    # a build below --weak-signal-snr gets the weak-signal gate and PC sine count weight; given options win
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--count-weight", "3",
-                 "--weak-signal-snr", "1e6"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    objective = prov["objective"]
-    assert objective["count_weight"] == 3.0 and objective["refine"] == {"PC": 5.0} and objective["refine_sine_count_weights"] == {"PC": 10.0}
-    assert prov["optimizer"]["restarts"] == {"PC": 0}  # only SA1 restarts, and only on a noisy SingleTact
-    assert EncoderParams.load(out).preprocess.gate.factor == 2.0 == prov["gate_factor"] and prov["weak_signal_snr"] == 1e6 and prov["weak_signal"]
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--weak-signal-snr", "1e6",
-                 "--gate-factor", "2.5", "--refine-sine-count-weights", "none"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["gate_factor"] == 2.5 and prov["objective"]["refine_sine_count_weights"] == {}
-    assert prov["objective"]["highpass_hz"] == {} and not prov["film_limited"] and EncoderParams.load(out).classes["PC"].highpass_hz is None
-    # a build below --film-limited-snr gets PC's input high-pass, its count margin and a plain count; given options win
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--film-limited-snr", "1e6"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["film_limited"] and prov["film_limited_snr"] == 1e6 and prov["weak_signal"] is False and prov["gate_factor"] == 3.0
-    assert prov["objective"]["highpass_hz"] == {"PC": 5.0} and EncoderParams.load(out).classes["PC"].highpass_hz == 5.0
-    assert prov["objective"]["refine_count_margins"] == {"PC": 0.22} and prov["objective"]["refine_sine_count_weights"] == {"PC": 1.0}
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--film-limited-snr", "1e6",
-                 "--highpass", "none", "--refine-count-margins", "PC=0.1"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["objective"]["highpass_hz"] == {} and prov["objective"]["refine_count_margins"] == {"PC": 0.1}
-    assert EncoderParams.load(out).classes["PC"].highpass_hz is None  # the paper's input: no high-pass
-    assert objective["segmented_count_classes"] == ["PC"] and objective["vr_distance_classes"] == ["PC"]  # the defaults
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA,PC", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--refine", "none",
-                 "--segmented-count-classes", "none"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["objective"]["refine"] == {} and prov["objective"]["segmented_count_classes"] == []  # the paper's objective
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "RA", "--generations", "1", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--excitatory-classes", "none"]) == 0
-    assert json.loads(out.read_text())["provenance"]["objective"]["excitatory_classes"] == []  # the paper's unconstrained weights
-    assert "search" not in prov["loss"]["PC"]
-    # the file records every CMA-ES run of a class (a restart: population x2, generations /2)
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "PC", "--generations", "2", "--popsize", "4", "--restarts", "1",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1"]) == 0
+    ra = prov["plan"]["classes"]["RA"]
+    assert prov["plan"]["count_weight"] == 1.0 and ra["refine"] == {"count_weight": 3.0, "sine_count_weight": None, "count_margin": 0.0,
+                                                                    "vr_distance": False}  # the paper's search, then RA refined on its distance
+    assert ra["excitatory"] and min(q.classes["RA"].weights[4:6]) >= 0.0  # pressing and releasing both excite RA
+    assert prov["init"]["fitted_classes"] == list(CLASSES) and prov["init"]["class_window_ms"] == {"SA1": 16.0, "RA": 16.0, "PC": 128.0}
+    # a recipe overrides any field of the plan; the file records the plan it ran
+    assert main([*fit, "--classes", "RA,PC", "--recipe", _recipe(tmp_path, "paper", {
+        "generations": 1, "popsize": 4, "gate_factor": 2.5, "count_weight": 3.0,
+        "classes": {"RA": {"refine": None, "excitatory": False}, "PC": {"refine": None, "segmented_count": False, "highpass_hz": 5.0}}})]) == 0
+    q = EncoderParams.load(out)
+    plan = q.provenance["plan"]
+    assert q.preprocess.gate.factor == 2.5 == plan["gate_factor"] and plan["count_weight"] == 3.0 and q.provenance["rules"] == []
+    assert plan["classes"]["PC"]["refine"] is None and not plan["classes"]["PC"]["segmented_count"] and "search" not in q.provenance["loss"]["PC"]
+    assert q.classes["PC"].highpass_hz == 5.0 and plan["classes"]["PC"]["highpass_hz"] == 5.0
+    assert not plan["classes"]["RA"]["excitatory"] and plan["classes"]["RA"]["refine"] is None
+    # every CMA-ES run of a class is recorded (a restart: population x2, generations /2), as are a saturated start's
+    assert main([*fit, "--classes", "SA1,PC", "--recipe", _recipe(tmp_path, "runs", {
+        "generations": 2, "popsize": 4, "classes": {"PC": {"restarts": 1}, "SA1": {"restarts": 1, "saturated_starts": [-2.0]}}})]) == 0
     prov = json.loads(out.read_text())["provenance"]
     for stage in (prov["loss"]["PC"], prov["loss"]["PC"]["search"]):  # the refinement, and the search it started from
         assert [(r["popsize"], r["generations"], r["stop"]) for r in stage["runs"]] == [(4, 2, "budget"), (8, 1, "budget")]
         assert stage["generations"] == 3
-    assert prov["optimizer"]["restarts"] == {"PC": 1}
-    # a SingleTact above --noisy-st-noise gets SA1's noisy-SingleTact search: its saturated start and a restart
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "SA1", "--generations", "2", "--popsize", "4",
-                 "--init", str(tmp_path / "init.json"), "--quiet", "--workers", "1", "--noisy-st-noise", "1e-4"]) == 0
-    prov = json.loads(out.read_text())["provenance"]
-    assert prov["noisy_singletact"] is True and prov["noisy_st_noise_n"] == 1e-4
-    assert prov["optimizer"]["restarts"] == {"SA1": 1} and prov["optimizer"]["saturated_classes"] == ["SA1"]
-    assert [(r["popsize"], r["generations"]) for r in prov["loss"]["SA1"]["runs"]] == [(4, 2), (8, 1), (4, 2)]
-    assert parse_restarts("2") == {"SA1": 2, "RA": 2, "PC": 2}  # every class
-    assert parse_restarts("PC=2") == {"PC": 2}  # the named ones; the others none
-    assert parse_restarts("1,PC=2") == {"SA1": 1, "RA": 1, "PC": 2}  # a bare number: the classes not named
-    for bad in ("1.5", "-1", "9", "SA2=1"):
-        with pytest.raises(argparse.ArgumentTypeError):
-            parse_restarts(bad)
-    assert FitConfig(restarts=2).restarts == {"SA1": 2, "RA": 2, "PC": 2} and FitConfig().restarts is None
-    noisy, quiet = FitConfig().for_singletact(0.012), FitConfig().for_singletact(0.005)  # 3x and 1x the nominal noise
-    assert noisy.restarts_of("SA1") == 1 and noisy.restarts_of("RA:refine") == 0 and quiet.restarts == {}
-    assert FitConfig().for_singletact(None).restarts == {}  # not measured: none
-    assert FitConfig(restarts={"RA": 1}).for_singletact(0.012).restarts_of("RA:refine") == 1  # given: kept
-    assert FitConfig(noisy_st_noise_n=0.02).for_singletact(0.012).restarts == {}
-    assert noisy.saturated("SA1") and not noisy.saturated("SA1:refine") and not quiet.saturated("SA1")
-    assert FitConfig(saturated_classes=()).for_singletact(0.012).saturated_classes == ()  # given: kept
-    with pytest.raises(ValueError, match="noisy_st_noise_n"):
-        FitConfig(noisy_st_noise_n=float("nan"))
-    with pytest.raises(ValueError, match="restarts must be integers"):
-        FitConfig(restarts={"PC": 1.5})
-    with pytest.raises(ValueError):
-        FitConfig(count_weight=-1.0)
-    with pytest.raises(ValueError, match="weights of refine"):
-        FitConfig(refine={"PC": float("nan")})
-    with pytest.raises(ValueError, match="refine must be a subset"):
-        FitConfig(refine={"SA2": 1.0})
-    with pytest.raises(ValueError, match="refine_sine_count_weights must be >= 0"):
-        FitConfig(refine_sine_count_weights={"PC": float("inf")})
-    with pytest.raises(ValueError, match="refine_sine_count_weights must be a subset"):
-        FitConfig(refine_sine_count_weights={"SA2": 1.0})
-    with pytest.raises(ValueError, match="gate_factor"):
-        FitConfig(gate_factor=0.0)
-    with pytest.raises(ValueError, match="weak_signal_snr"):
-        FitConfig(weak_signal_snr=float("nan"))
-    cfg = FitConfig(count_weight=2.0)
-    assert cfg.objective_of("PC").count_weight == 2.0 and cfg.objective_of("PC:refine").count_weight == 5.0
-    assert cfg.refined() == ("RA", "PC") and FitConfig(classes=("SA1", "PC")).refined() == ("PC",)
-    with pytest.raises(ValueError, match="segmented_count_classes"):
-        FitConfig(segmented_count_classes=("PC", "SA2"))
-    assert main(["fit", str(ds.root), "--out", str(out), "--classes", "XX"]) == 2
+    assert [(r["popsize"], r["generations"]) for r in prov["loss"]["SA1"]["runs"]] == [(4, 2), (8, 1), (4, 2)]  # the saturated run last
+    # --plan prints the plan and writes nothing; a bad recipe or class is a clear error
+    out.unlink()
+    capsys.readouterr()
+    assert main([*fit, "--plan", "--recipe", short]) == 0
+    said = capsys.readouterr().out
+    assert "build profile: contact SNR" in said and "the recipe sets generations 1, popsize 4" in said and not out.exists()
+    assert main([*fit, "--recipe", _recipe(tmp_path, "bad", {"classes": {"PC": {"highpass": 5.0}}})]) == 2
+    err = capsys.readouterr().err
+    assert "the plan's overrides (--recipe" in err and "classes.PC.highpass: unknown field (fields there: window_ms, input_stage" in err
+    assert main(["fit", str(ds.root), "--plan", "--classes", "XX"]) == 2
+    assert main(["fit", str(ds.root)]) == 2 and "--out is required" in capsys.readouterr().err
 
 
 @pytest.mark.shared
@@ -382,20 +324,21 @@ def test_ramp_count_segments_are_the_turning_point_windows(rig, tmp_path):
     np.testing.assert_allclose(np.bincount(np.repeat(np.arange(seg.n_conditions), n_seg), seg.n_t_seg), whole.n_t)
     # the fit's reference sets: the search's (segmented, sine weight in distance and count) and PC's
     # refinement's (whole trials, VR-normalised; a sine may weigh less in its count than in its distance)
-    cfg = FitConfig(sine_weight=30.0)
+    plan = default_plan(CLASSES)  # a sine weighs 30 ramp conditions
     sine = np.zeros(len(tset.conditions), dtype=bool)
     sine[tset.cond_index] = [t.protocol == "sine" for t in tset.trials]
     assert sine.any() and (~sine).any()
-    search, refine = F._references(tset, "PC", cfg), F._references(tset, "PC:refine", cfg)
+    search, refine = F.references(tset, "PC", plan), F.references(tset, "PC:refine", plan)
     np.testing.assert_array_equal(search.weights, np.where(sine, 30.0, 1.0))
     assert search.count_weights is None and search.vr_norm is None and search.edges.size > 0
     np.testing.assert_array_equal(refine.weights, search.weights)
     assert refine.count_weights is None  # by default the count terms weigh as the distance
     assert refine.vr_norm is not None and refine.edges.size == 0
-    custom = F._references(tset, "PC:refine", FitConfig(sine_weight=30.0, refine_sine_count_weights={"PC": 10.0}))
+    ten = plan.overridden({"classes": {"PC": {"refine": {"sine_count_weight": 10.0}}}})
+    custom = F.references(tset, "PC:refine", ten)
     np.testing.assert_array_equal(custom.count_weights, np.where(sine, 10.0, 1.0))
     np.testing.assert_array_equal(custom.weights, search.weights)
-    assert F._references(tset, "PC", FitConfig(refine_sine_count_weights={"PC": 10.0})).count_weights is None  # the search's stay
+    assert F.references(tset, "PC", ten).count_weights is None  # the search's stay
 
 
 @pytest.mark.shared
@@ -406,13 +349,13 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
     from touchreal.analysis.trials import run_trials
 
     ds = tiny_rig_subset(rig, tmp_path / "tiny", sine_repeats=1)
-    cfg = FitConfig(classes=("SA1", "RA"), class_window_ms={"SA1": 16.0, "RA": 32.0}, holdout=False, popsize=4,
-                      max_generations=1, restarts=0, workers=1, progress=False, input_stage_classes=(), no_pvdf_classes=("SA1",))
+    cfg = FitConfig(classes=("SA1", "RA"), holdout=False, workers=1, progress=False, recipe={
+        "popsize": 4, "generations": 1, "classes": {"SA1": {"window_ms": 16.0, "pvdf": False}, "RA": {"window_ms": 32.0, "input_stage": False}}})
     res = F.fit_dataset(ds.root, cfg)
     p = res.params
     n = len([e for e in ds.entries() if e["protocol"] in ("ramp", "sine")])
     assert res.n_train == n and res.n_validation == 0
-    assert p.provenance["n_validation_trials"] == 0 and p.provenance["class_window_ms"] == {"SA1": 16.0, "RA": 32.0}
+    assert p.provenance["n_validation_trials"] == 0 and [cp["window_ms"] for cp in p.provenance["plan"]["classes"].values()] == [16.0, 32.0]
     assert p.window_ms("SA1") == 16.0 and p.window_ms("RA") == 32.0 and p.preprocess.window_ms == 128.0
     assert p.classes["SA1"].weights[4:] == [0.0] * 4  # SingleTact only
     assert 40.0 < p.provenance["rig_lag_ms"] < 120.0 and p.alignment.dataset == "rig-v1-tiny"
@@ -447,84 +390,39 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
 
 
 def test_window_option_per_class():
-    import argparse
-
-    from touchreal.fitting.command import parse_class_weights, parse_highpass, parse_windows
+    from touchreal.fitting.command import parse_windows, window_recipe
 
     assert parse_windows("64") == (64.0, {})
     assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})
     assert parse_windows("32, SA1=16") == (32.0, {"SA1": 16.0})
-    assert parse_class_weights("PC=4,RA=2") == {"PC": 4.0, "RA": 2.0} and parse_class_weights("none") == {}
+    assert parse_windows("SA1=32,RA=16") == (128.0, {"SA1": 32.0, "RA": 16.0})  # the others: 128
     for bad in ("SA2=16", "SA1=fast", "x"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_windows(bad)
-        with pytest.raises(argparse.ArgumentTypeError):
-            parse_class_weights(bad)
-    with pytest.raises(argparse.ArgumentTypeError, match="a weight per class"):
-        parse_class_weights("3")
-    with pytest.raises(ValueError, match="window_ms"):
-        FitConfig(class_window_ms={"RA": 2.0})
-    assert parse_highpass("PC=5,RA=0.5") == {"PC": 5.0, "RA": 0.5} and parse_highpass("none") == {}
-    for bad in ("PC=0", "PC=500", "3", "PC=x", "SA9=5"):
-        with pytest.raises(argparse.ArgumentTypeError):
-            parse_highpass(bad)
-    with pytest.raises(ValueError, match="highpass_hz cutoffs"):
-        FitConfig(highpass_hz={"PC": 0.01})
-    with pytest.raises(ValueError, match="highpass_hz must be a subset"):
-        FitConfig(highpass_hz={"SA9": 5.0})
-    with pytest.raises(ValueError, match="refine_count_margins must be in"):
-        FitConfig(refine_count_margins={"PC": 1.0})
-    with pytest.raises(ValueError, match="film_limited_snr"):
-        FitConfig(film_limited_snr=-1.0)
-    assert FitConfig(window_ms=64.0, class_window_ms={"SA1": 16.0}).window_of("RA") == 64.0
-
-
-@pytest.mark.parametrize("name", ["input_stage_classes", "no_pvdf_classes", "excitatory_classes", "segmented_count_classes", "vr_distance_classes"])
-def test_fit_config_refuses_unknown_classes_in_every_class_list(name):
-    with pytest.raises(ValueError, match=f"{name} must be a subset"):
-        FitConfig(**{name: ("PC", "SA9")})
-    assert getattr(FitConfig(**{name: ("PC",)}), name) == ("PC",)
-
-
-def test_the_weak_signal_settings_apply_below_the_snr_threshold_where_not_given():
-    cfg = FitConfig()
-    assert not cfg.weak_signal(None) and not cfg.weak_signal(50.0) and cfg.weak_signal(49.9)
-    strong, weak = cfg.for_snr(107.0), cfg.for_snr(37.0)  # nominal and noisy-amplifier builds (docs/fitting.md)
-    assert (strong.gate_factor, strong.refine_sine_count_weights) == (3.0, {})
-    assert (weak.gate_factor, weak.refine_sine_count_weights) == (2.0, {"PC": 10.0})
-    assert cfg.for_snr(None) == strong and cfg.refine_sine_count_weights is None  # not measured: no change; cfg itself kept
-    given = FitConfig(gate_factor=2.5, refine_sine_count_weights={"RA": 5.0}).for_snr(37.0)
-    assert (given.gate_factor, given.refine_sine_count_weights) == (2.5, {"RA": 5.0})
-    never = FitConfig(weak_signal_snr=0.0, film_limited_snr=0.0).for_snr(1e-3)  # 0: no build is weak (nor film-limited)
-    assert (never.gate_factor, never.refine_sine_count_weights) == (3.0, {})
-    assert weak.objective_of("PC:refine") == cfg.objective_of("PC:refine")  # the rest is the same
-    assert (weak.highpass_hz, weak.refine_count_margins) == ({}, {})  # not film-limited
-
-
-def test_the_film_limited_settings_apply_below_their_snr_where_not_given():
-    cfg = FitConfig()
-    assert cfg.film_limited(34.9) and not cfg.film_limited(35.0) and not cfg.film_limited(None)
-    film = cfg.for_snr(19.0)  # the corner build (docs/fitting.md)
-    assert (film.gate_factor, film.refine_sine_count_weights) == (2.0, {"PC": 1.0})  # a weak-signal gate, a plain count
-    assert (film.highpass_hz, film.refine_count_margins) == ({"PC": 5.0}, {"PC": 0.22})
-    assert film.objective_of("PC:refine").count_margin == 0.22 and film.objective_of("PC").count_margin == 0.0  # the refinement's only
-    assert film.objective_of("RA:refine").count_margin == 0.0
-    given = FitConfig(highpass_hz={}, refine_count_margins={"PC": 0.1}, refine_sine_count_weights={"PC": 10.0}).for_snr(19.0)
-    assert (given.highpass_hz, given.refine_count_margins, given.refine_sine_count_weights) == ({}, {"PC": 0.1}, {"PC": 10.0})
-    never = FitConfig(film_limited_snr=0.0).for_snr(19.0)  # 0: no build is film-limited; it is still weak-signal
-    assert (never.highpass_hz, never.refine_count_margins, never.refine_sine_count_weights) == ({}, {}, {"PC": 10.0})
+    recipe = window_recipe(*parse_windows("32, SA1=16"), ("SA1", "PC"))
+    assert recipe == {"window_ms": 32.0, "classes": {"SA1": {"window_ms": 16.0}, "PC": {"window_ms": 32.0}}}
+    plan = FitConfig(classes=("SA1", "PC"), recipe=recipe)
+    assert plan.recipe == recipe
+    with pytest.raises(ValueError, match="classes.RA.window_ms"):
+        FitConfig(recipe={"classes": {"RA": {"window_ms": 2.0}}})
 
 
 def test_a_fit_on_the_corner_build_gives_pc_the_film_limited_settings(tmp_path, corner_build, capsys):
     assert main(["simulate", "ramp", "--trials", "ramp=16", "--seed", "3", "--build", str(corner_build), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
     out = tmp_path / "pc.json"
+    fit = ["fit", str(tmp_path / "ds"), "--out", str(out), "--classes", "PC", "--quiet", "--workers", "1"]
     capsys.readouterr()
-    assert main(["fit", str(tmp_path / "ds"), "--out", str(out), "--classes", "PC", "--generations", "1", "--popsize", "4",
-                 "--quiet", "--workers", "1"]) == 0
+    assert main([*fit, "--plan"]) == 0 and not out.exists()  # the plan first, without fitting
+    said = capsys.readouterr().out
+    assert "film-limited      contact SNR < 35           applies" in said and "noisy-singletact  SingleTact noise > 6.5 mN  applies" in said
+    assert "rule film-limited (contact SNR < 35) sets gate_factor 2, PC.highpass_hz 5, PC.refine.count_margin 0.22, PC.refine.sine_count_weight 1: " in said
+    assert "rule noisy-singletact (SingleTact noise > 6.5 mN) sets none of the fitted classes' fields" in said  # SA1's only
+    assert main([*fit, "--recipe", _recipe(tmp_path, "short", {"generations": 1, "popsize": 4})]) == 0
     p = EncoderParams.load(out)
     prov = p.provenance
-    assert prov["contact_snr"] < prov["film_limited_snr"] == 35.0 and prov["film_limited"] and prov["weak_signal"]
+    assert prov["profile"]["contact_snr"] < 35.0 and prov["rules"] == ["film-limited", "noisy-singletact"]
     assert p.classes["PC"].highpass_hz == 5.0 and p.version == 4  # the high-pass needs schema version 4
-    assert prov["objective"]["refine_count_margins"] == {"PC": 0.22} and prov["objective"]["refine_sine_count_weights"] == {"PC": 1.0}
-    said = capsys.readouterr().err
-    assert "(film-limited), input high-pass {'PC': 5.0} Hz, refinement count margins {'PC': 0.22}" in said  # the log says so
+    assert prov["plan"]["classes"]["PC"]["refine"] == {"count_weight": 5.0, "sine_count_weight": 1.0, "count_margin": 0.22, "vr_distance": True}
+    assert prov["plan"]["gate_factor"] == 2.0 == p.preprocess.gate.factor
+    said = capsys.readouterr().err  # the log says so, in one line
+    assert "; rules: film-limited (contact SNR < 35: gate_factor 2, PC.highpass_hz 5, PC.refine.count_margin 0.22, " in said

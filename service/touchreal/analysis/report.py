@@ -5,7 +5,7 @@ printed into the report):
 
 * **Held-out trials.** If the parameter file was fitted by ``touchreal fit`` on this dataset (same
   manifest name, provenance carries the split seed), the ramp and sine trials the fit did not use
-  (:func:`touchreal.fitting.fit.split_repeats`); otherwise every ramp and sine trial. Spatial
+  (:func:`touchreal.splits.split_repeats`); otherwise every ramp and sine trial. Spatial
   trials are never used by the fit and are all evaluated.
 * **Spike trains** are compared on time since the commanded onset of their own trial (TouchSim
   references and TouchReal outputs both), over the whole recording; TouchReal's stamps are first

@@ -5,8 +5,8 @@ All spike times are in seconds and every train is a 1-D float array. Functions s
 unless told the trains are already sorted.
 
 Kernel sums use the two-sided exponential ``k(d) = exp(-|d| / tau)`` and are computed exactly in
-O(n + m) with running sums over the merged, sorted trains (Houghton & Kreuz 2012); they are
-checked against brute force and against ``elephant`` in tests/test_analysis_spiketrains.py.
+O(n + m) by :mod:`touchreal.spike_kernels` (shared with the fit's objective); they are checked
+against brute force and against ``elephant`` in tests/test_analysis_spiketrains.py.
 
 Van Rossum normalisation: ``vr_distance`` follows ``elephant.spike_train_dissimilarity``:
 ``D = sqrt(A(x) + A(y) - 2 C(x, y))``, which is 1 between an empty train and a one-spike train
@@ -17,99 +17,16 @@ from __future__ import annotations
 
 from typing import Sequence
 
-import numba
 import numpy as np
 
-#: epsilon of eq. (4)
-SIM_EPS = 1e-12
-
-
-@numba.njit(cache=True, nogil=True)
-def _kernel_sum_sorted(x, y, inv_tau):  # pragma: no cover - compiled
-    """sum_i sum_j exp(-|x_i - y_j| / tau) for sorted x, y, exactly, in O(n + m)."""
-    n = x.shape[0]
-    m = y.shape[0]
-    if n == 0 or m == 0:
-        return 0.0
-    total = 0.0
-    # forward: y_j <= x_i
-    acc = 0.0
-    last = 0.0
-    j = 0
-    for i in range(n):
-        xi = x[i]
-        while j < m and y[j] <= xi:
-            if acc != 0.0:
-                acc *= np.exp(-(y[j] - last) * inv_tau)
-            acc += 1.0
-            last = y[j]
-            j += 1
-        if acc != 0.0:
-            total += acc * np.exp(-(xi - last) * inv_tau)
-    # backward: y_j > x_i
-    acc = 0.0
-    last = 0.0
-    j = m - 1
-    for i in range(n - 1, -1, -1):
-        xi = x[i]
-        while j >= 0 and y[j] > xi:
-            if acc != 0.0:
-                acc *= np.exp(-(last - y[j]) * inv_tau)
-            acc += 1.0
-            last = y[j]
-            j -= 1
-        if acc != 0.0:
-            total += acc * np.exp(-(last - xi) * inv_tau)
-    return total
-
-
-@numba.njit(cache=True, nogil=True)
-def _cross_sums_flat(x, flat, off, inv_tau, out):  # pragma: no cover - compiled
-    """out[k] = kernel sum of x with train k of a flat train set (offsets ``off``)."""
-    for k in range(off.shape[0] - 1):
-        out[k] = _kernel_sum_sorted(x, flat[off[k] : off[k + 1]], inv_tau)
-
-
-@numba.njit(cache=True, nogil=True)
-def _auto_sums_flat(flat, off, inv_tau, out):  # pragma: no cover - compiled
-    for k in range(off.shape[0] - 1):
-        t = flat[off[k] : off[k + 1]]
-        out[k] = _kernel_sum_sorted(t, t, inv_tau)
-
-
-@numba.njit(cache=True, nogil=True)
-def _pair_matrix_flat(flat, off, inv_tau, out):  # pragma: no cover - compiled
-    n = off.shape[0] - 1
-    for a in range(n):
-        ta = flat[off[a] : off[a + 1]]
-        for b in range(a, n):
-            v = _kernel_sum_sorted(ta, flat[off[b] : off[b + 1]], inv_tau)
-            out[a, b] = v
-            out[b, a] = v
-
-
-def _prep(t: np.ndarray, presorted: bool) -> np.ndarray:
-    t = np.asarray(t, dtype=np.float64).ravel()
-    if not presorted:
-        t = np.sort(t)
-    return np.ascontiguousarray(t)
-
-
-def pack(trains: Sequence[np.ndarray], presorted: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Flatten trains into (times, offsets) with every train sorted; offsets has len(trains)+1."""
-    arrs = [_prep(t, presorted) for t in trains]
-    off = np.zeros(len(arrs) + 1, dtype=np.int64)
-    if arrs:
-        off[1:] = np.cumsum([a.size for a in arrs])
-    flat = np.concatenate(arrs) if arrs and off[-1] > 0 else np.zeros(0)
-    return np.ascontiguousarray(flat, dtype=np.float64), off
+from ..spike_kernels import SIM_EPS, auto_sums_flat, cross_sums_flat, kernel_sum_sorted, pack, pair_matrix_flat, sorted_train
 
 
 def kernel_sum(x: np.ndarray, y: np.ndarray, tau: float, presorted: bool = False) -> float:
     """``sum_i sum_j exp(-|x_i - y_j| / tau)`` (eqs. 2-3); ``A(x) = kernel_sum(x, x)``."""
     if tau <= 0:
         raise ValueError("tau must be > 0")
-    return float(_kernel_sum_sorted(_prep(x, presorted), _prep(y, presorted), 1.0 / tau))
+    return float(kernel_sum_sorted(sorted_train(x, presorted), sorted_train(y, presorted), 1.0 / tau))
 
 
 def kernel_sum_bruteforce(x: np.ndarray, y: np.ndarray, tau: float) -> float:
@@ -128,15 +45,15 @@ def similarity_from_sums(c: np.ndarray | float, a_x: np.ndarray | float, a_y: np
 
 def kernel_similarity(x: np.ndarray, y: np.ndarray, tau: float, presorted: bool = False) -> float:
     """Normalised kernel similarity of eq. (4), in [0, 1]."""
-    x, y = _prep(x, presorted), _prep(y, presorted)
+    x, y = sorted_train(x, presorted), sorted_train(y, presorted)
     inv = 1.0 / tau
-    return float(similarity_from_sums(_kernel_sum_sorted(x, y, inv), _kernel_sum_sorted(x, x, inv), _kernel_sum_sorted(y, y, inv)))
+    return float(similarity_from_sums(kernel_sum_sorted(x, y, inv), kernel_sum_sorted(x, x, inv), kernel_sum_sorted(y, y, inv)))
 
 
 def kernel_distance(x: np.ndarray, y: np.ndarray, tau: float, presorted: bool = False, empty_pair: float = 0.0) -> float:
     """Eq. (5): ``1 - sim``. Two empty trains are identical and get ``empty_pair`` (default 0;
     the literal formula would give 1, see docs/fitting.md)."""
-    x, y = _prep(x, presorted), _prep(y, presorted)
+    x, y = sorted_train(x, presorted), sorted_train(y, presorted)
     if x.size == 0 and y.size == 0:
         return float(empty_pair)
     return 1.0 - kernel_similarity(x, y, tau, presorted=True)
@@ -144,23 +61,23 @@ def kernel_distance(x: np.ndarray, y: np.ndarray, tau: float, presorted: bool = 
 
 def vr_distance(x: np.ndarray, y: np.ndarray, tau: float, presorted: bool = False) -> float:
     """Van Rossum distance with elephant's normalisation: ``sqrt(A(x) + A(y) - 2 C(x, y))``."""
-    x, y = _prep(x, presorted), _prep(y, presorted)
+    x, y = sorted_train(x, presorted), sorted_train(y, presorted)
     inv = 1.0 / tau
-    d2 = _kernel_sum_sorted(x, x, inv) + _kernel_sum_sorted(y, y, inv) - 2.0 * _kernel_sum_sorted(x, y, inv)
+    d2 = kernel_sum_sorted(x, x, inv) + kernel_sum_sorted(y, y, inv) - 2.0 * kernel_sum_sorted(x, y, inv)
     return float(np.sqrt(max(d2, 0.0)))
 
 
 def auto_sums(trains: Sequence[np.ndarray], tau: float, presorted: bool = False) -> np.ndarray:
     flat, off = pack(trains, presorted)
     out = np.zeros(len(trains))
-    _auto_sums_flat(flat, off, 1.0 / tau, out)
+    auto_sums_flat(flat, off, 1.0 / tau, out)
     return out
 
 
 def cross_sums(x: np.ndarray, trains: Sequence[np.ndarray], tau: float, presorted: bool = False) -> np.ndarray:
     flat, off = pack(trains, presorted)
     out = np.zeros(len(trains))
-    _cross_sums_flat(_prep(x, presorted), flat, off, 1.0 / tau, out)
+    cross_sums_flat(sorted_train(x, presorted), flat, off, 1.0 / tau, out)
     return out
 
 
@@ -170,7 +87,7 @@ def vr_distance_matrix(trains: Sequence[np.ndarray], tau: float, presorted: bool
     n = len(trains)
     k = np.zeros((n, n))
     if n:
-        _pair_matrix_flat(flat, off, 1.0 / tau, k)
+        pair_matrix_flat(flat, off, 1.0 / tau, k)
     d = np.diag(k)
     d2 = d[:, None] + d[None, :] - 2.0 * k
     return np.sqrt(np.maximum(d2, 0.0))
@@ -180,13 +97,13 @@ def vr_distances_between(a: Sequence[np.ndarray], b: Sequence[np.ndarray], tau: 
     """VR distance of every train in ``a`` to every train in ``b``: shape (len(a), len(b))."""
     fb, ob = pack(b, presorted)
     inv = 1.0 / tau
-    ab = auto_sums(b, tau, presorted=True) if presorted else auto_sums([_prep(t, False) for t in b], tau, True)
+    ab = auto_sums(b, tau, presorted=True) if presorted else auto_sums([sorted_train(t, False) for t in b], tau, True)
     out = np.zeros((len(a), len(b)))
     row = np.zeros(len(b))
     for i, x in enumerate(a):
-        x = _prep(x, presorted)
-        _cross_sums_flat(x, fb, ob, inv, row)
-        ax = _kernel_sum_sorted(x, x, inv)
+        x = sorted_train(x, presorted)
+        cross_sums_flat(x, fb, ob, inv, row)
+        ax = kernel_sum_sorted(x, x, inv)
         out[i] = np.sqrt(np.maximum(ax + ab - 2.0 * row, 0.0))
     return out
 

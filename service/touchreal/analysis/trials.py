@@ -13,6 +13,7 @@ from ..encoding.encoder import encode_population
 from ..params import EncoderParams
 from ..preprocess.pipeline import preprocess_trial
 from ..recording import Dataset
+from ..splits import FIT_PROTOCOLS, fitted_on_every_trial, params_split_seed, split_repeats
 
 
 @dataclass
@@ -88,8 +89,6 @@ def select_held_out(ds: Dataset, params: EncoderParams, mode: str = "auto") -> t
     ``auto``: the fit's held-out trials (all trials for parameters fitted elsewhere); ``all``: every
     trial; ``train``: the fit's training half, for choosing fit settings without looking at the
     held-out trials."""
-    from ..fitting.fit import FIT_PROTOCOLS, fitted_on_every_trial, params_split_seed, split_repeats
-
     if mode not in ("auto", "all", "train"):
         raise ValueError("split must be 'auto', 'all' or 'train'")
     entries = [e for e in ds.entries() if e["protocol"] in FIT_PROTOCOLS and e.get("reference")]

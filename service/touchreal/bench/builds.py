@@ -2,8 +2,9 @@
 
 Per build (``data/builds.json``, or JSON files): ``touchreal simulate ramp sine`` with rig-v1's
 counts (896 ramps, 100 sines: the calibration set of a real rig), ``touchreal fit`` with its
-defaults (train/held-out split by repeat; the fit measures the build's PVDF contact SNR and picks
-its gate from it), then ``touchreal evaluate`` on the held-out trials.
+defaults (train/held-out split by repeat; the fit measures the build's profile and resolves its plan
+from it, :mod:`touchreal.fitting.policy`), then ``touchreal evaluate`` on the held-out trials. Each
+row shows the build's profile and the policy's rules it met, from the fit's provenance.
 Per class, the van Rossum ratio (inter / intra, tau 1 ms, the report's) and the mean count error over conditions,
 against the targets of a fit that transfers: count error <= 15 % for SA1 and RA and <= 25 % for PC,
 VR ratio <= 1.2 / 1.3 / 1.5. Each build takes a full fit (about 9 min on 2 idle cores).
@@ -18,6 +19,9 @@ import time
 from pathlib import Path
 
 from ..analysis.metrics import TARGETS as REPORT_TARGETS
+from ..fitting.describe import rule_summary
+from ..fitting.policy import RULES
+from ..fitting.profile import MEASURES
 from ..settings import CLASSES
 
 #: VR ratio a fit must stay within on a build's held-out trials: the evaluation report's bounds
@@ -32,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", default="ramp=896,sine=100", help="calibration set per build (touchreal simulate "
                    "--trials; default rig-v1's ramps and sines)")
     p.add_argument("--seed", type=int, default=0, help="simulation, split and CMA-ES seed (default 0)")
-    p.add_argument("--fit-args", default="", help="extra `touchreal fit` options, e.g. '--generations 50'")
+    p.add_argument("--fit-args", default="", help="extra `touchreal fit` options, e.g. '--recipe short.json'")
     p.add_argument("--work", type=Path, default=None, help="keep datasets, parameters and reports here "
                    "(default: a temporary folder)")
 
@@ -64,19 +68,13 @@ def _one(build: str, work: Path, args: argparse.Namespace) -> tuple[dict[str, tu
     return _score(json.loads((report / "metrics.json").read_text())), fit_s, json.loads(params.read_text())["provenance"]
 
 
-def _snr_cell(prov: dict) -> str:
-    """The fit's PVDF contact SNR, starred when the build was fitted with the weak-signal settings,
-    with a ! when PC got the film-limited ones."""
-    snr = prov.get("contact_snr")
-    if snr is None:
-        return f"{'-':>6}"
-    return f"{snr:4.0f}{'*' if prov['weak_signal'] else ' '}{'!' if prov.get('film_limited') else ' '}"
-
-
-def _st_cell(prov: dict) -> str:
-    """The fit's SingleTact sample noise (mN), starred when SA1 got the noisy-SingleTact search."""
-    noise = prov.get("st_noise_n")
-    return f"{'-':>6}" if noise is None else f"{1000.0 * noise:5.1f}{'*' if prov.get('noisy_singletact') else ' '}"
+def _profile_cells(prov: dict) -> list[str]:
+    """The fit's measures of the build (its profile), each in its display unit under its header."""
+    cells = []
+    for m, (label, scale, unit) in MEASURES.items():
+        v = prov["profile"].get(m)
+        cells.append(f"{'-' if v is None else f'{v * scale:.1f}':>{len(label + unit)}}")
+    return cells
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     print("targets: count error <= " + ", ".join(f"{c} {COUNT_MAX[c]:.0%}" for c in CLASSES)
           + "; VR ratio <= " + ", ".join(f"{c} {VR_MAX[c]:g}" for c in CLASSES))
     head = "  ".join(f"{c + ' count':>9}  {c + ' VR':>6}" for c in CLASSES)
-    print(f"\n   {'build':<22}  {'fit':>6}  {'SNR':>6}  {'ST mN':>6}  {head}  targets")
+    profile_head = "  ".join(f"{label}{unit}" for label, _, unit in MEASURES.values())
+    print(f"\n   {'build':<22}  {'fit':>6}  {profile_head}  {head}  targets  rules")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -101,10 +100,10 @@ def run(args: argparse.Namespace) -> int:
                 cells.append(f"{ce:9.1%}  {vr:6.2f}")
             met_all &= all(met)
             missed = [c for c, ok in zip(CLASSES, met) if not ok]
-            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {_snr_cell(prov)}  {_st_cell(prov)}  {'  '.join(cells)}  "
-                  f"{'met' if not missed else 'missed: ' + ', '.join(missed)}", flush=True)
-    print("SNR: the fit's PVDF contact SNR; * below --weak-signal-snr: fitted with the weak-signal gate and sine count weights; "
-          "! below --film-limited-snr: PC's input high-pass and count margin too; ST mN: the SingleTact's sample "
-          "noise, * above --noisy-st-noise: SA1 searched from its saturated start too and restarted")
+            print(f"   {Path(build).stem:<22}  {fit_s / 60:5.1f}m  {'  '.join(_profile_cells(prov))}  {'  '.join(cells)}  "
+                  f"{'met' if not missed else 'missed:' + ','.join(missed)}  {','.join(prov['rules']) or '-'}", flush=True)
+    print("profile: the fit's measures of the build; rules: those its profile met (touchreal fit --plan shows a plan):")
+    for rule in RULES:
+        print(f"  {rule_summary(rule)}")
     print(f"\nevery build within the targets: {'yes' if met_all else 'no'}")
     return 0

@@ -9,7 +9,7 @@ streaming decoder would see (the rules of :mod:`touchreal_client.features`).
   anchored window is filled and ends by the stimulus end (manifest ``stim_end_s``); label = the
   manifest's ``texture`` (else its condition).
 
-Datasets are split by trial with the fitting split (:func:`touchreal.fitting.fit.split_repeats`):
+Datasets are split by trial with the fitting split (:func:`touchreal.splits.split_repeats`):
 no trial has windows on both sides.
 """
 
@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 from touchreal_client import features as F
 
-from ..fitting.fit import params_split_seed, split_repeats
 from ..params import EncoderParams
 from ..recording import Dataset, RecordingError, Trial
+from ..splits import params_split_seed, split_repeats
 from ..stream import encode_trial
 
 SPLITS = ("heldout", "train", "all")

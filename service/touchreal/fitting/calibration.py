@@ -6,13 +6,9 @@ keeps its 60/120/180 Hz lines: they enter the gate's floor 10-60x above its medi
 so the gate removes real PVDF signal at those bins, in RA's and PC's band. :func:`calibrate_pvdf`
 calibrates at 50 and at 60 Hz and keeps the one whose gate floor is flattest at the mains lines.
 
-:func:`contact_snr` measures how far the contact signal stands out of that floor: a build whose
-film is weakly coupled or whose amplifier is noisy (a low SNR) loses PC's weak ramp transients to a
-gate at 3 x the noise, so the fit lowers its gate there (:class:`~.config.FitConfig`).
-
-:func:`singletact_noise` measures the SingleTact's own noise on the same baselines: on a noisy one
-SA1's optimum depends on the CMA-ES run, so SA1 searches harder there (a saturated start and a
-restart, :meth:`~.config.FitConfig.for_singletact`).
+:func:`contact_snr` measures how far the contact signal stands out of that floor, and
+:func:`singletact_noise` the SingleTact's own noise on the same baselines: the two measures of a
+build's profile (:mod:`.profile`) that the fit's policy reads (:mod:`.policy`).
 """
 
 from __future__ import annotations

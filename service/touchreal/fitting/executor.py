@@ -19,6 +19,7 @@ from ..encoding.encoder import encode_population
 from ..params import ClassParams, EncoderParams
 from .config import FitConfig
 from .objective import ObjectiveConfig, ReferenceSet, evaluate_loss
+from .plan import FitPlan
 from .space import ParamSpace
 from .trials import TrialSet, simulate
 
@@ -26,7 +27,7 @@ from .trials import TrialSet, simulate
 @dataclass(frozen=True)
 class FitSource:
     """Everything a fit's training state is built from (a worker rebuilds it from this alone):
-    the dataset folder (as seen by the worker), the configuration and the ``--init`` file."""
+    the dataset folder (as seen by the worker), the run's configuration and the ``--init`` file."""
 
     dataset_dir: str
     cfg: FitConfig
@@ -35,14 +36,15 @@ class FitSource:
 
 @dataclass
 class FitState:
-    """What evaluating a candidate needs: per state key (a class for its search, the class +
-    ``:refine`` for its refinement) the search space, references, preprocessed training trials and
-    objective; the search's alignment ``lag_s`` (s; spikes compared at stamp minus it)."""
+    """What evaluating a candidate needs: the plan (each stage's objective), and per state key (a
+    class for its search, the class + ``:refine`` for its refinement) the search space, references
+    and preprocessed training trials; the search's alignment ``lag_s`` (s; spikes compared at stamp
+    minus it)."""
 
+    plan: FitPlan
     spaces: dict[str, ParamSpace]
     refs: dict[str, ReferenceSet]
     train: dict[str, TrialSet]
-    objectives: dict[str, ObjectiveConfig]
     lag_s: float
 
 
@@ -52,11 +54,11 @@ Losses = list[tuple[float, dict[str, float]]]  #: per candidate: (total loss, lo
 def losses(state: FitState, cls: str, xs: np.ndarray) -> Losses:
     """Objective of every candidate ``xs`` (n, dim) of class ``cls`` (a non-finite loss counts as 1e6).
     Each candidate's loss depends on that candidate alone, so any split of a batch gives the same numbers."""
-    space, tset = state.spaces[cls], state.train[cls]
+    space, tset, objective = state.spaces[cls], state.train[cls], state.plan.objective_of(cls)
     trains = simulate(tset.trials, [space.decode(x) for x in xs], state.lag_s)
     out = []
     for tr in trains:
-        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], state.objectives[cls])
+        terms = evaluate_loss(tr, tset.cond_index, state.refs[cls], objective)
         total = terms.total if np.isfinite(terms.total) else 1e6
         out.append((float(total), terms.as_dict()))
     return out
@@ -108,7 +110,7 @@ class LocalExecutor:
     @classmethod
     def factory(cls, workers: int | None) -> ExecutorFactory:
         """Executor factory for :func:`fit_dataset`: ``workers`` processes (None = all cores, at most the population)."""
-        return lambda source, state: cls(state, max(1, min(workers or os.cpu_count() or 1, source.cfg.popsize)))
+        return lambda source, state: cls(state, max(1, min(workers or os.cpu_count() or 1, state.plan.popsize)))
 
     def __call__(self, cls: str, xs: np.ndarray) -> Losses:
         xs = np.asarray(xs, np.float64)

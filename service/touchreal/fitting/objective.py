@@ -43,7 +43,8 @@ from typing import Sequence
 import numba
 import numpy as np
 
-from ..analysis.spiketrains import SIM_EPS, _auto_sums_flat, _kernel_sum_sorted, pack, pairwise_upper, vr_distance_matrix
+from ..analysis.spiketrains import pairwise_upper, vr_distance_matrix
+from ..spike_kernels import SIM_EPS, auto_sums_flat, kernel_sum_sorted, pack
 
 #: smallest TouchSim-TouchSim distance a condition is normalised by (1 = one unmatched spike); keeps
 #: a condition whose reference repeats are (nearly) identical from dominating the VR-normalised loss
@@ -61,7 +62,7 @@ class ObjectiveConfig:
     m_worst: int = 3
     eps: float = SIM_EPS
     empty_pair_distance: float = 0.0  #: D_kernel of (empty, empty)
-    count_weight: float = 1.0  #: multiplier of L_rel in the total (paper: 1; ``--count-weight``)
+    count_weight: float = 1.0  #: multiplier of L_rel in the total (paper: 1; the plan's ``count_weight``, a refinement's K)
     count_margin: float = 0.0  #: L_rel up to this is not charged (paper: 0)
 
 
@@ -113,7 +114,7 @@ class ReferenceSet:
         cond_off = np.zeros(len(groups) + 1, dtype=np.int64)
         cond_off[1:] = np.cumsum([len(g) for g in groups])
         auto = np.zeros(len(trains))
-        _auto_sums_flat(flat, off, 1.0 / tau_s, auto)
+        auto_sums_flat(flat, off, 1.0 / tau_s, auto)
         counts = np.diff(off).astype(np.float64)
         n_t = np.array([counts[cond_off[c] : cond_off[c + 1]].mean() for c in range(len(groups))])
         edge_off = np.zeros(len(groups) + 1, dtype=np.int64)
@@ -182,7 +183,7 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, ed
         c = pcond[p]
         x = pflat[poff[p] : poff[p + 1]]
         nx = x.shape[0]
-        ax = _kernel_sum_sorted(x, x, inv_tau)
+        ax = kernel_sum_sorted(x, x, inv_tau)
         pcount[c] += nx
         npred[c] += 1
         s0 = edge_off[c] + c
@@ -195,14 +196,14 @@ def _condition_stats(pflat, poff, pcond, rflat, roff, rauto, cond_off, edges, ed
         for k in range(cond_off[c], cond_off[c + 1]):
             ny = roff[k + 1] - roff[k]
             if vr:
-                cxy = _kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau) if nx and ny else 0.0
+                cxy = kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau) if nx and ny else 0.0
                 d = np.sqrt(max(ax + rauto[k] - 2.0 * cxy, 0.0))
             elif nx == 0 and ny == 0:
                 d = empty_pair
             elif nx == 0 or ny == 0:
                 d = 1.0
             else:
-                cxy = _kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau)
+                cxy = kernel_sum_sorted(x, rflat[roff[k] : roff[k + 1]], inv_tau)
                 d = 1.0 - cxy / (np.sqrt(ax * rauto[k]) + eps)
             dsum[c] += d
             npairs[c] += 1

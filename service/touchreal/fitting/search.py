@@ -2,14 +2,14 @@
 
 :func:`fit_class` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
 restarts side by side from the grid's best point (each from the same point with its own seed, so
-they are independent of each other), and where the fit asks for it (SA1 on a noisy SingleTact) one
-more run from the best strongly saturated start (:data:`~.config.SATURATED_STARTS`); the best point any of
-them evaluated wins. Every run draws
-its samples from a random stream of its own, so runs (and the classes of a fit) may interleave in
-any order and the result is still the same for a seed. A run ends at its generation budget or at
+they are independent of each other), and one more run from the best point of the same grid at each
+saturated start the plan gives the class (SA1 on a noisy SingleTact: ``i_sat`` = e^-2); the best
+point any of them evaluated wins (:class:`Budget`: the runs of one stage). Every run draws its
+samples from a random stream of its own, so runs (and the classes of a fit) may interleave in any
+order and the result is still the same for a seed. A run ends at its generation budget or at
 ``cma``'s own stopping rules. There is no stop on stagnation: on rig-v1 a run's best loss stays flat
 for 20-30 generations and then falls by 0.1-0.4 (docs/fitting.md). :func:`search_and_refine` follows a
-class's search with its refinement (a second :func:`fit_class` on another objective) where the fit asks for one.
+class's search with its refinement (a second :func:`fit_class` on another objective) where the plan has one.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ import numpy as np
 
 from ..params import ClassParams
 from ..settings import CLASSES
-from .config import SATURATED_STARTS, FitConfig, parse_stage_key, stage_key
 from .executor import Executor
 from .objective import LossTerms
-from .space import DELAY_UNIT_MS, ParamSpace
+from .plan import FitPlan, parse_stage_key, stage_key
+from .space import DELAY_UNIT_MS, Coord, ParamSpace
 
 GRID_GAINS = 2.0 ** np.arange(-4, 5)  #: overall weight gains of the start grid
 GRID_LOG_TAU = (-1.4, 0.0, 1.4)  #: tau multipliers exp(.) of the start grid (x0.25, x1, x4)
@@ -70,9 +70,30 @@ class ClassFit:
         return min([self.start_loss] + [r.best_loss for r in self.runs])
 
 
+@dataclass(frozen=True)
+class Budget:
+    """The CMA-ES runs of one stage of a class: a first run of ``popsize`` candidates for at most
+    ``generations`` generations, its ``restarts`` (population x2, generations /2 each) and one run
+    from each of ``saturated_starts`` (log i_sat), all side by side."""
+
+    popsize: int
+    generations: int
+    restarts: int = 0
+    saturated_starts: tuple[float, ...] = ()
+
+    @classmethod
+    def of(cls, plan: FitPlan, key: str) -> Budget:
+        """The budget of a class's search (``key`` = the class) or of its refinement (its
+        :func:`~.plan.stage_key`): the plan's population and generations, the class's restarts; the
+        saturated starts are the search's only (a refinement starts from the saturation the search chose)."""
+        name, refinement = parse_stage_key(key)
+        cp = plan.classes[name]
+        return cls(plan.popsize, plan.generations, cp.restarts, () if refinement else cp.saturated_starts)
+
+
 def cma_seed(seed: int, key: str, run: int = 0) -> int:
     """The seed of run ``run`` of a class's search (``key`` = the class) or of its refinement (the
-    class's :func:`~.config.stage_key`) in a fit seeded with ``seed``."""
+    class's :func:`~.plan.stage_key`) in a fit seeded with ``seed``."""
     cls, refinement = parse_stage_key(key)
     entropy = [int(seed), CLASSES.index(cls), run] + ([1] if refinement else [])
     return int(np.random.SeedSequence(entropy).generate_state(1)[0] % (2**31 - 2)) + 1
@@ -107,13 +128,13 @@ def start_grid(space: ParamSpace, starts: Sequence[np.ndarray], delay0_ms: float
     for x0 in starts:
         x = np.array(x0, np.float64)
         if log_isat is not None:
-            x[12] = log_isat
+            x[Coord.LOG_ISAT] = log_isat
         for g in GRID_GAINS:
             for lt in GRID_LOG_TAU:
                 for dd in GRID_DELAYS_MS:
                     y = space.with_gain(x, g)
-                    y[8] = x[8] + lt
-                    y[11] = (delay0_ms + dd) / DELAY_UNIT_MS
+                    y[Coord.LOG_TAU] = x[Coord.LOG_TAU] + lt
+                    y[Coord.DELAY] = (delay0_ms + dd) / DELAY_UNIT_MS
                     out.append(space.clip(y))
     return np.array(out)
 
@@ -139,52 +160,51 @@ def run_cma(cls: str, space: ParamSpace, evaluate: Executor, x0: np.ndarray, pop
 
 
 def fit_class(
-    cls: str,
+    key: str,
     space: ParamSpace,
     evaluate: Executor,
-    cfg: FitConfig,
+    budget: Budget,
     starts: Sequence[np.ndarray],
     delay0_ms: float,
+    seed: int,
+    progress: bool = False,
     position: int = 0,
 ) -> ClassFit:
-    """CMA-ES for one class from the best point of :func:`start_grid` around ``starts``, with the
-    class's IPOP restarts (:meth:`~.config.FitConfig.restarts_of`; population doubled, generations
-    halved each time, so every run costs about the same) run side by side with the first run, each
-    with its own seed; for a search the configuration saturates (:meth:`~.config.FitConfig.saturated`),
-    one more run from the best grid point at each of its class's :data:`~.config.SATURATED_STARTS` (not for
-    its refinement, which starts from the saturation the search chose).
+    """CMA-ES for one stage of a class from the best point of :func:`start_grid` around ``starts``,
+    with the budget's IPOP restarts (population doubled, generations halved each time, so every run
+    costs about the same) run side by side with the first run, each with its own seed, and one more
+    run from the best grid point at each of the budget's saturated starts.
     The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
     Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
     differ by up to 0.2 in loss, while restarting from a converged point does not move it.
-    ``cls`` is the state key the executor evaluates (a class, or a class's refinement);
-    ``position``: the line of this class's progress bar."""
+    ``key`` is the state key the executor evaluates (a class, or a class's refinement); ``seed``: the
+    fit's; ``progress``: show a progress bar, on line ``position``."""
     from tqdm import tqdm
 
     t_start = time.perf_counter()
-    saturations = SATURATED_STARTS.get(cls, ()) if cfg.saturated(cls) else ()
-    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *saturations)]
+    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *budget.saturated_starts)]
     grid = np.concatenate(grids)
-    losses = np.array([r[0] for r in evaluate(cls, grid)])
+    losses = np.array([r[0] for r in evaluate(key, grid)])
     edges = np.cumsum([0] + [len(g) for g in grids])
     x0s = [grid[a + int(np.argmin(losses[a:b]))] for a, b in zip(edges[:-1], edges[1:])]  # each saturation's best
     best = int(np.argmin(losses))
     start_loss = float(losses[best])
     # (start, population, generations): the first run and its restarts from the best point at the
     # starts' own saturation, then one run from the best point at each saturated start's
-    plan = [(x0s[0], cfg.popsize * 2**k, max(1, cfg.max_generations // 2**k)) for k in range(cfg.restarts_of(cls) + 1)]
-    plan += [(x, cfg.popsize, cfg.max_generations) for x in x0s[1:]]
-    bar = tqdm(total=sum(g for _, _, g in plan), desc=f"fit {cls}", unit="gen", disable=not cfg.progress,
+    runs_plan = [(x0s[0], budget.popsize * 2**k, max(1, budget.generations // 2**k)) for k in range(budget.restarts + 1)]
+    runs_plan += [(x, budget.popsize, budget.generations) for x in x0s[1:]]
+    bar = tqdm(total=sum(g for _, _, g in runs_plan), desc=f"fit {key}", unit="gen", disable=not progress,
                dynamic_ncols=True, position=position, leave=True)
     lock = threading.Lock()
 
-    def progress(n: int) -> None:
+    def advance(n: int) -> None:
         with lock:
             bar.update(n)
 
     try:
-        with ThreadPoolExecutor(len(plan), thread_name_prefix=f"fit-{cls}") as pool:
-            futures = [pool.submit(run_cma, cls, space, evaluate, x, p, g, cma_seed(cfg.seed, cls, k), progress)
-                       for k, (x, p, g) in enumerate(plan)]
+        with ThreadPoolExecutor(len(runs_plan), thread_name_prefix=f"fit-{key}") as pool:
+            futures = [pool.submit(run_cma, key, space, evaluate, x, p, g, cma_seed(seed, key, k), advance)
+                       for k, (x, p, g) in enumerate(runs_plan)]
             runs = [f.result() for f in futures]
     finally:
         bar.close()
@@ -193,7 +213,7 @@ def fit_class(
         if r.best_loss < best_f:
             best_x, best_f = r.best_x, r.best_loss
     return ClassFit(
-        cls=cls,
+        cls=key,
         params=space.decode(best_x),
         x=space.clip(best_x),
         generations=sum(r.generations for r in runs),
@@ -208,19 +228,23 @@ def search_and_refine(
     cls: str,
     space: ParamSpace,
     evaluate: Executor,
-    cfg: FitConfig,
+    plan: FitPlan,
     starts: Sequence[np.ndarray],
     delay0_ms: float,
+    seed: int,
+    progress: bool = False,
     position: int = 0,
 ) -> ClassFit:
-    """:func:`fit_class` on the class's objective; for a class of ``cfg.refine``, then its
-    refinement: :func:`fit_class` on the refinement's objective (its :func:`~.config.stage_key`)
-    from the search's best point. That point is on the refinement's start grid (gain 1, tau and
-    delay unchanged), so the refinement never ends worse on its own objective. Returns the
-    refinement, with the search in ``.search``."""
-    first = fit_class(cls, space, evaluate, cfg, starts, delay0_ms, position)
-    if cls not in cfg.refine:
+    """:func:`fit_class` on the class's objective with the plan's budget for its search; for a class
+    the plan refines, then its refinement: :func:`fit_class` on the refinement's objective (its
+    :func:`~.plan.stage_key`) from the search's best point. That point is on the refinement's start
+    grid (gain 1, tau and delay unchanged), so the refinement never ends worse on its own objective.
+    Returns the refinement, with the search in ``.search``."""
+    first = fit_class(cls, space, evaluate, Budget.of(plan, cls), starts, delay0_ms, seed, progress, position)
+    if plan.classes[cls].refine is None:
         return first
-    refined = fit_class(stage_key(cls, True), space, evaluate, cfg, [first.x], float(first.x[11]) * DELAY_UNIT_MS, position)
+    key = stage_key(cls, True)
+    refined = fit_class(key, space, evaluate, Budget.of(plan, key), [first.x], float(first.x[Coord.DELAY]) * DELAY_UNIT_MS, seed,
+                        progress, position)
     refined.cls, refined.search = cls, first
     return refined

@@ -18,8 +18,8 @@ size means about the same everywhere:
   14  lead           ``negative_lead_ms = 10 x``               (input stage only)
 ====  =============  ==========================================================================
 
-A class's input high-pass (``highpass_hz``), when it has one, is a setting of the fit held at its
-value, not a coordinate.
+:class:`Coord` names every position; code indexes the vector by those names. A class's input
+high-pass (``highpass_hz``), when it has one, is a setting of the fit held at its value, not a coordinate.
 
 ``tau0_ms``, ``ih_scale`` and ``lp0_hz`` come from TouchSim's own class parameters
 (``data/touchsim_constants.json``: tau column 9 in samples, ih columns 10-11, low-pass factor
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from enum import IntEnum
 from functools import lru_cache
 
 import numpy as np
@@ -37,16 +38,40 @@ import numpy as np
 from ..params import ClassParams
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
 
-NAMES = ("w1", "w2", "w3", "w4", "w5", "w6", "w7", "w8", "log_tau", "ih1", "ih2", "delay", "log_isat", "log_lowpass", "lead")
+
+class Coord(IntEnum):
+    """Position of each named coordinate in the search vector (the table above)."""
+
+    W1 = 0
+    W2 = 1
+    W3 = 2
+    W4 = 3
+    W5 = 4
+    W6 = 5
+    W7 = 6
+    W8 = 7
+    LOG_TAU = 8
+    IH1 = 9
+    IH2 = 10
+    DELAY = 11
+    LOG_ISAT = 12
+    LOG_LOWPASS = 13  #: input stage only
+    LEAD = 14  #: input stage only
+
+
+NAMES = tuple(c.name.lower() for c in Coord)  #: the coordinates' names, in vector order
 N_DIM = len(NAMES) - 2  #: without the optional input-stage coordinates
+WEIGHTS = slice(Coord.W1, Coord.W8 + 1)  #: the eight input weights w1..w8
+IH = slice(Coord.IH1, Coord.IH2 + 1)  #: the two post-spike weights
 LOWPASS_RANGE_HZ = (20.0, 2000.0)  #: cutoffs the fit may choose
 LEAD_UNIT_MS = 10.0
 LEAD_MAX_MS = 100.0
 DELAY_UNIT_MS = 20.0
-PVDF_WEIGHTS = (4, 5, 6, 7)  #: coordinates of the PVDF and dPVDF weights
-#: coordinates of the film's weights, its positive and negative part: the PVDF's AC-coupled strain
-#: follows the skin's rate of change below its high-pass, so its two polarities are pressing and releasing
-FILM_WEIGHTS = (4, 5)
+LOG_ISAT_RANGE = (-8.0, 8.0)  #: bounds of log i_sat (LIF units; threshold = 1)
+PVDF_WEIGHTS = (Coord.W5, Coord.W6, Coord.W7, Coord.W8)  #: the PVDF and dPVDF weights
+#: the film's weights, its positive and negative part: the PVDF's AC-coupled strain follows the
+#: skin's rate of change below its high-pass, so its two polarities are pressing and releasing
+FILM_WEIGHTS = (Coord.W5, Coord.W6)
 DELAY_RANGE_MS = (0.0, 500.0)  #: the schema's delay range (physiological: >= 0)
 _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
@@ -118,25 +143,25 @@ class ParamSpace:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.full(self.n_dim, -30.0)
         hi = np.full(self.n_dim, 30.0)
-        lo[8], hi[8] = np.log(0.2 / self.tau0_ms), np.log(2000.0 / self.tau0_ms)
-        lo[9:11], hi[9:11] = -20.0, 2.0
-        lo[11], hi[11] = DELAY_RANGE_MS[0] / DELAY_UNIT_MS, DELAY_RANGE_MS[1] / DELAY_UNIT_MS
-        lo[12], hi[12] = -8.0, 8.0
+        lo[Coord.LOG_TAU], hi[Coord.LOG_TAU] = np.log(0.2 / self.tau0_ms), np.log(2000.0 / self.tau0_ms)
+        lo[IH], hi[IH] = -20.0, 2.0
+        lo[Coord.DELAY], hi[Coord.DELAY] = DELAY_RANGE_MS[0] / DELAY_UNIT_MS, DELAY_RANGE_MS[1] / DELAY_UNIT_MS
+        lo[Coord.LOG_ISAT], hi[Coord.LOG_ISAT] = LOG_ISAT_RANGE
         if self.excitatory:
             lo[list(FILM_WEIGHTS)] = 0.0
         if self.lp0_hz is not None:
-            lo[13], hi[13] = (np.log(f / self.lp0_hz) for f in LOWPASS_RANGE_HZ)
-            lo[14], hi[14] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
+            lo[Coord.LOG_LOWPASS], hi[Coord.LOG_LOWPASS] = (np.log(f / self.lp0_hz) for f in LOWPASS_RANGE_HZ)
+            lo[Coord.LEAD], hi[Coord.LEAD] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
         return lo, hi
 
     def fixed(self) -> dict[int, float]:
         """Coordinates held at a value (not searched): w5..w8 = 0 without PVDF."""
-        return {} if self.pvdf else {i: 0.0 for i in PVDF_WEIGHTS}
+        return {} if self.pvdf else {int(i): 0.0 for i in PVDF_WEIGHTS}
 
     def stds(self) -> np.ndarray:
         """Per-coordinate initial CMA-ES standard deviations (relative to sigma0 = 1)."""
         s = np.full(self.n_dim, 0.5)
-        s[12] = 1.0
+        s[Coord.LOG_ISAT] = 1.0
         return s
 
     def clip(self, x: np.ndarray) -> np.ndarray:
@@ -155,43 +180,43 @@ class ParamSpace:
     def decode(self, x: np.ndarray) -> ClassParams:
         x = self.clip(x)
         return ClassParams(
-            weights=[float(v) for v in x[:8] * self._wscale()],
-            tau_ms=float(np.clip(self.tau0_ms * np.exp(x[8]), 0.2, 2000.0)),
-            ih=[float(x[9] * self.ih_scale[0]), float(x[10] * self.ih_scale[1])],
-            delay_ms=float(np.clip(x[11] * DELAY_UNIT_MS, *DELAY_RANGE_MS)),
-            i_sat=float(np.clip(np.exp(x[12]), 0.0, 1e6)),
-            lowpass_hz=None if self.lp0_hz is None else float(np.clip(self.lp0_hz * np.exp(x[13]), *LOWPASS_RANGE_HZ)),
-            negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[14] * LEAD_UNIT_MS, 0.0, LEAD_MAX_MS)),
+            weights=[float(v) for v in x[WEIGHTS] * self._wscale()],
+            tau_ms=float(np.clip(self.tau0_ms * np.exp(x[Coord.LOG_TAU]), 0.2, 2000.0)),
+            ih=[float(x[Coord.IH1] * self.ih_scale[0]), float(x[Coord.IH2] * self.ih_scale[1])],
+            delay_ms=float(np.clip(x[Coord.DELAY] * DELAY_UNIT_MS, *DELAY_RANGE_MS)),
+            i_sat=float(np.clip(np.exp(x[Coord.LOG_ISAT]), 0.0, 1e6)),
+            lowpass_hz=None if self.lp0_hz is None else float(np.clip(self.lp0_hz * np.exp(x[Coord.LOG_LOWPASS]), *LOWPASS_RANGE_HZ)),
+            negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[Coord.LEAD] * LEAD_UNIT_MS, 0.0, LEAD_MAX_MS)),
             highpass_hz=self.hp_hz,
         )
 
     def encode(self, p: ClassParams) -> np.ndarray:
         x = np.empty(self.n_dim)
-        x[:8] = np.asarray(p.weights) / self._wscale()
-        x[8] = np.log(p.tau_ms / self.tau0_ms)
-        x[9] = p.ih[0] / self.ih_scale[0]
-        x[10] = p.ih[1] / self.ih_scale[1]
-        x[11] = p.delay_ms / DELAY_UNIT_MS
-        x[12] = np.log(p.i_sat) if p.i_sat > 0 else 8.0  # 0 (no saturation) ~ the largest i_sat
+        x[WEIGHTS] = np.asarray(p.weights) / self._wscale()
+        x[Coord.LOG_TAU] = np.log(p.tau_ms / self.tau0_ms)
+        x[Coord.IH1] = p.ih[0] / self.ih_scale[0]
+        x[Coord.IH2] = p.ih[1] / self.ih_scale[1]
+        x[Coord.DELAY] = p.delay_ms / DELAY_UNIT_MS
+        x[Coord.LOG_ISAT] = np.log(p.i_sat) if p.i_sat > 0 else LOG_ISAT_RANGE[1]  # 0 (no saturation) ~ the largest i_sat
         if self.lp0_hz is not None:  # no filter ~ the highest cutoff
-            x[13] = np.log((p.lowpass_hz if p.lowpass_hz is not None else LOWPASS_RANGE_HZ[1]) / self.lp0_hz)
-            x[14] = p.negative_lead_ms / LEAD_UNIT_MS
+            x[Coord.LOG_LOWPASS] = np.log((p.lowpass_hz if p.lowpass_hz is not None else LOWPASS_RANGE_HZ[1]) / self.lp0_hz)
+            x[Coord.LEAD] = p.negative_lead_ms / LEAD_UNIT_MS
         return x
 
     def initial(self, delay_ms: float = 0.0, variant: int = 0) -> np.ndarray:
         """Start: a weight direction of the class, TouchSim's tau, ih and cutoff, mild saturation."""
         x = np.zeros(self.n_dim)
-        x[:8] = INITIAL_WEIGHTS[self.cls][variant]
-        x[8] = 0.0
+        x[WEIGHTS] = INITIAL_WEIGHTS[self.cls][variant]
+        x[Coord.LOG_TAU] = 0.0
         ts = touchsim_class_defaults()[self.cls]
-        x[9] = ts["ih1"] / self.ih_scale[0]
-        x[10] = ts["ih2"] / self.ih_scale[1]
-        x[11] = delay_ms / DELAY_UNIT_MS
-        x[12] = 3.0
+        x[Coord.IH1] = ts["ih1"] / self.ih_scale[0]
+        x[Coord.IH2] = ts["ih2"] / self.ih_scale[1]
+        x[Coord.DELAY] = delay_ms / DELAY_UNIT_MS
+        x[Coord.LOG_ISAT] = 3.0
         return self.clip(x)
 
     def with_gain(self, x: np.ndarray, gain: float) -> np.ndarray:
         """Scale the eight weights by ``gain`` (used by the initial gain search)."""
         y = np.array(x, np.float64)
-        y[:8] *= gain
+        y[WEIGHTS] *= gain
         return self.clip(y)

@@ -1,5 +1,6 @@
-"""The fit's train / held-out split of a dataset's ramp and sine trials, and how a parameter file
-records it (read back by ``touchreal evaluate`` and the decoders)."""
+"""A dataset's train / held-out split by repeat, and how a parameter file records it: ``touchreal fit``
+splits its ramp and sine trials with it and records the seed; ``touchreal evaluate`` and the
+decoders read the split back from the file."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..params import EncoderParams
-from ..recording import Dataset
+from .params import EncoderParams
+from .recording import Dataset
 
 FIT_PROTOCOLS = ("ramp", "sine")
 SPLIT_METHOD = "per-condition seeded shuffle of repeats (crc32(condition), seed); first half trains"
