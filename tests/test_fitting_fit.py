@@ -390,7 +390,7 @@ def test_fit_per_class_windows_without_holdout_and_its_evaluation(rig, tmp_path)
 
 
 def test_window_option_per_class():
-    from touchreal.fitting.command import parse_windows, window_recipe
+    from touchreal.commands.fit import parse_windows, window_recipe
 
     assert parse_windows("64") == (64.0, {})
     assert parse_windows("SA1=16,RA=16,PC=128") == (128.0, {"SA1": 16.0, "RA": 16.0, "PC": 128.0})

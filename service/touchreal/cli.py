@@ -1,7 +1,8 @@
-"""The ``touchreal`` command line: one sub-command per job, registered by the module that owns it.
+"""The ``touchreal`` command line: one sub-command per job, each a module of :mod:`touchreal.commands`.
 
 Each command module exposes ``register(subparsers)``, which adds its parser and sets
-``func(args) -> int`` as the handler. Modules are imported lazily so ``touchreal --help`` is fast.
+``func(args) -> int`` as the handler; the heavy imports happen inside the handlers, so
+``touchreal --help`` is fast.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ COMMAND_MODULES = (
     "touchreal.commands.mcu_emulate",
     "touchreal.commands.reference",
     "touchreal.commands.simulate",
-    "touchreal.fitting.command",
-    "touchreal.analysis.command",
+    "touchreal.commands.fit",
+    "touchreal.commands.evaluate",
     "touchreal.commands.bench",
     "touchreal.commands.decoders",
     "touchreal.commands.serve",

@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams, default_params
-    from .report import EvalConfig, evaluate
+    from ..analysis.report import EvalConfig, evaluate
 
     params = EncoderParams.load(args.params) if args.params else default_params()
     cfg = EvalConfig(

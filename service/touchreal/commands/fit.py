@@ -12,15 +12,15 @@ from ..settings import CLASSES, DEFAULT_WINDOW_MS
 
 if TYPE_CHECKING:
     from ..params import EncoderParams
-    from .config import FitConfig
-    from .executor import ExecutorFactory
-    from .fit import FitResult
+    from ..fitting.config import FitConfig
+    from ..fitting.executor import ExecutorFactory
+    from ..fitting.fit import FitResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .describe import rule_summary
-    from .plan import ClassPlan, FitPlan, RefinePlan
-    from .policy import RULES
+    from ..fitting.describe import rule_summary
+    from ..fitting.plan import ClassPlan, FitPlan, RefinePlan
+    from ..fitting.policy import RULES
 
     p = sub.add_parser(
         "fit",
@@ -110,8 +110,8 @@ def _classes(text: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from ..params import EncoderParams
-    from .config import FitConfig
-    from .plan import PlanError, merged
+    from ..fitting.config import FitConfig
+    from ..fitting.plan import PlanError, merged
 
     classes = _classes(args.classes)
     recipe = load_recipe(args.recipe) if args.recipe else {}
@@ -153,9 +153,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_plans(datasets: list[Path], cfg: FitConfig, init: EncoderParams | None) -> None:
     """Print the plan resolved for each dataset, without fitting."""
-    from .describe import plan_text
-    from .executor import FitSource
-    from .fit import measure
+    from ..fitting.describe import plan_text
+    from ..fitting.executor import FitSource
+    from ..fitting.fit import measure
 
     for d in datasets:
         if len(datasets) > 1:
@@ -166,7 +166,7 @@ def _print_plans(datasets: list[Path], cfg: FitConfig, init: EncoderParams | Non
 def _dask():
     """(DaskExecutor, dask_client), or an ImportError whose message is the install hint."""
     try:
-        from .dask_executor import DaskExecutor, dask_client
+        from ..fitting.dask_executor import DaskExecutor, dask_client
     except ImportError as exc:
         raise ImportError(f"fitting on Dask needs the fit-dask extra: pip install -e '.[fit-dask]' ({exc})") from None
     return DaskExecutor, dask_client
@@ -176,7 +176,7 @@ def _fit_one(dataset: Path, out: Path, cfg: FitConfig, init: EncoderParams | Non
              executor: ExecutorFactory | None = None) -> None:
     """Fit one dataset, write its parameter file and print the summary (log lines prefixed with
     the dataset's folder name when ``prefix``)."""
-    from .fit import fit_dataset
+    from ..fitting.fit import fit_dataset
 
     def log(msg: str) -> None:
         print(f"{dataset.name}: {msg}" if prefix else msg, file=sys.stderr)
@@ -188,7 +188,7 @@ def _fit_one(dataset: Path, out: Path, cfg: FitConfig, init: EncoderParams | Non
 
 def _fit_on_scheduler(address: str, *job) -> None:
     """A driver process of its own: fit one dataset on the Dask scheduler at ``address``."""
-    from .dask_executor import DaskExecutor, dask_client
+    from ..fitting.dask_executor import DaskExecutor, dask_client
 
     with dask_client(address) as client:
         _fit_one(*job, executor=DaskExecutor.factory(client))
