@@ -105,7 +105,9 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
         _, taxels, data = chans[k]
         got = np.asarray(values, np.float32).reshape(n_taxels, len(P.CHANNELS))[taxels.astype(int)]
         np.testing.assert_array_equal(got, data)
-    assert np.allclose(np.diff([ts for ts, _ in seen]), 0.005, atol=1e-4)  # 200 Hz, none missing
+    # 200 Hz, none missing: a lost sample is a 10 ms step; steps of a tenth of a millisecond are the
+    # bridge re-estimating its clock offset, which the per-sample tolerance above already bounds
+    assert np.allclose(np.diff([ts for ts, _ in seen]), 0.005, atol=1e-3)
 
     # metadata in the StreamInfo XML
     s_root, c_root = ET.fromstring(s_xml), ET.fromstring(c_xml)
