@@ -22,7 +22,8 @@ from touchreal_client import protocol as P
 
 from touchreal.bridge import natsd, subjects
 from touchreal.bridge.auth import NatsAuth
-from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.bridge.gateway import Gateway, create_gateway_app
+from touchreal.bridge.settings import GatewaySettings
 from touchreal.bridge.publisher import NatsPublisher
 from touchreal.params import default_params
 from touchreal.server.app import serving, serving_app

@@ -31,7 +31,8 @@ from touchreal.bridge import natsd, subjects
 from touchreal.bridge.auth import NatsAuth
 from touchreal.bridge.credentials import issue, permissions_entry
 from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES, MAX_GATEWAYS, Announced, announcement
-from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.bridge.gateway import Gateway, create_gateway_app
+from touchreal.bridge.settings import GatewaySettings
 from touchreal.server.app import serving_app
 from touchreal.server.settings import RuntimeConfig
 

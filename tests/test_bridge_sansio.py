@@ -8,7 +8,7 @@ from touchreal_client import protocol as P
 
 from touchreal.bridge import subjects
 from touchreal.bridge.demand import Announced, ForwardedDemand, Rejected, announcement, parse_announcement
-from touchreal.bridge.gateway import GatewaySettings
+from touchreal.bridge.settings import GatewaySettings
 from touchreal.bridge.subjects import check_sensor_id
 from touchreal.bridge.upstream import UpstreamTracker, update_from_frame
 from touchreal.server.hub import Hub

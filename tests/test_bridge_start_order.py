@@ -12,7 +12,8 @@ from server_harness import collect, connect, n_spikes
 from test_bridge_nats import SENSOR, nats_url, publishing  # noqa: F401 (nats_url is a fixture)
 from touchreal_client import protocol as P
 
-from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.bridge.gateway import Gateway, create_gateway_app
+from touchreal.bridge.settings import GatewaySettings
 from touchreal.server.app import serving_app
 
 FRAMES = 10  #: spike frames the client must receive

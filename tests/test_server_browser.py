@@ -27,7 +27,8 @@ from fastapi.responses import StreamingResponse
 from server_harness import connect, free_port, running_server, wait_until
 from test_dashboard import browser, csp_violations, in_page  # noqa: F401  (browser: the Chromium fixture)
 
-from touchreal.bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+from touchreal.bridge.gateway import Gateway, create_gateway_app
+from touchreal.bridge.settings import GatewaySettings
 from touchreal.server.app import serving_app
 from touchreal.server.browser import SecurityHeaders, server_error
 from touchreal.server.settings import ServeSettings

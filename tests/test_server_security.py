@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import fcntl
-import json
 import logging
 import os
 import pty
@@ -17,7 +16,6 @@ import time
 import httpx
 import pytest
 from server_harness import connect, hello_and_subscribe, running_server, wait_until
-from touchreal_client import protocol as P
 
 from touchreal.server.security import MAX_JSON_DEPTH, MAX_NUMBER_CHARS, AuthThrottle, JsonShape, token_ok
 

@@ -52,7 +52,7 @@ def test_the_settings_tables_in_the_docs_are_current():
 
 def test_every_gateway_setting_is_a_flag_and_an_environment_variable(monkeypatch):
     from touchreal.bridge.auth import NatsAuth
-    from touchreal.bridge.gateway import GatewaySettings
+    from touchreal.bridge.settings import GatewaySettings
     from touchreal.commands.flags import model_from_args
 
     gateway = build_parser()._subparsers._group_actions[0].choices["gateway"]

@@ -21,9 +21,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import re
-import secrets
-import socket
 import time
 from contextlib import asynccontextmanager
 from typing import Any
@@ -34,8 +31,6 @@ from fastapi.responses import JSONResponse
 from nats.errors import Error as NatsError
 from nats.errors import SlowConsumerError
 from prometheus_client import CONTENT_TYPE_LATEST, Counter, Gauge, generate_latest
-from pydantic import Field, model_validator
-from pydantic_settings import SettingsConfigDict
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
@@ -48,10 +43,10 @@ from ..server.api_docs import add_docs
 from ..server.browser import SecurityHeaders, server_error
 from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
-from ..server.settings import ServerSettings
 from . import connection, subjects
 from .auth import NatsAuth, servers
 from .demand import DEFAULT_TTL_S, Announced, announcement
+from .settings import GatewaySettings
 from .upstream import UpstreamTracker, update_from_frame
 
 log = logging.getLogger("touchreal.bridge")
@@ -59,37 +54,8 @@ HELLO_RETRY_S = 0.5  #: how often a gateway asks for the hello until the publish
 UPSTREAM_REQUEST_S = 5.0  #: how long a decoders/model request waits for the publisher (s)
 
 
-def default_gateway_id(port: int) -> str:
-    """``HOSTNAME-PORT`` as one subject token: the same after a restart on the same host and port (a
-    pod's hostname is its name); with port 0 (any free port) ``HOSTNAME-`` and 6 random hex digits."""
-    host = re.sub(r"[^A-Za-z0-9_-]+", "-", socket.gethostname()).strip("-")[:57] or "gateway"
-    return f"{host}-{port or secrets.token_hex(3)}"
-
-
 class UpstreamUnavailable(RuntimeError):
     """The publisher did not answer a request (not connected, not running, or too slow)."""
-
-
-class GatewaySettings(ServerSettings):
-    """Every setting of ``touchreal gateway``: flag ``--NAME``, environment ``TOUCHREAL_GATEWAY_<NAME>``
-    (the stream settings it shares with ``serve``: :class:`~touchreal.server.settings.ServerSettings`)."""
-
-    model_config = SettingsConfigDict(env_prefix="TOUCHREAL_GATEWAY_", extra="ignore")
-
-    port: int = Field(default=8766, ge=0, le=65535, description="port (8766: beside a service on its default 8765)")
-    nats: str = Field(default="nats://127.0.0.1:4222", description="NATS server URL(s), comma-separated")
-    sensor_id: str = Field(default="sensor", description="the publisher's --sensor-id")
-    gateway_id: str = Field(default="", description="this gateway's identity on the broker: it announces demand on "
-                            "touchreal.<sensor>.demand.<gateway_id>, which its broker credentials must allow; "
-                            "default HOSTNAME-PORT")
-    pending_frames: int = Field(default=1024, ge=1, description="frames NATS may buffer for this gateway before "
-                                "dropping them (each loss becomes a gap its clients see)")
-    demand_interval_s: float = Field(default=1.0, gt=0, description="how often the demand is re-announced (s)")
-
-    @model_validator(mode="after")
-    def _identity(self) -> GatewaySettings:
-        self.gateway_id = subjects.check_gateway_id(self.gateway_id or default_gateway_id(self.port))
-        return self
 
 
 class AnnouncingHub(Hub):

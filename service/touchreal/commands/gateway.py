@@ -11,7 +11,7 @@ from ..bridge.auth import NatsAuth
 
 def register(sub: argparse._SubParsersAction) -> None:
     from .flags import add_model_flags
-    from ..bridge.gateway import GatewaySettings
+    from ..bridge.settings import GatewaySettings
 
     p = sub.add_parser("gateway", help="serve /v1/stream to many clients from a sensor published on NATS",
                        description="Every flag also reads from the environment variable TOUCHREAL_GATEWAY_<FLAG>, "
@@ -32,7 +32,8 @@ def run(args: argparse.Namespace) -> int:
 
     from .flags import model_from_args
     from ..server.app import uvicorn_config
-    from ..bridge.gateway import Gateway, GatewaySettings, create_gateway_app
+    from ..bridge.gateway import Gateway, create_gateway_app
+    from ..bridge.settings import GatewaySettings
 
     settings = model_from_args(GatewaySettings, args)
     gateway = Gateway(settings, model_from_args(NatsAuth, args, prefix="nats-"))

@@ -13,7 +13,7 @@ from pathlib import Path
 from pydantic_settings import BaseSettings
 
 from ..bridge.auth import NatsAuth
-from ..bridge.gateway import GatewaySettings
+from ..bridge.settings import GatewaySettings
 from ..server.settings import ServeSettings
 from ..settings import ProcessSettings
 from .flags import env_name, flag_name

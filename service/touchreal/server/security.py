@@ -227,11 +227,8 @@ class BodyGuard:
             return None
         self.on_auth("failure")
         block = self.throttle.failed(peer)
-        if block > 0:
-            log.warning("failed authentication from %s on %s %s; its writes are refused for %g s",
-                        peer, scope["method"], scope["path"], block)
-        else:
-            log.warning("failed authentication from %s on %s %s", peer, scope["method"], scope["path"])
+        log.warning("failed authentication from %s on %s %s%s", peer, scope["method"], scope["path"],
+                    f"; its writes are refused for {block:g} s" if block else "")
         return _problem(401, "this endpoint needs 'Authorization: Bearer <token>'",
                         {"WWW-Authenticate": "Bearer", "Connection": "close"})
 

@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from ..settings import CLASSES
@@ -27,8 +27,13 @@ log = logging.getLogger("touchreal.server")
 SPEED_RANGE = (0.01, 1000.0)
 SOURCE_SPEC = "sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT"
 
+def _split_commas(v: object) -> object:
+    return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
+
+
 #: A list given as one comma-separated value (flag or environment variable), not JSON.
-CommaList = Annotated[list[str], NoDecode]
+CommaList = Annotated[list[str], NoDecode, BeforeValidator(_split_commas)]
+CommaPaths = Annotated[list[Path], NoDecode, BeforeValidator(_split_commas)]
 
 
 def parse_source(spec: str) -> tuple[str, str]:
@@ -81,11 +86,6 @@ class ServerSettings(BaseSettings):
     limit_concurrency: int = Field(default=1200, ge=10, description="open connections (HTTP + WebSocket) before new "
                                    "requests get 503; keep it above max_clients")
 
-    @field_validator("allowed_hosts", "allowed_origins", "forwarded_allow_ips", mode="before")
-    @classmethod
-    def _comma_list(cls, v: object) -> object:
-        return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
-
 
 class ServeSettings(ServerSettings):
     """Every setting of ``touchreal serve``: flag ``--NAME`` (``_`` -> ``-``), environment ``TOUCHREAL_<NAME>``."""
@@ -115,7 +115,7 @@ class ServeSettings(ServerSettings):
                             "frames in an in-memory JetStream stream touchreal_<ID> for late joiners")
     max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30, description="largest request body (bytes); "
                                 "larger ones get 413 without being read")
-    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list, description="folders under which PATCH "
+    data_roots: CommaPaths = Field(default_factory=list, description="folders under which PATCH "
                                                         "/v1/config may open replay: datasets, besides "
                                                         "STATE_DIR/datasets and serve's own --source folder")
     serial_urls: bool = Field(default=False, description="allow pyserial URLs (spy://, socket://, loop://...) as "
@@ -140,11 +140,6 @@ class ServeSettings(ServerSettings):
             log.warning("the token is empty: treated as no token, write endpoints are open")
             return None
         return v
-
-    @field_validator("data_roots", mode="before")
-    @classmethod
-    def _paths(cls, v: object) -> object:
-        return [x.strip() for x in v.split(",") if x.strip()] if isinstance(v, str) else v
 
     def runtime_config(self) -> "RuntimeConfig":
         """The run-time config the service starts with."""
