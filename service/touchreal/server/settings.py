@@ -18,6 +18,8 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from touchreal_client.protocol import MAX_TAXELS
+
 from ..settings import CLASSES
 
 log = logging.getLogger("touchreal.server")
@@ -93,7 +95,7 @@ class ServeSettings(ServerSettings):
     model_config = SettingsConfigDict(env_prefix="TOUCHREAL_", extra="ignore")
 
     source: str = Field(default="sim", description=SOURCE_SPEC)
-    taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
+    taxels: int = Field(default=1, ge=1, le=MAX_TAXELS, description="taxels of the simulated e-skin / serial device")
     speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
     token: str | None = Field(default=None, description="bearer token required by write endpoints; unset or empty = "
@@ -154,7 +156,7 @@ class RuntimeConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
     source: str = Field(default="sim", max_length=4096, description=SOURCE_SPEC)
-    taxels: int = Field(default=1, ge=1, le=4096, description="taxels of the simulated e-skin / serial device")
+    taxels: int = Field(default=1, ge=1, le=MAX_TAXELS, description="taxels of the simulated e-skin / serial device")
     speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], allow_inf_nan=False,
                          description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
@@ -168,7 +170,7 @@ class ConfigPatch(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
     source: str | None = Field(default=None, max_length=4096, description=SOURCE_SPEC)
-    taxels: int | None = Field(default=None, ge=1, le=4096)
+    taxels: int | None = Field(default=None, ge=1, le=MAX_TAXELS)
     speed: float | None = Field(default=None, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool | None = None
     update_ms: float | None = Field(default=None, ge=1.0, le=1000.0)

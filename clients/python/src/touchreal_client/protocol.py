@@ -35,6 +35,7 @@ ENCODINGS = ("binary", "json")
 STREAMS = ("spikes", "channels", "decoded")
 MAGIC = b"TR"
 MAX_CLIENT_MESSAGE_BYTES = 65536  #: larger client messages are refused (close 1009)
+MAX_TAXELS = 65536  #: taxel ids are uint16 on the wire: 0..65535
 MAX_INT_DIGITS = 20  #: a JSON integer literal of a client message has at most this many digits
 MAX_TIME_ID_CHARS = 128  #: a ``time`` request's string ``id`` has at most this many characters
 MAX_ERROR_CHARS = 300  #: an ``error`` message's text is cut to this many characters
