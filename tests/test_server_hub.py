@@ -169,3 +169,66 @@ def test_a_spikes_frame_with_nothing_new_for_a_subscription_is_not_sent():
     assert fast == [1, 2, 3, 6]
     assert slow == [1, 3, 5, 6]
     assert both == [1, 2, 3, 5, 6]
+
+
+def test_a_region_subscription_gets_exactly_its_taxels_in_frames_and_in_the_demand():
+    """A 128 x 128 skin (16,384 taxels, 10 mm pitch): a rectangle and an id range resolve to the taxels in
+    them, which the demand computes and the frames carry; nothing else."""
+    n, cols = 16384, 128
+    xy = np.stack([(np.arange(n) % cols - 63.5) * 10.0, (np.arange(n) // cols - 63.5) * 10.0], axis=1)
+    rect = (-100.0, 100.0, 0.0, 50.0)  # x in [-100, 100], y in [0, 50] mm: 20 columns of 5 rows
+    in_rect = {i for i in range(n) if rect[0] <= xy[i, 0] <= rect[1] and rect[2] <= xy[i, 1] <= rect[3]}
+    want = sorted(in_rect | set(range(16000, 16384)))
+    assert len(in_rect) == 100
+
+    async def go():
+        hub = Hub(capacity=8, slow_timeout_s=1.0, refresh_s=0.0)  # the demand follows at once
+        hub.configure(n, P.CLASSES, {"force": ["SA1", "RA"]}, xy)
+        sub = hub.add()
+        msg = {"type": "subscribe", "classes": ["SA1", "PC"], "streams": ["spikes", "channels", "decoded"],
+               "region": {"ranges": [[16000, 16384]], "rects": [{"x_mm": [rect[0], rect[1]], "y_mm": [rect[2], rect[3]]}]}}
+        s = hub.admit(msg)
+        assert s.taxels is None and s.region is not None and s.to_json()["region"]["ranges"] == [[16000, 16384]]
+        hub.subscribe(sub, s)
+        spiking = np.arange(0, n, 3)  # a third of the skin spikes in every class
+        t = np.repeat(np.arange(3, dtype=np.uint64) + 5000, spiking.size)
+        upd = Update(1, 1, 0, 0, 5, t, np.tile(spiking, 3).astype(np.uint16), np.repeat(np.arange(3), spiking.size).astype(np.uint8),
+                     {"SA1": 6000, "RA": 6000, "PC": 6000},
+                     decoded=[("force", tuple(range(n)), np.array([6000], np.uint64), np.ones((1, n, 1), np.float32))])
+        hub.publish(upd)
+        return hub, sub
+
+    hub, sub = asyncio.run(go())
+    assert hub.demand.columns["SA1"] == tuple(want) and hub.demand.columns["PC"] == tuple(want)
+    assert hub.demand.columns["RA"] == tuple(want)  # for the force decoder only
+    assert hub.demand.spikes == {"SA1": tuple(want), "PC": tuple(want)} and hub.demand.channel_taxels == tuple(want)
+    assert hub.demand.decoders == {"force": tuple(want)}
+    spikes, decoded = (P.decode_frame(q.payload) for q in sub.queue)
+    assert sorted(set(spikes.taxel.tolist())) == [t for t in want if t % 3 == 0] and set(spikes.cls.tolist()) == {0, 2}
+    assert decoded.taxels.tolist() == want
+
+
+def test_admit_refuses_regions_beyond_the_skin_or_its_known_positions():
+    hub = Hub(capacity=4, slow_timeout_s=1.0)
+    hub.configure(100, P.CLASSES, {})  # no positions known (a gateway)
+    rect = {"x_mm": [0, 1], "y_mm": [0, 1]}
+    for region, fragment in [({"ranges": [[90, 101]]}, r"region.ranges \[\[90, 101\]\] reach past"),
+                             ({"rects": [rect]}, "need the taxel positions")]:
+        try:
+            hub.admit({"type": "subscribe", "region": region})
+        except P.ProtocolError as exc:
+            assert exc.code == "not_served" and re.search(fragment, str(exc)), str(exc)
+        else:
+            raise AssertionError(f"{region} was admitted")
+    hub.configure(100, P.CLASSES, {}, np.zeros((100, 2)))
+    hub.configure(100, ["SA1"], {})  # the served classes changed: the positions stay
+    assert hub.admit({"type": "subscribe", "region": {"rects": [rect]}}).region.rects == ((0.0, 1.0, 0.0, 1.0),)
+    hub.configure(P.MAX_TAXELS, ["SA1"], {})  # another skin: its positions are not those
+    assert hub.positions_mm is None
+    try:
+        hub.admit({"type": "subscribe", "streams": ["channels"]})
+    except P.ProtocolError as exc:
+        assert exc.code == "not_served" and "at most 65535 taxels" in str(exc)
+    else:
+        raise AssertionError("a channels frame of 65,536 taxels was admitted")
+    assert hub.admit({"type": "subscribe", "streams": ["channels"], "region": {"ranges": [[1, P.MAX_TAXELS]]}})

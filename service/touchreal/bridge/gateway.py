@@ -160,8 +160,13 @@ class Gateway:
         self.upstream_hello = hello
         if hello.get("clock") is not None:
             self._take_clock(hello["clock"])
-        self.hub.configure(len(hello.get("taxels", [])), hello.get("classes", list(P.CLASSES)),
-                           {d["name"]: d["classes"] for d in self._decoders()})
+        try:
+            positions = P.hello_positions(hello)
+        except P.ProtocolError as exc:
+            log.error("the publisher's hello describes no skin (%s); kept the previous one", exc)
+            return
+        self.hub.configure(len(positions), hello.get("classes", list(P.CLASSES)),
+                           {d["name"]: d["classes"] for d in self._decoders()}, positions)
         # clients connected before (to the placeholder, or to the previous session) learn the new one
         self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
 

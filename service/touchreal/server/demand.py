@@ -6,9 +6,10 @@ acquisition thread reads the current one once per update.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 from touchreal_client.protocol import Subscription
 
 from ..settings import CLASSES
@@ -35,29 +36,38 @@ def build_demand(
     n_taxels: int,
     allowed_classes: Sequence[str],
     decoder_classes: Mapping[str, Sequence[str]],
+    taxels_of: Callable[[Subscription], np.ndarray | None] | None = None,
 ) -> Demand:
     """Union of the subscriptions, limited to existing taxels and the classes the service may compute
     (a subscription's ``classes`` None: all of those). A decoded-output subscription adds the classes
-    its decoders read (``decoder_classes[name]``)."""
-    cols: dict[str, set[int]] = {c: set() for c in CLASSES}
-    spikes: dict[str, set[int]] = {c: set() for c in CLASSES}
-    chan: set[int] = set()
-    decs: dict[str, set[int]] = {}
+    its decoders read (``decoder_classes[name]``). ``taxels_of(sub)``: the ids of the taxels ``sub``
+    names (None: every taxel); by default its ``taxels`` and ``region`` without taxel positions
+    (:meth:`~touchreal_client.protocol.Subscription.taxel_ids`: rectangles select nothing)."""
+    pick = taxels_of or (lambda sub: sub.taxel_ids(n_taxels))
+    cols = {c: np.zeros(n_taxels, bool) for c in CLASSES}
+    spikes = {c: np.zeros(n_taxels, bool) for c in CLASSES}
+    chan = np.zeros(n_taxels, bool)
+    decs: dict[str, np.ndarray] = {}
     for sub in subscriptions:
-        taxels = set(range(n_taxels)) if sub.taxels is None else {t for t in sub.taxels if t < n_taxels}
+        ids = pick(sub)
+        taxels = slice(None) if ids is None else ids[ids < n_taxels]
         if "spikes" in sub.streams:
             for c in allowed_classes if sub.classes is None else sub.classes:
-                cols[c] |= taxels
-                spikes[c] |= taxels
+                cols[c][taxels] = True
+                spikes[c][taxels] = True
         if "channels" in sub.streams:
-            chan |= taxels
+            chan[taxels] = True
         if "decoded" in sub.streams:
             for name in decoder_classes if sub.decoders is None else sub.decoders:
                 if name in decoder_classes:
-                    decs.setdefault(name, set()).update(taxels)
+                    decs.setdefault(name, np.zeros(n_taxels, bool))[taxels] = True
                     for c in decoder_classes[name]:
-                        cols[c] |= taxels
-    columns = {c: tuple(sorted(t)) for c, t in cols.items() if t and c in allowed_classes}
-    decoders = {n: tuple(sorted(t)) for n, t in decs.items() if all(c in columns for c in decoder_classes[n])}
-    return Demand(columns, tuple(sorted(chan)), decoders,
-                  {c: tuple(sorted(t)) for c, t in spikes.items() if t and c in allowed_classes})
+                        cols[c][taxels] = True
+    columns = {c: _ids(m) for c, m in cols.items() if m.any() and c in allowed_classes}
+    decoders = {n: _ids(m) for n, m in decs.items() if all(c in columns for c in decoder_classes[n])}
+    wanted = {c: _ids(m) for c, m in spikes.items() if m.any() and c in allowed_classes}
+    return Demand(columns, _ids(chan), decoders, wanted)
+
+
+def _ids(mask: np.ndarray) -> tuple[int, ...]:
+    return tuple(np.flatnonzero(mask).tolist())

@@ -49,6 +49,23 @@ def _uncounted(reason: str, n: int) -> None:
     pass
 
 
+@dataclass(frozen=True)
+class Picked:
+    """The taxels a subscription names, resolved on one skin."""
+
+    ids: np.ndarray  #: sorted ids (int64)
+    mask: np.ndarray  #: (MAX_TAXELS,) bool: ``mask[id]`` is set for the ids in ``ids``
+
+
+def _count(picked: Picked | None, n_taxels: int) -> int:
+    return n_taxels if picked is None else picked.ids.size
+
+
+def _taxel_key(s: P.Subscription) -> tuple:
+    """What decides a subscription's taxels (hashable)."""
+    return None if s.taxels is None else tuple(s.taxels), s.region
+
+
 @dataclass
 class Queued:
     kind: int  #: P.KIND_*
@@ -201,12 +218,14 @@ class Hub:
         self.demand = Demand()
         self.on_drop: Callable[[str, int], None] = _uncounted  #: given to every subscriber (metrics)
         self.n_taxels = 1
+        self.positions_mm: np.ndarray | None = None  #: (n_taxels, 2) taxel centres (mm), for rectangle regions
         self.allowed_classes: Sequence[str] = P.CLASSES
         self.decoder_classes: Mapping[str, Sequence[str]] = {}
         self.decoder_names: list[str] = []
         self.known = False  #: configured: what is served is known (a gateway learns it from the publisher's hello)
         self.frames_rendered = 0
         self._finals: dict[tuple, tuple] = {}  #: per distinct subscription: the final_us last rendered
+        self._picked: dict[tuple, Picked | None] = {}  #: per distinct (taxels, region): its taxels, resolved
 
     # -- membership -----------------------------------------------------------------------------
     def add(self) -> Subscriber:
@@ -246,8 +265,9 @@ class Hub:
 
     def admit(self, msg: Mapping) -> P.Subscription:
         """A subscribe message as a subscription of what is served. Without ``classes`` it asks for
-        the classes served; naming a class not served, a taxel that does not exist or a decoder not
-        offered raises :class:`~touchreal_client.protocol.ProtocolError` with code ``not_served``
+        the classes served; naming a class not served, a taxel (or a ``region`` id range reaching one)
+        that does not exist, a ``region`` rectangle while the taxel positions are unknown or a decoder
+        not offered raises :class:`~touchreal_client.protocol.ProtocolError` with code ``not_served``
         (the connection keeps its previous subscription). Until the hub is configured (a gateway
         before its publisher's hello) anything well-formed is admitted."""
         s = P.parse_subscribe(dict(msg))
@@ -260,18 +280,51 @@ class Hub:
             problems.append(f"classes {bad} are not served (served: {list(self.allowed_classes)})")
         if bad := [t for t in s.taxels or () if t >= self.n_taxels]:
             problems.append(f"taxels {bad[:8]}{'...' if len(bad) > 8 else ''} do not exist (ids 0..{self.n_taxels - 1})")
+        region = s.region or P.Region()
+        if bad := [list(r) for r in region.ranges if r[1] > self.n_taxels]:
+            problems.append(f"region.ranges {bad[:4]} reach past the last taxel (ids 0..{self.n_taxels - 1})")
+        if region.rects and self.positions_mm is None:
+            problems.append("region.rects need the taxel positions, which this server does not know: use region.ranges")
+        n = _count(self.picked(s), self.n_taxels)
+        if {"channels", "decoded"} & set(s.streams) and n > P.MAX_FRAME_TAXELS:
+            problems.append(f"channels and decoded frames carry at most {P.MAX_FRAME_TAXELS} taxels, not {n}: "
+                            "subscribe to fewer taxels")
         if "decoded" in s.streams and (bad := [d for d in s.decoders or () if d not in self.decoder_classes]):
             problems.append(f"decoders {bad[:8]} are not offered (offered: {self.decoder_names})")
         if problems:
             raise P.ProtocolError("; ".join(problems) + "; the previous subscription stays", "not_served")
         return s
 
-    def configure(self, n_taxels: int, allowed_classes: Sequence[str], decoder_classes: Mapping[str, Sequence[str]]) -> None:
+    def configure(self, n_taxels: int, allowed_classes: Sequence[str], decoder_classes: Mapping[str, Sequence[str]],
+                  positions_mm: np.ndarray | None = None) -> None:
+        """What is served: ``n_taxels`` taxels, the classes and the decoders (name -> the classes they
+        read). ``positions_mm``: the (n_taxels, 2) taxel centres (mm) rectangle regions select by; None
+        keeps the ones configured before if they are of ``n_taxels`` taxels (a change of classes or
+        decoders), else rectangles are refused."""
         self.known = True
+        if positions_mm is not None:
+            self.positions_mm = np.asarray(positions_mm, float).reshape(n_taxels, 2)
+        elif self.positions_mm is not None and len(self.positions_mm) != n_taxels:
+            self.positions_mm = None
         self.n_taxels, self.allowed_classes = n_taxels, list(allowed_classes)
         self.decoder_classes = dict(decoder_classes)
         self.decoder_names = list(decoder_classes)
+        self._picked.clear()
         self.refresh_demand()
+
+    def picked(self, s: P.Subscription) -> Picked | None:
+        """The taxels subscription ``s`` names (its ``taxels`` and ``region``), resolved once per distinct
+        pair while the skin stays the same; None: every taxel."""
+        key = _taxel_key(s)
+        if key not in self._picked:
+            ids = s.taxel_ids(self.n_taxels, self.positions_mm)
+            if ids is None:
+                self._picked[key] = None
+            else:
+                mask = np.zeros(P.MAX_TAXELS, bool)  # indexed by any uint16 id a frame may carry
+                mask[ids] = True
+                self._picked[key] = Picked(ids, mask)
+        return self._picked[key]
 
     def refresh_demand(self) -> None:
         if self._refresh is not None:
@@ -279,7 +332,14 @@ class Hub:
             self._refresh = None
         self._refreshed_at = self.clock()
         subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
-        self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes)
+        keys = {_taxel_key(s) for s in subs}
+        self._picked = {k: v for k, v in self._picked.items() if k in keys}  # forget subscriptions gone
+        self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes, self.picked_ids)
+
+    def picked_ids(self, s: P.Subscription) -> np.ndarray | None:
+        """The ids of :meth:`picked` (None: every taxel)."""
+        p = self.picked(s)
+        return None if p is None else p.ids
 
     # -- fan-out --------------------------------------------------------------------------------
     def publish(self, upd: Update) -> None:
@@ -289,8 +349,7 @@ class Hub:
             s = sub.subscription
             if s is None or sub.kick is not None:
                 continue
-            key = (None if s.taxels is None else tuple(s.taxels), None if s.classes is None else tuple(s.classes),
-                   tuple(s.streams), s.encoding,
+            key = (_taxel_key(s), None if s.classes is None else tuple(s.classes), tuple(s.streams), s.encoding,
                    s.decimation, None if s.decoders is None else tuple(s.decoders))
             frames = cache.get(key)
             if frames is None:
@@ -315,15 +374,16 @@ class Hub:
         """The frames of ``upd`` for subscription ``s`` (``key``), without a spikes frame that has
         nothing new for it."""
         out: list[P.Frame] = []
-        taxels = np.arange(self.n_taxels) if s.taxels is None else np.array([t for t in s.taxels if t < self.n_taxels], int)
+        picked = self.picked(s)
+        taxels = np.arange(self.n_taxels) if picked is None else picked.ids
         if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
             classes = self.allowed_classes if s.classes is None else s.classes
             sel = np.ones(upd.cls.size, bool)
             if len(set(classes)) < len(P.CLASSES):
                 sel &= np.isin(upd.cls, [P.CLASSES.index(c) for c in classes])
-            if s.taxels is not None:
-                sel &= np.isin(upd.taxel, taxels)
+            if picked is not None:
+                sel &= picked.mask[upd.taxel]
             final = {c: (upd.final_us.get(c) if c in classes else None) for c in P.CLASSES}
             mark = tuple(final.values())
             if sel.any() or upd.flags or self._finals.get(key) != mark:
@@ -343,7 +403,8 @@ class Hub:
             for name, dec_taxels, t_us, values in upd.decoded:
                 if name not in wanted:
                     continue
-                cols = [i for i, t in enumerate(dec_taxels) if t in set(taxels.tolist())]
+                dec = np.asarray(dec_taxels, np.int64)
+                cols = np.flatnonzero(dec < self.n_taxels if picked is None else picked.mask[dec])
                 h = P.Header(P.KIND_DECODED, upd.update, upd.emit_us, upd.params_rev, upd.flags)
                 out.append(P.DecodedFrame(h, self.decoder_names.index(name), np.array(dec_taxels, np.uint16)[cols],
                                           t_us, values[:, cols, :]))

@@ -56,6 +56,7 @@ class ServiceView:
     def hello(self) -> dict[str, Any]:
         params = self.service.store.active
         positions = self.service.runtime.source.positions_mm if self.service.runtime is not None else []
+        skin = P.hello_skin(positions)  # n_taxels, layout, taxels: listed up to P.HELLO_LISTED_TAXELS on a grid
         info, clock = self.service.store.info(), self.service.clock
         return {
             "type": "hello",
@@ -72,7 +73,7 @@ class ServiceView:
             "latency_us": self.latency_us(),
             "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
             "classes": self.served_classes(),
-            "taxels": [{"id": i, "x_mm": float(x), "y_mm": float(y)} for i, (x, y) in enumerate(positions)],
+            **skin,
             "streams": {
                 "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
                 "channels": {"names": list(P.CHANNELS), "units": list(P.CHANNEL_UNITS), "rate_hz": 5000,

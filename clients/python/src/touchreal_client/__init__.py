@@ -13,7 +13,7 @@ from .client import AsyncClient, Client, Stream
 from .clock import ClockMap, ClockPoint
 from .errors import (AuthError, NotFound, ParamsRejected, RequestError, ServiceUnavailable, StreamClosed, StreamError,
                      TouchRealError)
-from .protocol import CLASSES, ChannelsFrame, DecodedFrame, Header, SpikesFrame, Subscription
+from .protocol import CLASSES, ChannelsFrame, DecodedFrame, Header, Region, SpikesFrame, Subscription
 from .rest import AsyncRest
 from .stats import Latency, LatencyEstimator, LatencySummary, StreamStats
 from .stream import AsyncStream, DecodedOutput
@@ -22,6 +22,6 @@ __version__ = "0.1.0"
 __all__ = [
     "AsyncClient", "AsyncRest", "AsyncStream", "AuthError", "Backoff", "CLASSES", "ChannelsFrame", "Client",
     "ClockMap", "ClockPoint", "DecodedFrame", "DecodedOutput", "Header", "Latency", "LatencyEstimator", "LatencySummary", "NotFound",
-    "ParamsRejected", "RequestError", "ServiceUnavailable", "SpikesFrame", "Stream", "StreamClosed", "StreamError",
+    "ParamsRejected", "Region", "RequestError", "ServiceUnavailable", "SpikesFrame", "Stream", "StreamClosed", "StreamError",
     "StreamStats", "Subscription", "TouchRealError",
 ]

@@ -36,7 +36,7 @@ def spiketrains(source: Session | Iterable[P.SpikesFrame], hello: dict[str, Any]
         for f in source:
             if isinstance(f, P.SpikesFrame):
                 log.push(f)
-        (t, taxel, cls), coverage, layout = log.arrays(), log.coverage.spans, (hello or {}).get("taxels", [])
+        (t, taxel, cls), coverage, layout = log.arrays(), log.coverage.spans, P.hello_taxels(hello or {"taxels": []})
     pos = {int(x["id"]): (float(x.get("x_mm", 0.0)), float(x.get("y_mm", 0.0))) for x in layout}
     out = []
     for tx in sorted(set(pos) | set(np.unique(taxel).tolist())):

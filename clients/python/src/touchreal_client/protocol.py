@@ -36,6 +36,13 @@ STREAMS = ("spikes", "channels", "decoded")
 MAGIC = b"TR"
 MAX_CLIENT_MESSAGE_BYTES = 65536  #: larger client messages are refused (close 1009)
 MAX_TAXELS = 65536  #: taxel ids are uint16 on the wire: 0..65535
+#: a hello lists every taxel (``taxels``) up to this many; a larger skin on a grid is described by its
+#: ``layout`` alone (``taxels`` null): 4096 listed taxels make a hello of about 160 KB
+HELLO_LISTED_TAXELS = 4096
+GRID_TOLERANCE_MM = 1e-6  #: a skin is a grid when its layout gives every listed centre to within this (mm)
+MAX_FRAME_TAXELS = 65535  #: a channels or decoded frame carries at most this many taxels (a u16 count)
+MAX_REGION_RANGES = 1024  #: a subscription's ``region`` holds at most this many id ranges
+MAX_REGION_RECTS = 16  #: and at most this many rectangles
 MAX_INT_DIGITS = 20  #: a JSON integer literal of a client message has at most this many digits
 MAX_TIME_ID_CHARS = 128  #: a ``time`` request's string ``id`` has at most this many characters
 MAX_ERROR_CHARS = 300  #: an ``error`` message's text is cut to this many characters
@@ -326,10 +333,40 @@ def frame_from_json(msg: dict[str, Any]) -> Frame:
 
 
 # -- control messages --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Region:
+    """A part of the skin: the taxels in any of its id ranges or rectangles.
+
+    ``ranges``: half-open id ranges ``(start, stop)`` (:func:`parse_subscribe` sorts and merges them and
+    drops empty ones). ``rects``:
+    rectangles ``(x_min, x_max, y_min, y_max)`` in mm, closed, over the taxel centres the hello gives
+    (:func:`hello_positions`)."""
+
+    ranges: tuple[tuple[int, int], ...] = ()
+    rects: tuple[tuple[float, float, float, float], ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"ranges": [[a, b] for a, b in self.ranges],
+                "rects": [{"x_mm": [x0, x1], "y_mm": [y0, y1]} for x0, x1, y0, y1 in self.rects]}
+
+    def mask(self, n_taxels: int, positions_mm: np.ndarray | None = None) -> np.ndarray:
+        """(n_taxels,) bool: the taxels in the region. Without ``positions_mm`` ((n_taxels, 2) centres,
+        mm) the rectangles cover no taxel."""
+        m = np.zeros(n_taxels, bool)
+        for a, b in self.ranges:
+            m[a:b] = True
+        if self.rects and positions_mm is not None:
+            x, y = np.asarray(positions_mm, float)[:n_taxels].T
+            for x0, x1, y0, y1 in self.rects:
+                m[: x.size] |= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        return m
+
+
 @dataclass
 class Subscription:
-    """What a connection wants. ``taxels`` ``None``: all; ``classes`` ``None``: every class the service
-    serves (its ``subscribed`` reply names them); empty lists mean none."""
+    """What a connection wants. Its taxels are those of ``taxels`` (ids) and ``region`` together; both
+    ``None``: every taxel. ``classes`` ``None``: every class the service serves (its ``subscribed``
+    reply names them); empty lists mean none."""
 
     taxels: list[int] | None = None
     classes: list[str] | None = None
@@ -337,9 +374,11 @@ class Subscription:
     encoding: str = "binary"
     decimation: int = 25  #: channels: one 5 kHz sample in this many (25 -> 200 Hz)
     decoders: list[str] | None = None  #: decoded: names, None = every installed decoder
+    region: Region | None = None  #: a part of the skin by id ranges or rectangles (mm)
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        """The ``subscribe`` message; ``region`` only when set (a server older than regions refuses the field)."""
+        out = {
             "type": "subscribe",
             "version": VERSION,
             "taxels": self.taxels,
@@ -349,6 +388,19 @@ class Subscription:
             "channels": {"decimation": self.decimation},
             "decoders": self.decoders,
         }
+        if self.region is not None:
+            out["region"] = self.region.to_json()
+        return out
+
+    def taxel_ids(self, n_taxels: int, positions_mm: np.ndarray | None = None) -> np.ndarray | None:
+        """The sorted ids (int64) of the subscribed taxels of a skin of ``n_taxels`` (``positions_mm``:
+        its (n_taxels, 2) centres, mm, for rectangles); None when it names none, i.e. wants every taxel."""
+        if self.taxels is None and self.region is None:
+            return None
+        m = np.zeros(n_taxels, bool) if self.region is None else self.region.mask(n_taxels, positions_mm)
+        ids = np.asarray(self.taxels or [], np.int64)
+        m[ids[ids < n_taxels]] = True
+        return np.flatnonzero(m)
 
 
 def parse_subscribe(msg: dict[str, Any]) -> Subscription:
@@ -356,15 +408,16 @@ def parse_subscribe(msg: dict[str, Any]) -> Subscription:
     version = msg.get("version", VERSION)
     if version not in SUPPORTED_VERSIONS:
         raise ProtocolError(f"protocol version {version!r} is not supported (supported: {list(SUPPORTED_VERSIONS)})", "unsupported_version")
-    unknown = set(msg) - {"type", "version", "taxels", "classes", "streams", "encoding", "channels", "decoders"}
+    unknown = set(msg) - {"type", "version", "taxels", "region", "classes", "streams", "encoding", "channels", "decoders"}
     if unknown:
         raise ProtocolError(f"unknown subscribe fields {sorted(unknown)}")
     sub = Subscription()
     taxels = msg.get("taxels")
     if taxels is not None:
-        if not isinstance(taxels, list) or not all(isinstance(t, int) and not isinstance(t, bool) and 0 <= t < 65536 for t in taxels):
+        if not isinstance(taxels, list) or not all(_is_int(t) and 0 <= t < MAX_TAXELS for t in taxels):
             raise ProtocolError("taxels must be null or a list of taxel ids (integers)")
         sub.taxels = sorted(set(taxels))
+    sub.region = _parse_region(msg.get("region"))
     sub.classes = None if msg.get("classes") is None else _names(msg, "classes", CLASSES, [])
     sub.streams = _names(msg, "streams", STREAMS, sub.streams)
     enc = msg.get("encoding", sub.encoding)
@@ -383,6 +436,53 @@ def parse_subscribe(msg: dict[str, Any]) -> Subscription:
         raise ProtocolError("decoders must be null or a list of decoder names")
     sub.decoders = decoders
     return sub
+
+
+_REGION_SHAPE = ('region must be null or {"ranges": [[start, stop], ...], '
+                 '"rects": [{"x_mm": [min, max], "y_mm": [min, max]}, ...]}')
+
+
+def _parse_region(v: Any) -> Region | None:
+    """A subscription's ``region`` (None: none), validated: at most :data:`MAX_REGION_RANGES` id ranges
+    ``0 <= start <= stop <= MAX_TAXELS`` and :data:`MAX_REGION_RECTS` rectangles of finite ``min <= max``."""
+    if v is None:
+        return None
+    if not isinstance(v, dict) or set(v) - {"ranges", "rects"}:
+        raise ProtocolError(_REGION_SHAPE)
+    ranges, rects = v.get("ranges") or [], v.get("rects") or []
+    if not isinstance(ranges, list) or not isinstance(rects, list):
+        raise ProtocolError(_REGION_SHAPE)
+    if len(ranges) > MAX_REGION_RANGES or len(rects) > MAX_REGION_RECTS:
+        raise ProtocolError(f"a region has at most {MAX_REGION_RANGES} ranges and {MAX_REGION_RECTS} rects")
+    spans = []
+    for r in ranges:
+        if not (isinstance(r, list) and len(r) == 2 and all(_is_int(x) for x in r) and 0 <= r[0] <= r[1] <= MAX_TAXELS):
+            raise ProtocolError(f"region.ranges holds [start, stop] id ranges, 0 <= start <= stop <= {MAX_TAXELS}")
+        spans.append((r[0], r[1]))
+    boxes = []
+    for r in rects:
+        if not isinstance(r, dict) or set(r) != {"x_mm", "y_mm"}:
+            raise ProtocolError('region.rects holds {"x_mm": [min, max], "y_mm": [min, max]} rectangles')
+        box = [_interval_mm(r[k], f"region.rects {k}") for k in ("x_mm", "y_mm")]
+        boxes.append((*box[0], *box[1]))
+    return Region(_merged(spans), tuple(boxes))
+
+
+def _interval_mm(v: Any, what: str) -> tuple[float, float]:
+    if not (isinstance(v, list) and len(v) == 2 and all(_is_mm(x) for x in v) and v[0] <= v[1]):
+        raise ProtocolError(f"{what} must be [min, max]: finite numbers (mm), min <= max")
+    return float(v[0]), float(v[1])
+
+
+def _merged(spans: list[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
+    """Half-open ranges sorted, overlapping or adjacent ones merged, empty ones dropped."""
+    out: list[tuple[int, int]] = []
+    for a, b in sorted(s for s in spans if s[0] < s[1]):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return tuple(out)
 
 
 def _names(msg: dict[str, Any], key: str, allowed: tuple[str, ...], default: list[str]) -> list[str]:
@@ -453,8 +553,12 @@ def _time_id_ok(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and -(2**63) <= v < 2**64
 
 
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def _is_uint(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**64
+    return _is_int(v) and 0 <= v < 2**64
 
 
 def time_reply(request: dict[str, Any], t1_us: int, t2_us: int) -> dict[str, Any]:
@@ -474,3 +578,74 @@ def error_message(code: str, message: str) -> dict[str, Any]:
     if len(message) > MAX_ERROR_CHARS:
         message = message[: MAX_ERROR_CHARS - 1] + "…"
     return {"type": "error", "code": code, "message": message}
+
+
+# -- the skin in the hello -------------------------------------------------------------------------------
+def hello_skin(positions_mm: np.ndarray) -> dict[str, Any]:
+    """The hello's description of a skin of (n, 2) taxel centres (mm): ``n_taxels``; ``layout``, the grid
+    they form (None when they form none: :func:`grid_layout`); ``taxels``, every taxel as ``{"id", "x_mm",
+    "y_mm"}``, or None for a grid of more than :data:`HELLO_LISTED_TAXELS` taxels (its layout says it all)."""
+    xy = np.asarray(positions_mm, float).reshape(-1, 2)
+    layout = grid_layout(xy)
+    listed = layout is None or len(xy) <= HELLO_LISTED_TAXELS
+    return {"n_taxels": len(xy), "layout": layout,
+            "taxels": [{"id": i, "x_mm": x, "y_mm": y} for i, (x, y) in enumerate(xy.tolist())] if listed else None}
+
+
+def grid_layout(positions_mm: np.ndarray) -> dict[str, Any] | None:
+    """The grid (n, 2) taxel centres (mm) form, as the hello's ``layout``: taxel i at ``(x0_mm + (i mod
+    cols) * dx_mm, y0_mm + (i div cols) * dy_mm)``, row-major, the last row possibly short; None when
+    the centres are no such grid to within :data:`GRID_TOLERANCE_MM`."""
+    xy = np.asarray(positions_mm, float).reshape(-1, 2)
+    n = len(xy)
+    if n == 0 or not np.isfinite(xy).all():
+        return None
+    off_row = np.flatnonzero(xy[:, 1] != xy[0, 1])
+    cols = int(off_row[0]) if off_row.size else n  # the first row ends where y first changes
+    rows = -(-n // cols)
+    layout = {"kind": "grid", "rows": rows, "cols": cols, "x0_mm": float(xy[0, 0]), "y0_mm": float(xy[0, 1]),
+              "dx_mm": float(xy[1, 0] - xy[0, 0]) if cols > 1 else 0.0,
+              "dy_mm": float(xy[cols, 1] - xy[0, 1]) if rows > 1 else 0.0}
+    return layout if np.abs(_grid_positions(layout, n) - xy).max() <= GRID_TOLERANCE_MM else None
+
+
+def _grid_positions(layout: dict[str, Any], n: int) -> np.ndarray:
+    i = np.arange(n)
+    return np.stack([layout["x0_mm"] + (i % layout["cols"]) * layout["dx_mm"],
+                     layout["y0_mm"] + (i // layout["cols"]) * layout["dy_mm"]], axis=1)
+
+
+def hello_positions(hello: dict[str, Any]) -> np.ndarray:
+    """(n_taxels, 2) taxel centres (mm, row = taxel id) a hello describes: its ``taxels`` list, else its
+    grid ``layout`` (a skin of more than :data:`HELLO_LISTED_TAXELS` taxels lists none). Raises
+    :class:`ProtocolError` for a description that is malformed or names no skin."""
+    listed = hello.get("taxels")
+    if listed is not None:
+        if not isinstance(listed, list) or len(listed) > MAX_TAXELS:
+            raise ProtocolError(f"hello.taxels must be a list of at most {MAX_TAXELS} taxels")
+        if not all(isinstance(t, dict) and _is_int(t.get("id")) and _is_mm(t.get("x_mm")) and _is_mm(t.get("y_mm"))
+                   for t in listed):
+            raise ProtocolError("hello.taxels holds {id, x_mm, y_mm} objects (an integer, finite numbers)")
+        pos = {t["id"]: (t["x_mm"], t["y_mm"]) for t in listed}
+        if sorted(pos) != list(range(len(listed))):
+            raise ProtocolError("hello.taxels must list the ids 0..n-1 once each")
+        return np.array([pos[i] for i in range(len(listed))], float).reshape(-1, 2)
+    n, g = hello.get("n_taxels"), hello.get("layout")
+    if not (_is_int(n) and 0 <= n <= MAX_TAXELS) or not isinstance(g, dict) or g.get("kind") != "grid":
+        raise ProtocolError("a hello without taxels must give n_taxels and a grid layout")
+    if not (all(_is_int(g.get(k)) and 1 <= g[k] <= MAX_TAXELS for k in ("rows", "cols")) and g["rows"] * g["cols"] >= n
+            and all(_is_mm(g.get(k)) for k in ("x0_mm", "y0_mm", "dx_mm", "dy_mm"))):
+        raise ProtocolError("hello.layout must be {kind: grid, rows, cols >= 1 covering n_taxels, finite x0_mm, "
+                            "y0_mm, dx_mm, dy_mm}")
+    return _grid_positions(g, n)
+
+
+def hello_taxels(hello: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every taxel of a hello as ``{"id", "x_mm", "y_mm"}`` (mm), listed or from its grid ``layout``
+    (:func:`hello_positions`, whose errors it raises)."""
+    return [{"id": i, "x_mm": x, "y_mm": y} for i, (x, y) in enumerate(hello_positions(hello).tolist())]
+
+
+def _is_mm(v: Any) -> bool:
+    """A finite JSON number (a coordinate in mm)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and -1e300 < v < 1e300

@@ -183,7 +183,7 @@ def read_mcap(path: str | Path) -> Session:
         t_us=np.array([b["t_us"] for b in spikes], np.int64),
         taxel=np.array([b["taxel"] for b in spikes], np.uint16),
         cls=np.array([P.CLASSES.index(b["class"]) for b in spikes], np.uint8),
-        taxels=list(hello["taxels"]) if hello else [],
+        taxels=P.hello_taxels(hello) if hello else [],
         coverage_us=coverage, channels=_channels(ch_rows),
         decoded={name: _decoded(name, rows) for name, rows in dec_rows.items()},
         params=params, clock=sorted(clock, key=lambda p: (p.epoch, p.sensor_us)), hello=hello, source=str(path),

@@ -132,6 +132,7 @@ class AsyncStream:
 
     async def _connect(self) -> None:
         try:
+            # no size limit: a busy spikes frame of a large skin is megabytes (docs/stream-protocol.md, Frame sizes)
             ws = await connect(self.url, compression=None, open_timeout=self.open_timeout_s, max_size=None)
         except (OSError, asyncio.TimeoutError, websockets.InvalidHandshake) as exc:
             raise ServiceUnavailable(f"cannot open {self.url}: {exc!r}") from exc
