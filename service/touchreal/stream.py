@@ -15,6 +15,7 @@ import numpy as np
 
 from .encoding.encoder import Encoder, SpikeEvents
 from .params import EncoderParams
+from .preprocess.activity import ActivityDetector, ActivityPlan
 from .preprocess.parallel import split_run
 from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .preprocess.stft_gate import frame_length
@@ -123,6 +124,7 @@ class StreamEncoder:
         dtype: type = np.float64,
         taxel_block: int | None = None,
         update_s: float | None = None,
+        activity: ActivityPlan | None = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
@@ -145,9 +147,15 @@ class StreamEncoder:
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
         size = n_taxels if taxel_block is None else taxel_block
+        self._block_starts = np.arange(0, n_taxels, n_taxels if taxel_block is None else taxel_block)
         self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source)
                        for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
+        #: activity-driven compute (None: dense, every demanded block runs on every chunk)
+        self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
+        self._wants: list[tuple[dict[str, list[int]], bool]] = [({c: list(range(len(b.taxels))) for c in self.classes}, True)
+                                                              for b in self.blocks]
+        self._awake = np.ones(len(self.blocks), bool)  #: per block: the detector keeps it running
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
         self._work = 0  #: size of the last chunk for split_run (see _feed)
@@ -183,10 +191,32 @@ class StreamEncoder:
         bad = sorted({x for xs in [*want.values(), shown] for x in xs if not 0 <= x < self.n_taxels})
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
-        for block in self.blocks:
-            block.set_active({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
-                             bool(shown.intersection(block.taxels)))
+        for i, block in enumerate(self.blocks):
+            self._wants[i] = ({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
+                              bool(shown.intersection(block.taxels)))
+            self._set_block(i)
         self.active = {c: xs for c, xs in want.items() if xs}
+
+    def _set_block(self, i: int) -> None:
+        """Block ``i`` runs its demanded columns while awake (always, dense), and its channels source
+        while channels are wanted from it, awake or not."""
+        want, shows = self._wants[i]
+        self.blocks[i].set_active(want if self._awake[i] else {}, shows)
+
+    def _follow_activity(self, chunk: RawChunk) -> None:
+        """Before the chunk is processed: wake the blocks in which a taxel left its band (rebuilt from
+        the raw history, so this chunk's samples run through the whole chain), and stop those all of
+        whose taxels have been quiet for the plan's ``hold_s``."""
+        awake = self.detector.push(chunk)
+        blocks = np.logical_or.reduceat(awake, self._block_starts) if self.n_taxels else awake
+        for i in np.flatnonzero(blocks != self._awake):
+            self._awake[i] = blocks[i]
+            self._set_block(int(i))
+
+    @property
+    def awake_taxels(self) -> int:
+        """Taxels in blocks the activity detector keeps running (all of them when dense)."""
+        return int(sum(len(b.taxels) for b, a in zip(self.blocks, self._awake) if a))
 
     def restart_index(self) -> int | None:
         """The grid index a source that (re)started now would deliver from (None before any data)."""
@@ -229,11 +259,14 @@ class StreamEncoder:
         return self._encode(final=True)[1]
 
     def _feed(self, chunk: RawChunk) -> None:
+        if self.detector is not None:
+            self._follow_activity(chunk)
         new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
         # size of this call for split_run over blocks (taxels x new PVDF samples): blocks run on both
         # cores from ~200 taxels per 5 ms hop on (each block's kernels then run serially)
         self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
-        blocks = self.blocks
+        blocks = [b for b in self.blocks if b.pre.sources]  # a stopped block has nothing to consume
+        self._work = self._work * sum(len(b.taxels) for b in blocks) // max(self.n_taxels, 1)
         if len(blocks) == 1:
             blocks[0].pre.consume(*new)
             return
@@ -246,18 +279,19 @@ class StreamEncoder:
 
     def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
         slow, phase = (frozenset(), None) if final else (self.slow, phase)
-        if len(self.blocks) == 1:
-            results = [self.blocks[0].encode(slow, phase)]
+        running = [b for b in self.blocks if b.pre.sources]
+        if len(running) == 1:
+            results = [running[0].encode(slow, phase)]
         else:
-            results = [(None, [])] * len(self.blocks)
+            results = [(None, [])] * len(running)
 
             def encode(a: int, b: int) -> None:
                 for i in range(a, b):
-                    results[i] = self.blocks[i].encode(slow, phase)
+                    results[i] = running[i].encode(slow, phase)
 
-            split_run(encode, len(self.blocks), self._work, _BLOCK_MIN_WORK)
+            split_run(encode, len(running), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
-        for block, (ch, evs) in zip(self.blocks, results):
+        for block, (ch, evs) in zip(running, results):
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs
@@ -300,7 +334,11 @@ class StreamEncoder:
         delay included) has been returned (-inf before its source has started)."""
         out = {}
         for c, xs in self.active.items():
-            ks = [b.pre.cursor.get(self.source[c]) for b in self.blocks if any(x in b.taxels for x in xs)]
+            ks = [b.pre.cursor.get(self.source[c]) for b in self.blocks if self.source[c] in b.pre.cursor]
+            if not ks:  # every block of the class is asleep: a block that wakes delivers from the restart index
+                k = self.acq.restart_index()
+                out[c] = -np.inf if k is None else k / OUT_FS_HZ + self._delay_s[c]
+                continue
             out[c] = -np.inf if None in ks else (min(ks) + 1) / OUT_FS_HZ + self._delay_s[c]
         return out
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from touchreal_client.protocol import CLASSES
@@ -25,6 +28,16 @@ class Metrics:
         self.updates = Counter("touchreal_updates", "updates published", registry=r)
         self.overload = Counter("touchreal_updates_dropped_overload", "updates dropped because the event loop fell "
                                 "behind the acquisition thread", registry=r)
+        self.shed_seconds = Counter("touchreal_shed_seconds", "seconds of signal acquired but not encoded because "
+                                    "compute fell more than max_lag_ms behind acquisition", registry=r)
+        self.sheds = Counter("touchreal_sheds", "chunks shed (each a seq gap for every subscriber and a restart of the "
+                             "demanded columns)", registry=r)
+        self.lag = Gauge("touchreal_acquisition_lag_seconds", "age of the latest chunk's oldest sample when its "
+                         "compute started (clock model)", registry=r)
+        self.real_time_factor = Gauge("touchreal_real_time_factor", "wall time spent per second of signal encoded, "
+                                      "about 1 s average (< 1 keeps up)", registry=r)
+        self.awake = Gauge("touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; every demanded "
+                           "one when dense)", registry=r)
         self.clients = Gauge("touchreal_clients_connected", "connected stream clients", registry=r)
         self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
                                   registry=r)
@@ -48,6 +61,13 @@ class Metrics:
             self.drops.labels(reason)
         for outcome in AUTH_OUTCOMES:
             self.auth.labels(outcome)
+
+    def follow(self, runtime: Callable[[], Any]) -> None:
+        """Read the acquisition lag, the real-time factor and the taxels awake from ``runtime()`` (the current
+        :class:`~.runtime.Runtime` or None) whenever the metrics are collected."""
+        self.lag.set_function(lambda: getattr(runtime(), "lag_s", 0.0))
+        self.real_time_factor.set_function(lambda: getattr(runtime(), "real_time_factor", 0.0))
+        self.awake.set_function(lambda: getattr(getattr(runtime(), "encoder", None), "awake_taxels", 0))
 
     def count_drop(self, reason: str, frames: int) -> None:
         """A hub's ``on_drop``: frames dropped for a client, by reason."""

@@ -48,7 +48,8 @@ def require_token(request: Request, cred: HTTPAuthorizationCredentials | None = 
 
 
 class Health(BaseModel):
-    status: str = Field(description="ok | degraded (the parameters in force are a fallback) | failed")
+    status: str = Field(description="ok | degraded (the parameters in force are a fallback, or compute shed load in the "
+                        "last 10 s) | failed")
     session: str
     reason: str | None = Field(default=None, description="why degraded or failed")
 
@@ -73,7 +74,8 @@ class Rollback(BaseModel):
 @router.get("/v1/health", response_model=Health, tags=["health"], responses={503: {"model": Health}})
 def health(request: Request) -> Any:
     """Liveness: the process serves and its acquisition thread has not failed; ``degraded`` while a
-    parameter set that failed has been replaced by a fallback (the reason says which)."""
+    parameter set that failed has been replaced by a fallback, or for 10 s after compute shed load
+    (the reason says which)."""
     svc = service_of(request)
     state = svc.view.health()
     status, _, reason = state.partition(": ")

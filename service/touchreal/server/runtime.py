@@ -31,10 +31,11 @@ from touchreal_client.protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_
 
 from ..encoding.encoder import SpikeEvents
 from ..params import EncoderParams
+from ..preprocess.activity import ActivityPlan
 from ..preprocess.pipeline import Channels
 from ..sources.live import LiveSource
 from ..raw import RawChunk
-from ..settings import CLASSES
+from ..settings import CLASSES, PVDF_FS_HZ, ST_FS_HZ
 from ..stream import StreamEncoder
 from .demand import Demand
 
@@ -42,6 +43,8 @@ log = logging.getLogger("touchreal.server")
 
 _SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects", "bad_times")  # source counters that flag a gap
 _SANITIZER_FAULTS = ("non_finite", "gaps", "bad_time", "duplicate", "out_of_range")
+_DRAIN_TO = 0.25  #: a shed drops chunks until one is less than this fraction of max_lag_s old
+_RTF_AVERAGE_S = 1.0  #: the real-time factor averages over about this much signal (s)
 
 
 def wall_us() -> int:
@@ -96,8 +99,27 @@ class Runtime:
         fallback: Callable[[int, int | None, Exception], bool] | None = None,
         on_end: Callable[[], None] | None = None,
         dtype: str = "float64",
+        activity: ActivityPlan | None = None,
+        max_lag_s: float = 0.25,
+        on_shed: Callable[[float, bool], None] | None = None,
     ):
         self.source = source
+        #: activity-driven compute for the StreamEncoder (None: dense); only a skin of several taxel blocks
+        #: uses it: a single block always runs, so its spikes are the offline encoder's bit for bit
+        self.activity = activity if taxel_block is not None and source.n_taxels > taxel_block else None
+        #: a chunk whose spikes would leave more than this (s) after its oldest sample is shed (:meth:`_shed`)
+        self.max_lag_s = max_lag_s
+        #: a replay is never shed: its frames stay ``touchreal encode``'s, and one that falls behind catches up
+        #: (its pace hands the missed chunks over back to back); its lag is reported all the same
+        self._sheds = not getattr(source, "replayed", False)
+        #: told (seconds of signal, whether a new shed began) of every dropped chunk (on this thread; must not block)
+        self._on_shed = on_shed
+        self._draining = False  #: a shed is dropping the backlog
+        self.lag_s = 0.0  #: age (s, clock model) of the latest chunk's oldest sample when its compute started
+        self.real_time_factor = 0.0  #: wall time spent per second of signal encoded, ~1 s average (< 1 keeps up)
+        self.shed_s = 0.0  #: seconds of signal acquired but not encoded because compute was behind
+        self.sheds = 0  #: chunks shed
+        self.last_shed_us: int | None = None  #: wall clock (us) of the latest shed
         self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
         self.dtype = np.dtype(dtype)  #: StreamEncoder's dtype (the preprocessing's arithmetic)
         self._demand, self._params, self._publish = demand, params, publish
@@ -115,7 +137,7 @@ class Runtime:
         self.active: dict[str, tuple[int, ...]] | None = None
         self.active_channels: tuple[int, ...] = ()
         self.update_no = 0
-        self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | ended | stopped | failed
+        self.state = "starting"  #: starting | idle | waiting (a replay, for demand) | running | shedding | ended | stopped | failed
         self.error: str | None = None
         #: the source's clock model (maps a spike's cause to the moment its sample was acquired)
         self.clocks = ClockMap()
@@ -182,20 +204,24 @@ class Runtime:
         self._follow_clock(chunk, acq_us, clock)
         flags = self._pending_flags | self._source_flags()
         demand = self._demand()
+        start = time.perf_counter()
+        if not demand.empty:  # real time, or honest about it: before anything is built or computed
+            self.lag_s = self._lag_s(chunk, wall_us())
+            # the chunk's spikes would leave this late: its lag plus its compute at the recent real-time factor
+            # (while a shed drops the backlog, the lag alone: the factor is not updated then)
+            due_s = self.lag_s + (0.0 if self._draining else self.real_time_factor * self._span_s(chunk))
+            if self._sheds and due_s > (self.max_lag_s * _DRAIN_TO if self._draining else self.max_lag_s):
+                self._shed(chunk)
+                return None
+            self._draining = False
         rev, params = self._params()
         if self.encoder is not None and rev != self.enc_rev:
             flags |= FLAG_PARAMS_CHANGED | FLAG_RESTARTED
             self.encoder = None
         if self.encoder is None:
-            self.enc_rev, self.active, self._enc_stats = rev, None, {}
-            self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
-                                         update_s=params.preprocess.update_ms / 1000.0)
-            self.decoders = {}
+            self._new_encoder(rev, params)
         self._follow_decoder_demand(demand)
-        columns = {c: t for c, t in demand.columns.items() if c in self.encoder.classes}  # what this set serves
-        if columns != self.active or demand.channel_taxels != self.active_channels:
-            self.encoder.set_active(columns, demand.channel_taxels)
-            self.active, self.active_channels = columns, demand.channel_taxels
+        self._apply_demand(demand)
         if demand.empty:  # acquisition only (input policy, raw history for a warm restart)
             self.encoder.process(chunk)
             flags |= self._count_sanitizer()
@@ -213,7 +239,72 @@ class Runtime:
             t0 = time.perf_counter()
             ch, ev = self.encoder.process_slow()
             upd = self._emit(ev, 0, acq_us, time.perf_counter() - t0, ch if demand.channel_taxels else None)
+        self._follow_real_time(chunk, time.perf_counter() - start)
         return upd
+
+    # -- real time, or honest about it ----------------------------------------------------------
+    def _lag_s(self, chunk: RawChunk, now_us: int) -> float:
+        """How old the chunk's oldest sample is (s) now, by the clock model: what its spikes have
+        lost before any compute (0 without a clock model)."""
+        starts = [a[0] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
+        if not starts or self.clocks.last is None:
+            return 0.0
+        oldest_us = min(starts) * 1e6 + self.source.offset_us
+        return max(0.0, (now_us - float(self.clocks.to_server_wall_us(oldest_us))) / 1e6)
+
+    def _shed(self, chunk: RawChunk) -> None:
+        """Compute fell behind: this chunk's spikes would leave more than ``max_lag_s`` after its oldest
+        sample (its lag plus its compute at the recent real-time factor). This chunk, and every chunk after it until
+        one is less than ``max_lag_s * _DRAIN_TO`` old (the backlog), is dropped, and the pipeline
+        starts again from rest at the next one, as at a stream's start (flagged ``restarted`` and
+        ``source_gap``; warm-up follows). Restarting from rest costs a constructor, where rebuilding
+        the branches from the raw history would cost about as much compute as the history is long
+        and would keep an overloaded pipeline behind. ``on_shed`` tells the clients (a ``seq`` gap,
+        counted as ``upstream_loss``) and the metrics."""
+        seconds = self._span_s(chunk)
+        self.shed_s += seconds
+        self.last_shed_us = wall_us()
+        self._pending_flags |= FLAG_RESTARTED | FLAG_SOURCE_GAP
+        self.state = "shedding"
+        if self._draining:  # the same shed: the backlog is being dropped
+            if self._on_shed is not None:
+                self._on_shed(seconds, False)
+            return
+        self._draining = True
+        self.sheds += 1
+        # the new pipeline is built now: the chunks acquired meanwhile are part of the backlog dropped
+        self._new_encoder(*self._params())
+        self._apply_demand(self._demand())
+        log.warning("compute is %.0f ms behind acquisition (max_lag_ms %.0f): %.0f ms of signal shed, the pipeline "
+                    "restarts from rest", self.lag_s * 1e3, self.max_lag_s * 1e3, seconds * 1e3)
+        if self._on_shed is not None:
+            self._on_shed(seconds, True)
+
+    @staticmethod
+    def _span_s(chunk: RawChunk) -> float:
+        """The chunk's signal time (s): its PVDF samples at the PVDF rate, else its SingleTact samples."""
+        return chunk.pvdf_t.size / PVDF_FS_HZ if chunk.pvdf_t.size else chunk.st_t.size / ST_FS_HZ
+
+    def _follow_real_time(self, chunk: RawChunk, spent_s: float) -> None:
+        """The real-time factor: wall time spent per second of signal, averaged over about a second."""
+        span = self._span_s(chunk)
+        if span > 0:
+            a = min(1.0, span / _RTF_AVERAGE_S)
+            self.real_time_factor += a * (spent_s / span - self.real_time_factor)
+
+    def _apply_demand(self, demand: Demand) -> None:
+        """Make the encoder compute what ``demand`` asks of the classes it serves."""
+        columns = {c: t for c, t in demand.columns.items() if c in self.encoder.classes}
+        if columns != self.active or demand.channel_taxels != self.active_channels:
+            self.encoder.set_active(columns, demand.channel_taxels)
+            self.active, self.active_channels = columns, demand.channel_taxels
+
+    def _new_encoder(self, rev: int, params: EncoderParams) -> None:
+        """A pipeline from rest for parameter revision ``rev`` (every column demanded until set_active)."""
+        self.enc_rev, self.active, self._enc_stats = rev, None, {}
+        self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
+                                     update_s=params.preprocess.update_ms / 1000.0, activity=self.activity)
+        self.decoders = {}
 
     def _flush_segment(self, acq_us: int) -> None:
         """The source began its next segment (a replayed trial): the encoder's last spikes go out

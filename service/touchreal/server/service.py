@@ -37,6 +37,7 @@ from touchreal_client.clock import ClockPoint
 from ..decoding.model import ModelStore, params_warning
 from ..dryrun import prove_runnable
 from ..params import EncoderParams, ParamsError
+from ..preprocess.activity import ActivityPlan
 from ..redaction import redact
 from .hub import Hub
 from .metrics import Metrics
@@ -88,6 +89,7 @@ class Service:
         self.store = ParamsStore(settings.state_dir, settings.params)
         self.models = ModelStore(Path(settings.state_dir) / "models")
         self.metrics = Metrics()
+        self.metrics.follow(lambda: self.runtime)
         self.hub = Hub(settings.queue_frames, settings.slow_timeout_s, settings.max_frame_age_ms / 1000 or None,
                        refresh_s=settings.hop_ms / 1000)
         self.hub.on_drop = self.metrics.count_drop
@@ -172,10 +174,11 @@ class Service:
             log.error("cannot open source %s: %s", redact(self.config.source), redact(str(exc)))
             return self.source_error
         self.source_error, self.ended = None, None
-        self.hub.configure(source.n_taxels, self.view.served_classes(), self.view.decoder_classes())
+        self.hub.configure(source.n_taxels, self.view.served_classes(), self.view.decoder_classes(), source.positions_mm)
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._fall_back, self._post_end,
-                               self.settings.compute_dtype)
+                               self.settings.compute_dtype, None if self.settings.dense else ActivityPlan(),
+                               self.settings.max_lag_ms / 1000.0, self._shed)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again
@@ -199,6 +202,18 @@ class Service:
         self.loop.call_soon_threadsafe(self._deliver, upd, self._lost)
         self._lost = {}
         self._taken.wait(HANDOFF_S)  # hand the GIL to the event loop (HANDOFF_S)
+
+    def _shed(self, seconds: float, began: bool) -> None:
+        """Called on the acquisition thread for each chunk it dropped (:meth:`.runtime.Runtime._shed`;
+        ``began``: the first of a shed): the update it did not make is lost for every subscriber, one
+        frame per lane the demand feeds, told with the next update (``upstream_loss``), and counted."""
+        demand = self.hub.demand
+        lanes = [("spikes", None)] + ([("channels", None)] if demand.channel_taxels else [])
+        for lane in lanes + [("decoded", name) for name in demand.decoders]:
+            self._lost[lane] = self._lost.get(lane, 0) + 1
+        self.metrics.shed_seconds.inc(seconds)
+        if began:
+            self.metrics.sheds.inc()
 
     def _post_end(self) -> None:
         """Called on the acquisition thread after the source's last update was posted."""

@@ -126,6 +126,13 @@ class ServeSettings(ServerSettings):
     hop_ms: float = Field(default=5.0, ge=1.0, le=1000.0, description="hop (ms): the source hands over samples and "
                           "the SingleTact-only and short-window classes go out this often (at most update_ms); "
                           "long windows keep update_ms (docs/architecture.md, Latency)")
+    dense: bool = Field(default=False, description="run every demanded taxel block on every update; by default a "
+                        "skin of several blocks runs only the blocks a contact has woken (activity-driven compute, "
+                        "docs/architecture.md), a single block always runs")
+    max_lag_ms: float = Field(default=250.0, ge=10.0, le=60_000.0, description="real time, or honest about it: a "
+                              "chunk whose oldest sample is older than this (ms) when its compute would start is not "
+                              "encoded (acquisition only); clients see a seq gap and a restarted, source_gap frame, "
+                              "/metrics counts it and health says degraded (docs/service.md, Overload)")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 

@@ -13,6 +13,9 @@ from .. import __version__
 from ..decoding.model import params_warning
 from ..redaction import redact
 from .hub import limits
+from .runtime import wall_us
+
+SHED_DEGRADED_S = 10.0  #: health stays ``degraded`` this long (s) after compute last shed load
 
 
 class ServiceView:
@@ -127,6 +130,7 @@ class ServiceView:
                        "decoders": {n: list(t) for n, t in self.service.hub.demand.decoders.items()}},
             "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
                         for s in self.service.hub.subscribers.values()],
+            "realtime": self.realtime(),
             "faults": dict(rt.counters) if rt else {},
             "params": {"rev": self.service.store.active_rev, "sha256": self.service.store.info().sha256,
                        "fallback": self.service.store.fallback_reason},
@@ -149,12 +153,37 @@ class ServiceView:
             return False, "pipeline warming up"
         return True, self.health()
 
+    def realtime(self) -> dict[str, Any]:
+        """Whether compute keeps up with acquisition (``/v1/status``'s ``realtime``): the latest
+        chunk's lag (ms, clock model), the real-time factor (wall time per second of signal; < 1
+        keeps up), and what was shed because compute fell more than ``max_lag_ms`` behind."""
+        rt = self.service.runtime
+        last = rt.last_shed_us if rt is not None else None
+        enc = rt.encoder if rt is not None else None
+        detector = enc.detector if enc is not None else None
+        return {"compute": "dense" if rt is None or rt.activity is None else "sparse",
+                "taxels": self.n_taxels, "awake_taxels": enc.awake_taxels if enc is not None else 0,
+                "activity": ({**detector.counters, "stuck_taxels": detector.stuck, "plan": detector.plan.describe()}
+                             if detector is not None else None),
+                "lag_ms": round(rt.lag_s * 1e3, 3) if rt else 0.0, "max_lag_ms": self.service.settings.max_lag_ms,
+                "real_time_factor": round(rt.real_time_factor, 4) if rt else 0.0,
+                "shed_ms": round(rt.shed_s * 1e3, 1) if rt else 0.0, "sheds": rt.sheds if rt else 0,
+                "last_shed_age_s": None if last is None else round((wall_us() - last) / 1e6, 3)}
+
     def health(self) -> str:
-        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback; ``failed`` once the
-        acquisition thread has failed."""
-        if self.service.runtime is not None and self.service.runtime.state == "failed":
+        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback, or while compute
+        has shed load within the last :data:`SHED_DEGRADED_S`; ``failed`` once the acquisition
+        thread has failed."""
+        rt = self.service.runtime
+        if rt is not None and rt.state == "failed":
             return "failed"
-        return f"degraded: {self.service.store.fallback_reason}" if self.service.store.fallback_reason else "ok"
+        if self.service.store.fallback_reason:
+            return f"degraded: {self.service.store.fallback_reason}"
+        if rt is not None and rt.last_shed_us is not None and wall_us() - rt.last_shed_us < SHED_DEGRADED_S * 1e6:
+            return (f"degraded: compute fell behind acquisition; {rt.shed_s:.1f} s of signal shed in {rt.sheds} "
+                    f"chunks (max_lag_ms {self.service.settings.max_lag_ms:g}, real-time factor "
+                    f"{rt.real_time_factor:.2f})")
+        return "ok"
 
     def config_view(self) -> dict[str, Any]:
         p, config = self.service.store.active.preprocess, self.service.config

@@ -317,6 +317,7 @@ class ReplayLiveSource:
     """
 
     waits_for_demand = True
+    replayed = True  #: not acquired in real time: the service never sheds it (server/runtime.py)
 
     def __init__(self, dataset: Dataset, trial_ids: Sequence[str] | None = None, update_s: float = 0.032,
                  speed: float = 1.0, loop: bool = False):

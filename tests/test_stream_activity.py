@@ -1,0 +1,113 @@
+"""Activity-driven compute: the raw-sample detector (sans-I/O) and the StreamEncoder that runs only
+the taxel blocks a contact has woken, against the dense chain on the same samples."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from touchreal.analysis.spiketrains import vr_distance
+from touchreal.encoding.encoder import SpikeEvents
+from touchreal.params import default_params
+from touchreal.preprocess.activity import ActivityDetector, ActivityPlan
+from touchreal.raw import RawChunk
+from touchreal.sources.live import SimHops
+from touchreal.stream import StreamEncoder
+
+HOP_S = 0.005
+N = 8
+
+
+def _hops(seconds: float, n: int = N, seed: int = 0, st=None, pv=None) -> list[RawChunk]:
+    """5 ms hops of noisy idle taxels (SingleTact 0.3 N + 5 mN noise at 100 Hz; PVDF 8 mV noise and
+    20 mV of 50 Hz hum at 2 kHz); ``st(t, x)`` / ``pv(t, x)`` may change the samples in place."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(int(round(seconds / HOP_S))):
+        pv_t = (i * 10 + np.arange(1, 11)) / 2000.0
+        st_t = np.array([(i + 1) * HOP_S]) if i % 2 else np.zeros(0)
+        s = 0.3 + 0.005 * rng.standard_normal((st_t.size, n))
+        p = 0.008 * rng.standard_normal((10, n)) + 0.02 * np.sin(2 * np.pi * 50 * pv_t)[:, None]
+        if st is not None:
+            st(st_t, s)
+        if pv is not None:
+            pv(pv_t, p)
+        out.append(RawChunk(st_t, s, pv_t, p))
+    return out
+
+
+def _run(det: ActivityDetector, hops: list[RawChunk]) -> np.ndarray:
+    """The awake mask after every hop, (hops, N)."""
+    return np.array([det.push(h) for h in hops])
+
+
+def test_quiet_taxels_fall_asleep_and_a_press_wakes_its_taxel_in_the_same_chunk():
+    def press(t, x):
+        x[:, 3] += np.clip((t - 3.0) * 20, 0, 0.5)[:, None].ravel() if x.shape[0] else 0
+
+    def tap(t, x):
+        x[:, 3] += 0.2 * np.exp(-((t - 3.0) / 0.004) ** 2)  # the film's transient at the contact
+
+    det = ActivityDetector(N)
+    awake = _run(det, _hops(4.0, st=press, pv=tap))
+    t = np.arange(1, awake.shape[0] + 1) * HOP_S
+    before = (t > 2.2) & (t < 2.99)
+    assert not awake[before].any()  # learned the noise and hum: everything asleep before the contact
+    onset = np.flatnonzero(t >= 3.0)[0]  # the hop whose samples reach the transient's peak
+    assert awake[onset, 3] and awake[t > 3.0, 3].all()
+    assert not awake[t > 2.2][:, [0, 1, 2, 4, 5, 6, 7]].any()  # the others stay asleep
+
+
+def test_nan_bursts_stuck_sensors_and_drift_on_idle_taxels_are_counted_not_woken():
+    def faults(t, x):
+        x[(t > 2.0) & (t < 2.02), 1] = np.nan  # a NaN burst
+        x[:, 2] = 0.1  # a stuck film
+
+    def drift(t, x):
+        x[:, 5] += 0.02 * t[:, None].ravel() if x.shape[0] else 0  # 20 mN/s of baseline drift
+
+    det = ActivityDetector(N)
+    awake = _run(det, _hops(6.0, pv=faults, st=drift))
+    t = np.arange(1, awake.shape[0] + 1) * HOP_S
+    assert det.counters["non_finite"] == 39 and det.stuck == 1  # PVDF ticks k / 2000 s, 2.0 < t < 2.02: k = 4001..4039
+    assert not awake[t > 2.5][:, [1, 2]].any()
+    assert awake[t > 3.0, 5].mean() < 0.2  # the baseline follows slow drift
+
+
+def test_a_taxel_flickering_at_its_band_edge_does_not_thrash():
+    def flicker(t, x):
+        x[:, 4] += 0.3 * ((t % 0.4) < 0.01)  # a 10 ms burst out of band every 0.4 s, less than the hold apart
+
+    det = ActivityDetector(N, ActivityPlan(hold_s=1.0))
+    awake = _run(det, _hops(8.0, pv=flicker))
+    t = np.arange(1, awake.shape[0] + 1) * HOP_S
+    changes = np.count_nonzero(np.diff(awake[t > 2.0, 4].astype(int)))
+    assert awake[t > 2.5, 4].all() and changes == 0
+
+
+@pytest.fixture(scope="module")
+def skin_runs():
+    """The simulated e-skin's live scene on 12 taxels in 5 ms hops, dense and activity-driven (blocks of 3)."""
+    params = default_params()
+    hops_src = SimHops(12, HOP_S, seed=3)
+    hops = [hops_src.read_hop() for _ in range(int(8.0 / HOP_S))]
+    out = {}
+    for name, plan in (("dense", None), ("sparse", ActivityPlan())):
+        se = StreamEncoder(params, 12, taxel_block=3, update_s=0.032, activity=plan)
+        parts, awake = [], []
+        for h in hops:
+            parts.append(se.process(h))
+            awake.append(se.awake_taxels)
+        parts.append(se.finish())
+        out[name] = (SpikeEvents.concatenate(parts), np.array(awake))
+    return out
+
+
+def test_activity_driven_spikes_equal_the_dense_chain_where_it_skips(skin_runs):
+    (dense, _), (sparse, awake) = skin_runs["dense"], skin_runs["sparse"]
+    assert awake.min() < 12  # blocks were asleep for part of the run
+    for ci in range(3):
+        for k in range(12):
+            a = np.sort(dense.t_s[(dense.cls == ci) & (dense.taxel == k)])
+            b = np.sort(sparse.t_s[(sparse.cls == ci) & (sparse.taxel == k)])
+            assert np.array_equal(a, b), (ci, k, a.size, b.size, vr_distance(a, b, 0.01))
