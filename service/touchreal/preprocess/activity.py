@@ -7,15 +7,20 @@ does not need the expensive stages (filters, STFT gate, PCHIP, class input, LIF)
 in which one of them leaves its band (before that chunk is processed, so the contact's first
 samples go through the whole chain).
 
-Per taxel and sensor the detector keeps a *baseline* and a *noise scale*, both learned online:
+Per taxel and sensor the detector keeps a *baseline* and a *noise level*, both learned online:
 
 * a chunk is *out of band* for a taxel when the largest deviation of its samples from the
-  baseline exceeds ``k_noise`` times the noise scale plus the sensor's quantisation floor
-  (two ADC steps: no build has less noise than its converter);
-* on quiet chunks the baseline follows the chunk's mean; the noise scale follows the chunk's
-  largest deviation, quickly down and slowly up (a high quantile of the quiet deviations, which a
-  contact barely moves), so slow drift and a build's noise (and mains hum) are learned, never
-  configured per build;
+  baseline exceeds ``k_noise`` times the noise level (the rms deviation of quiet samples) plus
+  the sensor's quantisation floor (two ADC steps: no build has less noise than its converter).
+  At 5 x rms, Gaussian noise leaves the band about once per 1.7 million samples (once per
+  15 minutes per taxel at 2 kHz), and mains hum of any amplitude never does (its peak is
+  sqrt(2) x its rms);
+* a sustained vibration too small for that (the class stages see it through the STFT gate's
+  narrow bins) raises the mean square deviation of the last ``energy_tau_s``: above
+  ``energy_ratio`` x the noise's, the chunk is out of band too (a sine of 1.3 x the noise rms);
+* on quiet chunks the baseline follows the chunk's mean and the noise level the chunk's mean
+  square deviation (a loud chunk never moves the level), so slow drift and a build's noise and
+  hum are learned, never configured per build;
 * on loud chunks the baseline still follows, ``drift_tau_s`` slowly: a taxel left under a
   constant load (or a sensor stuck at a new level) settles and sleeps again.
 
@@ -41,11 +46,12 @@ _STUCK_MIN_SAMPLES = 8  #: a chunk needs this many PVDF samples for "all identic
 class ActivityPlan:
     """How the detector decides (printable, overridable, recorded; times in s)."""
 
-    k_noise: float = 2.5  #: out of band: deviation > k_noise x noise scale + floor
+    k_noise: float = 5.0  #: out of band: a deviation > k_noise x the noise level (rms) + floor
+    energy_ratio: float = 1.8  #: out of band: the recent mean square deviation > this x the noise's
+    energy_tau_s: float = 0.02  #: "recent": about 40 PVDF samples (the ratio's noise sd ~0.22: 1.8 is 3.6 sd)
     hold_s: float = 1.0  #: a block sleeps once all its taxels have been in band this long
     baseline_tau_s: float = 0.5  #: the baseline's time constant on quiet chunks
-    noise_tau_s: float = 2.0  #: the noise scale's time constant towards smaller deviations (and while learning)
-    noise_rise_tau_s: float = 60.0  #: its time constant towards larger deviations once learned
+    noise_tau_s: float = 2.0  #: the noise level's time constant (and how long a new taxel learns from every chunk)
     drift_tau_s: float = 5.0  #: the baseline's time constant on loud chunks (constant load, drift)
     st_floor_n: float = 2 * ST_RESOLUTION_N  #: SingleTact floor: two quantisation steps (N)
     pvdf_floor_v: float = 2 * _PVDF_ADC_STEP_V  #: PVDF floor: two ADC steps (V)
@@ -55,38 +61,43 @@ class ActivityPlan:
 
 
 class _Band:
-    """Baseline and noise scale of one sensor for every taxel."""
+    """Baseline and noise level of one sensor for every taxel."""
 
     def __init__(self, n_taxels: int, floor: float):
         self.floor = floor
         self.base = np.zeros(n_taxels)
-        self.scale = np.zeros(n_taxels)
+        self.var = np.zeros(n_taxels)  #: mean square deviation from the baseline of quiet samples
         self.known = np.zeros(n_taxels, bool)  #: a taxel's band is learned from its first finite chunk
         self.seen = np.zeros(n_taxels)  #: fraction of the learning time (``noise_tau_s``) seen so far
+        self.recent = np.zeros(n_taxels)  #: mean square deviation over about ``energy_tau_s``
 
-    def out(self, x: np.ndarray, k_noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(out of band (N,), chunk mean (N,), largest deviation (N,)) of samples ``x`` (n, N); NaN ignored."""
-        with np.errstate(invalid="ignore"):
-            finite = np.isfinite(x)
-            has = finite.any(axis=0)
-            xs = np.where(finite, x, 0.0)
-            mean = xs.sum(axis=0) / np.maximum(finite.sum(axis=0), 1)
-            new = has & ~self.known
-            self.base[new], self.known[new] = mean[new], True
-            dev = np.where(finite, np.abs(x - self.base), 0.0).max(axis=0)
-            self.scale[new] = dev[new]  # a first chunk under contact only starts the scale high; quiet chunks lower it
-        return has & (dev > k_noise * self.scale + self.floor), mean, dev
+    def out(self, x: np.ndarray, k_noise: float, energy_ratio: float, a_recent: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(out of band (N,), chunk mean (N,), mean square deviation (N,)) of samples ``x`` (n, N); NaN
+        ignored. Out of band: a sample beyond ``k_noise`` x the noise level, or the recent mean square
+        deviation above ``energy_ratio`` x the noise's (a sustained small vibration)."""
+        finite = np.isfinite(x)
+        has = finite.any(axis=0)
+        xs = np.where(finite, x, 0.0)
+        count = np.maximum(finite.sum(axis=0), 1)
+        mean = xs.sum(axis=0) / count
+        new = has & ~self.known
+        self.base[new], self.known[new] = mean[new], True
+        d = np.where(finite, xs - self.base, 0.0)
+        ms = (d * d).sum(axis=0) / count
+        self.var[new] = self.recent[new] = ms[new]
+        self.recent += a_recent * (ms - self.recent)
+        peak = np.abs(d).max(axis=0)
+        floor2 = self.floor * self.floor
+        loud = (peak > k_noise * np.sqrt(self.var) + self.floor) | (self.recent > energy_ratio * self.var + floor2)
+        return has & loud, mean, ms
 
-    def follow(self, quiet: np.ndarray, mean: np.ndarray, dev: np.ndarray, a_base: float, a_drift: float,
-               a_fall: float, a_rise: float) -> None:
-        """Quiet taxels' baseline follows the chunk mean, loud ones' drifts slowly; the noise scale falls
-        towards a smaller deviation at ``a_fall`` and rises towards a larger one at ``a_rise`` (both fast
-        while the taxel is still being learned), so it settles at a high quantile of the quiet deviations
-        and a contact barely moves it."""
+    def follow(self, quiet: np.ndarray, mean: np.ndarray, ms: np.ndarray, a_base: float, a_drift: float,
+               a_noise: float) -> None:
+        """Quiet taxels' baseline and noise level follow the chunk, loud ones' baseline drifts slowly
+        and their noise level stays (every chunk teaches a taxel still being learned)."""
         self.base += np.where(quiet, a_base, a_drift) * (mean - self.base)
-        learning = self.seen < 1.0
-        up = dev > self.scale
-        self.scale += np.where(learning, a_fall, np.where(up, a_rise, a_fall)) * (dev - self.scale)
+        self.var += np.where(quiet | (self.seen < 1.0), a_noise, 0.0) * (ms - self.var)
 
 
 class ActivityDetector:
@@ -111,11 +122,11 @@ class ActivityDetector:
         now = float(max(ends))
         loud = np.zeros(self.n_taxels, bool)
         span = chunk.pvdf_t.size / 2000.0 if chunk.pvdf_t.size else chunk.st_t.size / 100.0
-        rates = [min(1.0, span / tau) for tau in (p.baseline_tau_s, p.drift_tau_s, p.noise_tau_s, p.noise_rise_tau_s)]
+        rates = [min(1.0, span / tau) for tau in (p.baseline_tau_s, p.drift_tau_s, p.noise_tau_s)]
         for band, x in ((self._st, chunk.st), (self._pv, chunk.pvdf)):
             if x.shape[0] == 0:
                 continue
-            out, mean, dev = band.out(x, p.k_noise)
+            out, mean, dev = band.out(x, p.k_noise, p.energy_ratio, min(1.0, span / p.energy_tau_s))
             band.follow(~out, mean, dev, *rates)
             band.seen += span / p.noise_tau_s
             loud |= out
