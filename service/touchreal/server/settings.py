@@ -130,9 +130,10 @@ class ServeSettings(ServerSettings):
                         "skin of several blocks runs only the blocks a contact has woken (activity-driven compute, "
                         "docs/architecture.md), a single block always runs")
     max_lag_ms: float = Field(default=250.0, ge=10.0, le=60_000.0, description="real time, or honest about it: a "
-                              "chunk whose oldest sample is older than this (ms) when its compute would start is not "
-                              "encoded (acquisition only); clients see a seq gap and a restarted, source_gap frame, "
-                              "/metrics counts it and health says degraded (docs/service.md, Overload)")
+                              "chunk whose spikes would leave more than this (ms) after its oldest sample is dropped "
+                              "with the backlog behind it and the pipeline restarts; clients see a seq gap and a "
+                              "restarted, source_gap frame, /metrics counts it and health says degraded "
+                              "(docs/service.md, How it runs)")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 
