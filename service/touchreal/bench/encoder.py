@@ -27,6 +27,9 @@ per-class window sets) and reports, against the 128 ms / float64 result, the mea
 spike-count error (%) and the mean van Rossum distance (tau 10 ms), with the compute time per update
 for one taxel. It uses rig-v1 from TOUCHREAL_SHARED when present, otherwise a small simulated dataset.
 
+``--skin`` runs only the large-skin part instead (bench/skin.py): activity-driven against dense
+compute from 4096 to 65,536 taxels, side by side.
+
 Part 4 soaks the chain with a long simulated stream (``--soak-hours``) and reports the largest
 state magnitude, the state size at the start and end (flat memory) and the process RSS.
 """
@@ -49,6 +52,7 @@ from ..raw import RawChunk
 from ..sources.replay import ReplaySource
 from ..settings import CLASSES, shared_dir
 from ..stream import StreamEncoder, encode_chunks
+from .skin import skin
 
 WINDOWS_MS = (16, 32, 64, 128, 256, 512)
 HOP_MAX_TAXELS = 1024  #: largest ``--taxels`` count the hop, served-latency and demand parts run (time)
@@ -79,6 +83,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--soak-hours", type=float, default=0.0, help="also soak with this many simulated hours")
     p.add_argument("--latency-seconds", type=float, default=30.0, help="simulated seconds per latency run (1 ms chunks)")
     p.add_argument("--skip-sweep", action="store_true", help="only the timing and latency parts")
+    p.add_argument("--skin", action="store_true", help="only the large-skin part: activity-driven against dense "
+                   "compute, 4096 to 65,536 taxels (bench/skin.py)")
+    p.add_argument("--skin-seconds", type=float, default=3.0, help="measured seconds of signal per large-skin run")
 
 
 def _scene_chunks(n_taxels: int, seconds: float, update_s: float, seed: int = 0) -> list[RawChunk]:
@@ -379,6 +386,9 @@ def soak(params: EncoderParams, hours: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = EncoderParams.load(args.params) if args.params else default_params()
+    if args.skin:
+        skin(params, args.skin_seconds)
+        return 0
     timing(params, args.taxels, args.seconds)
     hop_taxels = sorted({1} | {n for n in args.taxels if n <= HOP_MAX_TAXELS})  # the hop parts run in blocks of 64
     hop_cost(params, hop_taxels, min(args.seconds, 10.0))

@@ -169,6 +169,16 @@ class SceneSource:
         return FS_HZ
 
     @property
+    def tick(self) -> int:
+        """Index of the next PVDF tick (2 kHz) since the clock's start."""
+        return self.eskin.tick
+
+    @property
+    def st_phase(self) -> int:
+        """The tick (0-19) of the first SingleTact sample: SingleTact samples fall on ticks = this mod 20."""
+        return self.eskin.st_phase
+
+    @property
     def time_s(self) -> float:
         """Recording time (s) up to which samples have been produced (time of the next tick)."""
         return self.eskin.time_s

@@ -33,6 +33,7 @@ from ..recording import Dataset, Trial
 from ..settings import PVDF_FS_HZ
 from ..raw import RawChunk, taxel_grid
 from .replay import ReplaySource
+from ..simulator.large import LargeSkinSource
 from ..simulator.scene import SceneSource, default_scene
 
 
@@ -123,19 +124,28 @@ class SimHops:
     is played at the array's centre and over its first and last taxel in turn, so neighbouring taxels
     feel each touch differently (the skin's spatial response).
 
+    ``touched`` (0-1) plays the large-skin scene instead (:mod:`~touchreal.simulator.large`): sparse
+    contacts moving over the grid, that fraction of the taxels under one at a typical moment, the
+    others reading the build's noise, hum and drift; its cost follows the touched taxels.
+
     Hops span ``update_s`` (rounded to PVDF ticks), on a grid phased so that a hop's newest sample is
     a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact period (10 ms)."""
 
-    def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None):
+    def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None,
+                 touched: float | None = None):
         positions = taxel_grid(n_taxels)
-        spots = [(0.0, 0.0)] + ([tuple(positions[0]), tuple(positions[-1])] if n_taxels > 1 else [])
-        self.scene = SceneSource(default_scene(spots), taxels_xy_mm=positions, seed=seed, t0_s=t0_s)
+        self.scene: SceneSource | LargeSkinSource
+        if touched is None:
+            spots = [(0.0, 0.0)] + ([tuple(positions[0]), tuple(positions[-1])] if n_taxels > 1 else [])
+            self.scene = SceneSource(default_scene(spots), taxels_xy_mm=positions, seed=seed, t0_s=t0_s)
+        else:
+            self.scene = LargeSkinSource(positions, touched, seed=seed, t0_s=t0_s)
         self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
         self.zero_s = self.scene.requested_s  #: the sensor clock's instant (s) at which the stream starts
 
     def _hop_ticks_left(self) -> int:
         """PVDF ticks in the next hop: up to and with the next tick on the SingleTact phase (mod the hop)."""
-        return (self.scene.eskin.st_phase - self.scene.eskin.tick) % self._hop_ticks + 1
+        return (self.scene.st_phase - self.scene.tick) % self._hop_ticks + 1
 
     def next_newest_s(self) -> float:
         """The instant of the next hop's newest sample (s, sensor clock): the hop is over then."""
@@ -149,11 +159,12 @@ class SimHops:
         """Nothing to do: a hop is simulated when it is read."""
 
 
-def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int) -> None:
+def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int,
+                   touched: float | None = None) -> None:
     """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
     simulated, then (newest sample's instant (s), hop) pairs, never more than ``ahead`` beyond those the parent has taken (it sends
     how many it took, an int). Ends when the parent's end of ``conn`` closes."""
-    hops = SimHops(n_taxels, update_s, seed, t0_s)
+    hops = SimHops(n_taxels, update_s, seed, t0_s, touched)
     first = (hops.next_newest_s(), hops.read_hop())  # simulated before the source counts as open
     try:
         conn.send(hops.zero_s)
@@ -182,10 +193,11 @@ class SimHopsProcess:
     hops move between the processes (pickled through a pipe); the caller still releases each at the
     instant of its newest sample. ``close()`` ends the process."""
 
-    def __init__(self, n_taxels: int, update_s: float, seed: int = 0, t0_s: float | None = None, ahead: int = 32):
+    def __init__(self, n_taxels: int, update_s: float, seed: int = 0, t0_s: float | None = None, ahead: int = 32,
+                 touched: float | None = None):
         ctx = _processes()
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_simulate_hops, args=(child, n_taxels, update_s, seed, t0_s, ahead),
+        self._proc = ctx.Process(target=_simulate_hops, args=(child, n_taxels, update_s, seed, t0_s, ahead, touched),
                                  name="touchreal-sim", daemon=True)
         self._proc.start()
         child.close()
@@ -239,16 +251,18 @@ class SimLiveSource:
 
     ``own_process``: simulate in a process of its own (:class:`SimHopsProcess`; the service does),
     so the acquisition thread only receives hops; otherwise in this thread (``scene`` is then the
-    :class:`~touchreal.simulator.scene.SceneSource`)."""
+    :class:`~touchreal.simulator.scene.SceneSource`). ``touched`` (0-1): the large-skin scene with that
+    touched fraction (:class:`SimHops`); None: the default scene."""
 
     segment = 0
 
     def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None,
-                 own_process: bool = False):
+                 own_process: bool = False, touched: float | None = None):
         self.positions_mm = taxel_grid(n_taxels)
         self.n_taxels = n_taxels
         self.update_s = update_s
-        self.hops: SimHops | SimHopsProcess = (SimHopsProcess if own_process else SimHops)(n_taxels, update_s, seed, t0_s)
+        self.hops: SimHops | SimHopsProcess = (SimHopsProcess(n_taxels, update_s, seed, t0_s, touched=touched) if own_process
+                                               else SimHops(n_taxels, update_s, seed, t0_s, touched))
         self.offset_us = 0
         self._pace = _Paced(update_s)
         self._zero_s = self.hops.zero_s
@@ -256,7 +270,7 @@ class SimLiveSource:
         self._clock: ClockPoint | None = None
 
     @property
-    def scene(self) -> SceneSource:
+    def scene(self) -> SceneSource | LargeSkinSource:
         """The scene being played (only when simulated in this thread)."""
         return self.hops.scene
 

@@ -1,0 +1,133 @@
+"""Large skins (``touchreal bench encoder --skin``): activity-driven compute against the dense chain,
+side by side in one run, on the simulated e-skin's large-skin scene (sparse moving contacts over a
+grid; the untouched taxels read the build's noise, hum and drift).
+
+Every figure is the encoder's process CPU time (all threads) per second of signal on the service's
+5 ms hop, the simulation's own CPU time excluded (measured around it and subtracted), after a
+warm-up past the stream start. Ratios are against the dense 4096-taxel figure of the same run and
+dtype, so they hold across machines; the CPU is named beside the absolute figures.
+
+* fraction sweep: 4096 taxels, touched fraction 0 / 1 / 5 / 25 / 100 %, activity-driven and dense,
+  float64 and float32;
+* scale: 16,384 taxels at 1 % and 5 %, 65,536 at 1 % (activity-driven);
+* idle cost: an idle taxel's cost as a fraction of a touched one's (the 0 % and 100 % sweep figures);
+* agreement: per class, the spike count difference and the van Rossum distance (10 ms) between the
+  activity-driven and the dense spikes of the 4096-taxel 5 % run, and the spikes on taxels the
+  dense run left silent;
+* memory: the process's peak RSS per taxel after the 65,536-taxel run.
+"""
+
+from __future__ import annotations
+
+import platform
+import resource
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from ..analysis.spiketrains import vr_distance
+from ..encoding.encoder import SpikeEvents
+from ..params import EncoderParams
+from ..preprocess.activity import ActivityPlan
+from ..raw import RawChunk
+from ..settings import CLASSES
+from ..sources.live import SimHops
+from ..stream import StreamEncoder
+
+HOP_S = 0.005  #: the service's hop
+WARM_S = 1.5  #: past the stream start and the detector's learning (its noise scale, ``noise_tau_s`` / 2)
+FRACTIONS = (0.0, 0.01, 0.05, 0.25, 1.0)
+BLOCK = 64  #: taxels per block (``touchreal serve --taxel-block``)
+
+
+def cpu_name() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo), else the platform's processor string."""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def _hops(n: int, touched: float, seconds: float, seed: int = 0) -> Iterator[tuple[RawChunk, float]]:
+    """(hop, CPU seconds its simulation took) for ``seconds`` of the large-skin scene."""
+    sim = SimHops(n, HOP_S, seed=seed, touched=touched)
+    for _ in range(int(round(seconds / HOP_S))):
+        t = time.process_time()
+        hop = sim.read_hop()
+        yield hop, time.process_time() - t
+
+
+def run_skin(params: EncoderParams, n: int, touched: float, seconds: float, dtype: type, sparse: bool,
+             keep: bool = False) -> tuple[float, float, SpikeEvents | None]:
+    """(encoder CPU s per s of signal, mean fraction of taxels awake, the spikes if ``keep``)."""
+    se = StreamEncoder(params, n, dtype=dtype, taxel_block=BLOCK, update_s=params.preprocess.update_ms / 1000.0,
+                       activity=ActivityPlan() if sparse else None)
+    se.set_active({c: range(n) for c in se.classes})  # every column's spikes, no channels (as a spikes subscriber)
+    parts, cpu, sim_cpu, signal, awake = [], 0.0, 0.0, 0.0, []
+    for i, (hop, sim_s) in enumerate(_hops(n, touched, seconds + WARM_S)):
+        t = time.process_time()
+        ev = se.process(hop)
+        spent = time.process_time() - t
+        if keep:
+            parts.append(ev)
+        if i * HOP_S >= WARM_S:
+            cpu += spent
+            sim_cpu += sim_s
+            signal += HOP_S
+            awake.append(se.awake_taxels / n)
+    if keep:
+        parts.append(se.finish())
+    return cpu / signal, float(np.mean(awake)), SpikeEvents.concatenate(parts) if keep else None
+
+
+def agreement(dense: SpikeEvents, sparse: SpikeEvents, n: int) -> None:
+    """Per class: spike counts, their difference, the mean VR distance (10 ms) over taxels with spikes,
+    and spikes on taxels the dense run left silent."""
+    print(f"{'class':>5} {'dense':>8} {'sparse':>8} {'diff %':>7} {'VR mean':>8} {'VR max':>7} {'extra':>6}")
+    for ci, c in enumerate(CLASSES):
+        d, s = dense.cls == ci, sparse.cls == ci
+        nd, ns = int(d.sum()), int(s.sum())
+        vr, extra = [], 0
+        for k in np.union1d(dense.taxel[d], sparse.taxel[s]):
+            a, b = np.sort(dense.t_s[d & (dense.taxel == k)]), np.sort(sparse.t_s[s & (sparse.taxel == k)])
+            extra += b.size if a.size == 0 else 0
+            vr.append(vr_distance(a, b, 0.01, presorted=True))
+        vr_a = np.array(vr) if vr else np.zeros(1)
+        print(f"{c:>5} {nd:8d} {ns:8d} {100 * (ns - nd) / max(nd, 1):7.2f} {vr_a.mean():8.3f} {vr_a.max():7.3f} {extra:6d}")
+
+
+def skin(params: EncoderParams, seconds: float) -> None:
+    print(f"\n== large skins: activity-driven against dense ({cpu_name()}; encoder process CPU per second of signal, "
+          f"5 ms hop, blocks of {BLOCK}, {seconds:g} s after {WARM_S:g} s of warm-up; ratios against dense 4096 at 5 %)")
+    print(f"{'taxels':>6} {'touched':>7} {'dtype':>7} {'compute':>7} {'awake':>6} {'ms per s':>9} {'x dense 4096':>12}")
+    dense_ref, rows = {}, []
+    spikes = {}
+    for dtype in (np.float64, np.float32):
+        name = np.dtype(dtype).name
+        for f in FRACTIONS:
+            for sparse in (False, True):
+                keep = f == 0.05 and dtype is np.float64
+                per_s, awake, ev = run_skin(params, 4096, f, seconds, dtype, sparse, keep)
+                if keep:
+                    spikes[sparse] = ev
+                if f == 0.05 and not sparse:
+                    dense_ref[name] = per_s
+                rows.append((4096, f, name, sparse, awake, per_s))
+        for n, f in ((16384, 0.01), (16384, 0.05), (65536, 0.01)):
+            per_s, awake, _ = run_skin(params, n, f, seconds, dtype, True)
+            rows.append((n, f, name, True, awake, per_s))
+    for n, f, name, sparse, awake, per_s in rows:
+        print(f"{n:6d} {100 * f:6.0f}% {name:>7} {'sparse' if sparse else 'dense':>7} {100 * awake:5.1f}% "
+              f"{per_s * 1000:9.1f} {per_s / dense_ref[name]:12.3f}")
+    for name in dense_ref:
+        by = {(n, f, s): p for n, f, nm, s, _, p in rows if nm == name}
+        print(f"{name}: idle taxel / touched taxel (sparse 0 % / dense 100 %, 4096): "
+              f"{by[(4096, 0.0, True)] / by[(4096, 1.0, False)]:.3f}")
+    print("\nagreement, 4096 taxels at 5 % touched, float64 (activity-driven against dense):")
+    agreement(spikes[False], spikes[True], 4096)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"\npeak RSS after the 65,536-taxel runs: {rss / 2**20:.0f} MiB, {rss / 65536 / 1024:.1f} KiB per taxel")
