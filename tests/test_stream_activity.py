@@ -103,11 +103,19 @@ def skin_runs():
     return out
 
 
-def test_activity_driven_spikes_equal_the_dense_chain_where_it_skips(skin_runs):
+def test_activity_driven_spikes_stay_within_the_documented_bound_of_the_dense_chain(skin_runs):
+    """docs/architecture.md, "Activity": SA1 within a VR distance of 1; RA and PC lose at most 10 % of their spikes
+    (isolated spikes of sub-band vibration before a block wakes; measured 2-6 %, bound 10 %); no
+    taxel the dense run left silent spikes, and no taxel gains spikes."""
     (dense, _), (sparse, awake) = skin_runs["dense"], skin_runs["sparse"]
-    assert awake.min() < 12  # blocks were asleep for part of the run
-    for ci in range(3):
-        for k in range(12):
-            a = np.sort(dense.t_s[(dense.cls == ci) & (dense.taxel == k)])
-            b = np.sort(sparse.t_s[(sparse.cls == ci) & (sparse.taxel == k)])
-            assert np.array_equal(a, b), (ci, k, a.size, b.size, vr_distance(a, b, 0.01))
+    assert awake.min() < 12 and awake.mean() < 10  # blocks were asleep for a good part of the run
+    for ci, c in enumerate(("SA1", "RA", "PC")):
+        nd = np.bincount(dense.taxel[dense.cls == ci], minlength=12)
+        ns = np.bincount(sparse.taxel[sparse.cls == ci], minlength=12)
+        assert not ns[nd == 0].any() and (ns <= nd).all(), (c, nd, ns)
+        assert ns.sum() >= 0.9 * nd.sum(), (c, nd.sum(), ns.sum())
+        if c == "SA1":
+            for k in range(12):
+                a = np.sort(dense.t_s[(dense.cls == ci) & (dense.taxel == k)])
+                b = np.sort(sparse.t_s[(sparse.cls == ci) & (sparse.taxel == k)])
+                assert np.array_equal(a, b) or vr_distance(a, b, 0.01) < 1.0, (k, a, b)

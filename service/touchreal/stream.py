@@ -155,7 +155,11 @@ class StreamEncoder:
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
         self._wants: list[tuple[dict[str, list[int]], bool]] = [({c: list(range(len(b.taxels))) for c in self.classes}, True)
                                                               for b in self.blocks]
-        self._awake = np.ones(len(self.blocks), bool)  #: per block: the detector keeps it running
+        #: per block: running (dense: always; activity-driven: asleep until the detector wakes it)
+        self._awake = np.full(len(self.blocks), self.detector is None)
+        if self.detector is not None:
+            for i in range(len(self.blocks)):
+                self._set_block(i)
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
         self._work = 0  #: size of the last chunk for split_run (see _feed)

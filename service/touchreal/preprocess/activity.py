@@ -16,8 +16,11 @@ Per taxel and sensor the detector keeps a *baseline* and a *noise level*, both l
   15 minutes per taxel at 2 kHz), and mains hum of any amplitude never does (its peak is
   sqrt(2) x its rms);
 * a sustained vibration too small for that (the class stages see it through the STFT gate's
-  narrow bins) raises the mean square deviation of the last ``energy_tau_s``: above
-  ``energy_ratio`` x the noise's, the chunk is out of band too (a sine of 1.3 x the noise rms);
+  narrow bins) raises the mean square of the PVDF high-passed at 20 Hz (drift and baseline
+  removed) over the last ``energy_tau_s``: above ``energy_ratio`` x the noise's, the chunk is out
+  of band too;
+* a new taxel (the stream's start, a restart) is judged once it has learned its noise for a
+  quarter of ``noise_tau_s`` (0.5 s): until then it sleeps;
 * on quiet chunks the baseline follows the chunk's mean and the noise level the chunk's mean
   square deviation (a loud chunk never moves the level), so slow drift and a build's noise and
   hum are learned, never configured per build;
@@ -34,12 +37,17 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.signal import butter, sosfilt, sosfilt_zi
 
 from ..raw import RawChunk
 from ..settings import PVDF_RANGE_V, ST_RESOLUTION_N
 
 _PVDF_ADC_STEP_V = (PVDF_RANGE_V[1] - PVDF_RANGE_V[0]) / 4096.0  #: the 12-bit PVDF converter's step
-_STUCK_MIN_SAMPLES = 8  #: a chunk needs this many PVDF samples for "all identical" to mean stuck
+_JUDGED_AFTER = 0.25  #: a new taxel is judged once it has learned its noise for this fraction of noise_tau_s
+_STUCK_MIN_SAMPLES = 8
+#: the vibration test's high-pass: 2nd-order Butterworth at 20 Hz on the 2 kHz PVDF (drift and baseline out)
+_HP_SOS = butter(2, 20.0, "highpass", fs=2000.0, output="sos")
+_HP_ZI = sosfilt_zi(_HP_SOS)  #: a chunk needs this many PVDF samples for "all identical" to mean stuck
 
 
 @dataclass(frozen=True)
@@ -47,7 +55,7 @@ class ActivityPlan:
     """How the detector decides (printable, overridable, recorded; times in s)."""
 
     k_noise: float = 5.0  #: out of band: a deviation > k_noise x the noise level (rms) + floor
-    energy_ratio: float = 1.8  #: out of band: the recent mean square deviation > this x the noise's
+    energy_ratio: float = 1.8  #: out of band: the PVDF's recent high-passed mean square > this x the noise's
     energy_tau_s: float = 0.02  #: "recent": about 40 PVDF samples (the ratio's noise sd ~0.22: 1.8 is 3.6 sd)
     hold_s: float = 1.0  #: a block sleeps once all its taxels have been in band this long
     baseline_tau_s: float = 0.5  #: the baseline's time constant on quiet chunks
@@ -69,7 +77,11 @@ class _Band:
         self.var = np.zeros(n_taxels)  #: mean square deviation from the baseline of quiet samples
         self.known = np.zeros(n_taxels, bool)  #: a taxel's band is learned from its first finite chunk
         self.seen = np.zeros(n_taxels)  #: fraction of the learning time (``noise_tau_s``) seen so far
-        self.recent = np.zeros(n_taxels)  #: mean square deviation over about ``energy_tau_s``
+        self.recent = np.zeros(n_taxels)  #: mean square of the high-passed samples over about ``energy_tau_s``
+        self.hp_var = np.zeros(n_taxels)  #: mean square of the high-passed quiet samples
+        self.zi: np.ndarray | None = None  #: the high-pass's state
+        self.last_x = np.zeros(n_taxels)  #: each taxel's newest finite sample (stands in for a non-finite one)
+        self._hms: np.ndarray | None = None  #: the latest chunk's high-passed mean square (for follow)
 
     def out(self, x: np.ndarray, k_noise: float, energy_ratio: float, a_recent: float
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -85,19 +97,40 @@ class _Band:
         self.base[new], self.known[new] = mean[new], True
         d = np.where(finite, xs - self.base, 0.0)
         ms = (d * d).sum(axis=0) / count
-        self.var[new] = self.recent[new] = ms[new]
-        self.recent += a_recent * (ms - self.recent)
+        self.var[new] = ms[new]
         peak = np.abs(d).max(axis=0)
-        floor2 = self.floor * self.floor
-        loud = (peak > k_noise * np.sqrt(self.var) + self.floor) | (self.recent > energy_ratio * self.var + floor2)
-        return has & loud, mean, ms
+        loud = peak > k_noise * np.sqrt(self.var) + self.floor
+        if energy_ratio:
+            loud |= self._vibration(x, finite, energy_ratio, a_recent)
+        return has & loud & (self.seen >= _JUDGED_AFTER), mean, ms
+
+    def _vibration(self, x: np.ndarray, finite: np.ndarray, energy_ratio: float, a_recent: float) -> np.ndarray:
+        """Whether the recent mean square of the high-passed samples (:data:`_HP_SOS`: drift and baseline
+        removed, vibration kept) exceeds ``energy_ratio`` x the noise's; the noise's is learned on
+        quiet taxels (:meth:`follow`)."""
+        if self.zi is None:
+            first = np.where(finite[0], x[0], 0.0)
+            self.zi = (_HP_ZI[:, :, None] * first[None, None, :]).copy()
+        hp, self.zi = sosfilt(_HP_SOS, np.where(finite, x, self.last_x), axis=0, zi=self.zi)
+        self.last_x = np.where(finite, x, self.last_x)[-1]
+        self._hms = (hp * hp).mean(axis=0)
+        fresh = self.hp_var == 0
+        self.hp_var[fresh] = self.recent[fresh] = self._hms[fresh]
+        self.recent += a_recent * (self._hms - self.recent)
+        return self.recent > energy_ratio * self.hp_var + self.floor * self.floor
 
     def follow(self, quiet: np.ndarray, mean: np.ndarray, ms: np.ndarray, a_base: float, a_drift: float,
                a_noise: float) -> None:
         """Quiet taxels' baseline and noise level follow the chunk, loud ones' baseline drifts slowly
         and their noise level stays (every chunk teaches a taxel still being learned)."""
         self.base += np.where(quiet, a_base, a_drift) * (mean - self.base)
-        self.var += np.where(quiet | (self.seen < 1.0), a_noise, 0.0) * (ms - self.var)
+        # while a taxel is new, the noise level is the running mean of every chunk's (learned in a few chunks)
+        learning = np.minimum(1.0, a_noise / np.maximum(self.seen, a_noise))
+        rate = np.where(self.seen < 1.0, learning, np.where(quiet, a_noise, 0.0))
+        self.var += rate * (ms - self.var)
+        if self._hms is not None:
+            self.hp_var += rate * (self._hms - self.hp_var)
+            self._hms = None
 
 
 class ActivityDetector:
@@ -123,10 +156,11 @@ class ActivityDetector:
         loud = np.zeros(self.n_taxels, bool)
         span = chunk.pvdf_t.size / 2000.0 if chunk.pvdf_t.size else chunk.st_t.size / 100.0
         rates = [min(1.0, span / tau) for tau in (p.baseline_tau_s, p.drift_tau_s, p.noise_tau_s)]
-        for band, x in ((self._st, chunk.st), (self._pv, chunk.pvdf)):
+        # the energy test on the PVDF only: a SingleTact sample every 10 ms is too few for a 20 ms mean square
+        for band, x, ratio in ((self._st, chunk.st, 0.0), (self._pv, chunk.pvdf, p.energy_ratio)):
             if x.shape[0] == 0:
                 continue
-            out, mean, dev = band.out(x, p.k_noise, p.energy_ratio, min(1.0, span / p.energy_tau_s))
+            out, mean, dev = band.out(x, p.k_noise, ratio, min(1.0, span / p.energy_tau_s))
             band.follow(~out, mean, dev, *rates)
             band.seen += span / p.noise_tau_s
             loud |= out

@@ -27,6 +27,7 @@ log = logging.getLogger("touchreal.server")
 #: Replay speeds (x real time) the service accepts: slow enough to step through, fast enough to
 #: skim, and the replay's stamp arithmetic stays finite over any recording.
 SPEED_RANGE = (0.01, 1000.0)
+SCRIPT_SCENE_MAX_TAXELS = 256  #: sim_scene auto: the scripted scene up to this many taxels, the large one above
 SOURCE_SPEC = "sim | replay:DATASET_DIR[:TRIAL_ID[,TRIAL_ID...]] | serial:PORT"
 
 def _split_commas(v: object) -> object:
@@ -134,6 +135,12 @@ class ServeSettings(ServerSettings):
                               "with the backlog behind it and the pipeline restarts; clients see a seq gap and a "
                               "restarted, source_gap frame, /metrics counts it and health says degraded "
                               "(docs/service.md, How it runs)")
+    sim_scene: Literal["auto", "script", "large"] = Field(default="auto", description="the simulated e-skin's scene: "
+                                                           "script (presses, vibrations and slides over the centre and "
+                                                           "corner taxels), large (probes and objects pressing, rolling "
+                                                           "and sliding over the skin, sim_touched of it at a time); auto: "
+                                                           f"script up to {SCRIPT_SCENE_MAX_TAXELS} taxels, large above")
+    sim_touched: float = Field(default=0.05, ge=0.0, le=1.0, description="the large scene's touched fraction")
     seed: int = Field(default=0, description="seed of the simulated e-skin")
     sim_t0_s: float | None = Field(default=None, description="sensor clock of the simulated e-skin's first tick (s)")
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..recording import Dataset
 from ..sources.live import LiveSource, ReplayLiveSource, SimLiveSource
-from .settings import RuntimeConfig, ServeSettings, parse_source
+from .settings import SCRIPT_SCENE_MAX_TAXELS, RuntimeConfig, ServeSettings, parse_source
 
 
 class SourceRefused(ValueError):
@@ -41,6 +41,15 @@ def confine_source(spec: str, data_roots: Sequence[Path], serial_urls: bool) -> 
             raise SourceRefused("serial: takes a device path under /dev (or a link to one)")
 
 
+def sim_touched(settings: ServeSettings, n_taxels: int) -> float | None:
+    """The simulated skin's scene, resolved once: None for the scripted scene, else the large
+    scene's touched fraction (``sim_scene`` auto: scripted up to SCRIPT_SCENE_MAX_TAXELS taxels)."""
+    scene = settings.sim_scene
+    if scene == "auto":
+        scene = "script" if n_taxels <= SCRIPT_SCENE_MAX_TAXELS else "large"
+    return None if scene == "script" else settings.sim_touched
+
+
 def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float, device_present: bool = False) -> LiveSource:
     """Open the source a config names, handing over samples every ``hop_s`` (raises ValueError/OSError
     with a clear message). A serial device that is absent at start is waited for (it reconnects on
@@ -48,7 +57,8 @@ def open_source(config: RuntimeConfig, settings: ServeSettings, hop_s: float, de
     is refused at once (a client's source change)."""
     kind, arg = parse_source(config.source)
     if kind == "sim":
-        return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s, own_process=True)
+        return SimLiveSource(config.taxels, hop_s, seed=settings.seed, t0_s=settings.sim_t0_s, own_process=True,
+                             touched=sim_touched(settings, config.taxels))
     if kind == "replay":
         folder, _, ids = arg.partition(":")
         if not Path(folder).is_dir():

@@ -261,6 +261,7 @@ class SimLiveSource:
         self.positions_mm = taxel_grid(n_taxels)
         self.n_taxels = n_taxels
         self.update_s = update_s
+        self.touched = touched
         self.hops: SimHops | SimHopsProcess = (SimHopsProcess(n_taxels, update_s, seed, t0_s, touched=touched) if own_process
                                                else SimHops(n_taxels, update_s, seed, t0_s, touched))
         self.offset_us = 0
@@ -309,7 +310,9 @@ class SimLiveSource:
         return self._clock
 
     def status(self) -> dict[str, int | float | str]:
-        return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks}
+        return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks,
+                "scene": "script" if self.touched is None else "large",
+                **({} if self.touched is None else {"touched": self.touched})}
 
     def close(self) -> None:
         self._pace.close()
