@@ -49,8 +49,9 @@ class _TaxelBlock:
     its branches (re)start without touching any other block's columns."""
 
     def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]],
-                 dtype: type, channels_source: Source):
+                 dtype: type, channels_source: Source, index: int = 0):
         self.taxels = taxels
+        self.index = index  #: position in the encoder's blocks
         self.channels_source = channels_source
         self.shows = True  #: channels wanted from this block (every taxel at first, like every column)
         self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
@@ -148,18 +149,16 @@ class StreamEncoder:
         self.channels_source: Source = max(windows) if windows else None
         size = n_taxels if taxel_block is None else taxel_block
         self._block_starts = np.arange(0, n_taxels, n_taxels if taxel_block is None else taxel_block)
-        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source)
-                       for a in range(0, n_taxels, size)]
+        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source, i)
+                       for i, a in enumerate(range(0, n_taxels, size))]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
         #: activity-driven compute (None: dense, every demanded block runs on every chunk)
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
         self._wants: list[tuple[dict[str, list[int]], bool]] = [({c: list(range(len(b.taxels))) for c in self.classes}, True)
                                                               for b in self.blocks]
         #: per block: running (dense: always; activity-driven: asleep until the detector wakes it)
-        self._awake = np.full(len(self.blocks), self.detector is None)
-        if self.detector is not None:
-            for i in range(len(self.blocks)):
-                self._set_block(i)
+        self._awake = np.ones(len(self.blocks), bool)  #: per block: running (all, until the detector says)
+        self._spiked_s = np.full(len(self.blocks), -np.inf)  #: per block: sensor time (s) of its latest spikes
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
         self._work = 0  #: size of the last chunk for split_run (see _feed)
@@ -213,9 +212,21 @@ class StreamEncoder:
         whose taxels have been quiet for the plan's ``hold_s``."""
         awake = self.detector.push(chunk)
         blocks = np.logical_or.reduceat(awake, self._block_starts) if self.n_taxels else awake
+        ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
+        if ends:  # a block whose columns spiked within hold_s stays awake (its LIF has not settled)
+            blocks |= self._spiked_s >= max(ends) - self.detector.plan.hold_s
         for i in np.flatnonzero(blocks != self._awake):
             self._awake[i] = blocks[i]
             self._set_block(int(i))
+
+    def continue_activity(self, previous: StreamEncoder) -> None:
+        """Take over ``previous``'s detector and awake blocks (a restart after shedding load: the scene
+        did not change, so neither its learned noise nor which blocks it keeps awake starts again)."""
+        if self.detector is None or previous.detector is None or len(previous.blocks) != len(self.blocks):
+            return
+        self.detector, self._awake, self._spiked_s = previous.detector, previous._awake.copy(), previous._spiked_s.copy()
+        for i in range(len(self.blocks)):
+            self._set_block(i)
 
     @property
     def awake_taxels(self) -> int:
@@ -295,6 +306,10 @@ class StreamEncoder:
 
             split_run(encode, len(running), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
+        if self.detector is not None:
+            for block, (_, evs) in zip(running, results):
+                if any(ev.t_s.size for ev in evs):
+                    self._spiked_s[block.index] = max(float(ev.t_s.max()) for ev in evs if ev.t_s.size)
         for block, (ch, evs) in zip(running, results):
             if ch is not None:
                 shown.append((block.taxels, ch))

@@ -272,8 +272,12 @@ class Runtime:
             return
         self._draining = True
         self.sheds += 1
-        # the new pipeline is built now: the chunks acquired meanwhile are part of the backlog dropped
+        # the new pipeline is built now (keeping what the activity detector learned of the scene): the chunks
+        # acquired meanwhile are part of the backlog dropped
+        previous = self.encoder
         self._new_encoder(*self._params())
+        if previous is not None:
+            self.encoder.continue_activity(previous)
         self._apply_demand(self._demand())
         log.warning("compute is %.0f ms behind acquisition (max_lag_ms %.0f): %.0f ms of signal shed, the pipeline "
                     "restarts from rest", self.lag_s * 1e3, self.max_lag_s * 1e3, seconds * 1e3)
