@@ -19,8 +19,8 @@ Per taxel and sensor the detector keeps a *baseline* and a *noise level*, both l
   narrow bins) raises the mean square of the PVDF high-passed at 20 Hz (drift and baseline
   removed) over the last ``energy_tau_s``: above ``energy_ratio`` x the noise's, the chunk is out
   of band too;
-* a new taxel (the stream's start, a restart) is judged once it has learned its noise for a
-  quarter of ``noise_tau_s`` (0.5 s): until then it sleeps;
+* a new taxel (the stream's start) is judged once it has learned its noise for a quarter of
+  ``noise_tau_s`` (0.5 s): until then it is awake;
 * on quiet chunks the baseline follows the chunk's mean and the noise level the chunk's mean
   square deviation (a loud chunk never moves the level), so slow drift and a build's noise and
   hum are learned, never configured per build;
@@ -172,4 +172,5 @@ class ActivityDetector:
         awake_before = self.last_out_s >= now - p.hold_s - span
         self.counters["wakes"] += int((loud & ~awake_before).sum())
         self.last_out_s[loud] = now
-        return self.last_out_s >= now - p.hold_s
+        unjudged = (self._pv.seen < _JUDGED_AFTER) | (self._st.seen < _JUDGED_AFTER)  # awake until judged
+        return (self.last_out_s >= now - p.hold_s) | unjudged
