@@ -69,7 +69,8 @@ def test_a_skin_too_large_for_the_machine_sheds_load_and_says_so(tmp_path):
         health = _get(addr, "/v1/health")
         metrics = _get(addr, "/metrics")
     assert state["dropped"] >= 1  # the loss is a seq gap every client sees, flagged restarted + source_gap
-    assert st["compute"] == "dense" and st["sheds"] >= 1 and st["shed_ms"] > 0 and st["real_time_factor"] > 1
+    assert st["compute"] == "dense" and st["sheds"] >= 1 and st["shed_ms"] > 0  # (the real-time factor restarts low
+    # after each shed: its value at any one moment says nothing here)
     assert health["status"] == "degraded" and "fell behind" in health["reason"]
     shed = float(next(line.split()[1] for line in metrics.splitlines() if line.startswith("touchreal_shed_seconds_total")))
     assert shed > 0

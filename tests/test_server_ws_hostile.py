@@ -117,7 +117,9 @@ def test_a_flooding_client_is_closed_and_memory_stays_bounded(tmp_path):
     fills: close 4029), then 60 KB ids (refused: errors, close 4400). The server process (this one:
     the server runs on a thread of it) stays within a bounded RSS and keeps serving another client."""
     proc = psutil.Process(os.getpid())
-    with running_server(tmp_path) as (addr, svc):
+    # fairness, not real time: a machine loaded by the flood may fall behind acquisition, and shedding
+    # (tests/test_server_realtime.py) would then be a seq gap this test would take for the flood's harm
+    with running_server(tmp_path, max_lag_ms=60_000) as (addr, svc):
         host, port = addr.split(":")
 
         async def flood(message: str) -> tuple[int, int, int]:
