@@ -30,20 +30,20 @@ class Metrics:
                                 "behind the acquisition thread", registry=r)
         self.shed_seconds = Counter("touchreal_shed_seconds", "seconds of signal acquired but not encoded because "
                                     "compute fell more than max_lag_ms behind acquisition", registry=r)
-        self.sheds = Counter("touchreal_sheds", "chunks shed (each a seq gap for every subscriber and a restart of the "
-                             "demanded columns)", registry=r)
+        self.sheds = Counter("touchreal_sheds", "sheds (each a seq gap for every subscriber and a restart of the "
+                             "pipeline from rest)", registry=r)
         self.lag = Gauge("touchreal_acquisition_lag_seconds", "age of the latest chunk's oldest sample when its "
                          "compute started (clock model)", registry=r)
         self.real_time_factor = Gauge("touchreal_real_time_factor", "wall time spent per second of signal encoded, "
                                       "about 1 s average (< 1 keeps up)", registry=r)
-        self.awake = Gauge("touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; every demanded "
-                           "one when dense)", registry=r)
+        self.awake = Gauge("touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; all of them when "
+                           "dense)", registry=r)
         self.clients = Gauge("touchreal_clients_connected", "connected stream clients", registry=r)
         self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
                                   registry=r)
         self.drops = Counter("touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "
                              "the client's queue was full; stale: it waited longer than max_frame_age_ms; upstream_loss: lost on a "
-                             "gateway's broker hop)", ["reason"],
+                             "gateway's broker hop or shed by an overloaded pipeline)", ["reason"],
                              registry=r)
         self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers (4008)", registry=r)
         self.flooding = Counter("touchreal_clients_closed_flooding", "clients closed for sending requests faster than "

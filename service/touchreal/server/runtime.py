@@ -14,6 +14,9 @@ columns and the branches they read; while nobody wants anything, only acquisitio
 policy and the raw history a branch restarts from, so a returning subscriber waits for no warm-up). A new
 parameter revision is swapped in between two updates: every update is made by one revision, which
 its frames carry (``params_rev``).
+
+Real time, or honest about it: a chunk whose spikes would leave more than ``max_lag_s`` after its
+oldest sample is dropped with the backlog behind it, and the pipeline restarts (:meth:`Runtime._shed`).
 """
 
 from __future__ import annotations

@@ -340,6 +340,22 @@ class _BlockStream:
 _NOISE_BLOCK_TICKS = 2000  # 1 s of PVDF noise per block
 
 
+def instance_constants(p: SkinParams, n: int, inst: np.random.Generator) -> tuple:
+    """One skin's build spread, drawn in this order from ``inst``: per taxel stiffness (N/mm), zero
+    (mm), SingleTact offset (N) and PVDF gain (V/mm); the mains frequency (Hz), its harmonics'
+    amplitudes (V) and phases (rad); per taxel mains pickup (a gain)."""
+    stiff = p.stiffness_n_mm * np.exp(inst.normal(0.0, p.stiffness_jitter, n))
+    zero = inst.normal(0.0, p.zero_jitter_mm, n)
+    st_offset = np.maximum(inst.normal(p.st_offset_n, p.st_offset_sd_n, n), 0.0)
+    pv_gain = p.pv_gain_v_mm * np.exp(inst.normal(0.0, p.pv_gain_jitter, n))
+    mains_hz = float(inst.normal(p.mains_hz, p.mains_hz_sd))
+    h = np.asarray(p.mains_harmonics, float)
+    mains_amp = p.mains_v * np.exp(inst.normal(0.0, p.mains_v_log_sd)) * h
+    mains_phase = inst.uniform(0.0, 2 * np.pi, h.size)
+    pickup = np.exp(inst.normal(0.0, p.mains_taxel_log_sd, n)) if n > 1 else np.ones(1)
+    return stiff, zero, st_offset, pv_gain, mains_hz, mains_amp, mains_phase, pickup
+
+
 class ESkin:
     """Stateful simulated e-skin of N taxels (SingleTact + PVDF each) on the 2 kHz tick clock.
 
@@ -385,15 +401,8 @@ class ESkin:
         self._geo_cache: tuple | None = None
 
         # instance constants (per taxel)
-        self._stiff = p.stiffness_n_mm * np.exp(inst.normal(0.0, p.stiffness_jitter, n_tax))
-        self._zero = inst.normal(0.0, p.zero_jitter_mm, n_tax)
-        self._st_offset = np.maximum(inst.normal(p.st_offset_n, p.st_offset_sd_n, n_tax), 0.0)
-        self._pv_gain = p.pv_gain_v_mm * np.exp(inst.normal(0.0, p.pv_gain_jitter, n_tax))
-        self.mains_hz = float(inst.normal(p.mains_hz, p.mains_hz_sd))
-        h = np.asarray(p.mains_harmonics, float)
-        self._mains_amp = p.mains_v * np.exp(inst.normal(0.0, p.mains_v_log_sd)) * h
-        self._mains_phase = inst.uniform(0.0, 2 * np.pi, h.size)
-        self._mains_taxel = np.exp(inst.normal(0.0, p.mains_taxel_log_sd, n_tax)) if n_tax > 1 else np.ones(1)
+        (self._stiff, self._zero, self._st_offset, self._pv_gain, self.mains_hz, self._mains_amp, self._mains_phase,
+         self._mains_taxel) = instance_constants(p, n_tax, inst)
 
         # filters
         self._coup = _exciter_coupling(p)

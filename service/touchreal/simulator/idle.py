@@ -103,6 +103,15 @@ def _arma_row(e, b, a, zi, v):  # pragma: no cover - compiled
         v[i] = y
 
 
+@numba.njit(inline="always")
+def _noise_row(s0, s1, e, b, a, zi, v):  # pragma: no cover - compiled
+    """One tick of the noise process on every taxel into ``v`` (``e``: scratch); the advanced generator state."""
+    for i in range(e.size):
+        s0, s1, e[i] = _normal(s0, s1, _KN, _WN, _FN)
+    _arma_row(e, b, a, zi, v)
+    return s0, s1
+
+
 @numba.njit(cache=True, nogil=True)
 def _pvdf_kernel(out, state, b, a, zi, hum, pickup, idx, extra, step, lo, hi):  # pragma: no cover - compiled
     n, m = out.shape
@@ -110,9 +119,7 @@ def _pvdf_kernel(out, state, b, a, zi, hum, pickup, idx, extra, step, lo, hi):  
     e, v = np.empty(m), np.empty(m)
     inv = 1.0 / step
     for k in range(n):
-        for i in range(m):
-            s0, s1, e[i] = _normal(s0, s1, _KN, _WN, _FN)
-        _arma_row(e, b, a, zi, v)
+        s0, s1 = _noise_row(s0, s1, e, b, a, zi, v)
         h = hum[k]
         for i in range(m):
             v[i] += h * pickup[i]
@@ -131,9 +138,7 @@ def _st_kernel(out, state, b, a, zi, offset, resid, decay, idx, extra, step, hi)
     e, v = np.empty(m), np.empty(m)
     inv = 1.0 / step
     for k in range(n):
-        for i in range(m):
-            s0, s1, e[i] = _normal(s0, s1, _KN, _WN, _FN)
-        _arma_row(e, b, a, zi, v)
+        s0, s1 = _noise_row(s0, s1, e, b, a, zi, v)
         for i in range(m):
             v[i] += offset[i] + resid[i]
             resid[i] *= decay

@@ -33,8 +33,9 @@ from scipy.spatial import cKDTree
 from ..raw import RawChunk
 from ..settings import ST_RANGE_N, ST_RESOLUTION_N
 from .eskin import (ADC_STEP_V, FS_HZ, ST_DECIMATION, SkinParams, _aniso_distance, _exciter_coupling, _ou, _pv_sos,
-                    _st_sos, pv_radial_gain, pv_spread_cutoff_hz, st_radial_gain)
+                    _st_sos, instance_constants, pv_radial_gain, pv_spread_cutoff_hz, st_radial_gain)
 from .idle import NoiseStream
+from .reads import TickReads
 
 TAXELS_PER_PROBE = 64  #: touched taxels per round probe (a probe of ~45 mm radius on the 10 mm grid)
 PLATE_ABOVE = 0.5  #: touched fractions above this are one plate sliding over the skin
@@ -263,7 +264,7 @@ def _contact_kernel(k0, block, st_phase, decimation, idx, owner, g_st, g_pv, a_s
         z[i], spread[0, i], spread[1, i] = zz, sp1, sp2
 
 
-class LargeSkinSource:
+class LargeSkinSource(TickReads):
     """Sans-I/O source of a large skin playing :func:`large_scene` (same reading interface as
     :class:`~touchreal.simulator.scene.SceneSource`: ``advance``, ``read``, ``time_s``, ``requested_s``).
 
@@ -294,15 +295,8 @@ class LargeSkinSource:
         self._tree = cKDTree(xy)
 
         inst = np.random.default_rng(inst_ss)  # instance constants, drawn as ESkin draws them
-        self._stiff = p.stiffness_n_mm * np.exp(inst.normal(0.0, p.stiffness_jitter, n))
-        self._zero = inst.normal(0.0, p.zero_jitter_mm, n)
-        self._st_offset = np.maximum(inst.normal(p.st_offset_n, p.st_offset_sd_n, n), 0.0)
-        self._pv_gain = p.pv_gain_v_mm * np.exp(inst.normal(0.0, p.pv_gain_jitter, n))
-        self.mains_hz = float(inst.normal(p.mains_hz, p.mains_hz_sd))
-        h = np.asarray(p.mains_harmonics, float)
-        self._mains_amp = p.mains_v * np.exp(inst.normal(0.0, p.mains_v_log_sd)) * h
-        self._mains_phase = inst.uniform(0.0, 2 * np.pi, h.size)
-        self._pickup = np.exp(inst.normal(0.0, p.mains_taxel_log_sd, n)) if n > 1 else np.ones(1)
+        (self._stiff, self._zero, self._st_offset, self._pv_gain, self.mains_hz, self._mains_amp, self._mains_phase,
+         self._pickup) = instance_constants(p, n, inst)
 
         ou = [(_ou(p.pv_wander_tau_s, 1.0, FS_HZ)[2], p.pv_wander_v), (_ou(p.pv_flicker_tau_s, 1.0, FS_HZ)[2], p.pv_flicker_v)]
         self._pv_noise = NoiseStream(p.pv_noise_v, ou, n, pv_ss)
@@ -331,35 +325,8 @@ class LargeSkinSource:
 
     # -- clock -----------------------------------------------------------------------------------------
     @property
-    def fs_hz(self) -> float:
-        return FS_HZ
-
-    @property
-    def time_s(self) -> float:
-        """Recording time (s) of the next tick."""
-        return self.t0_s + self.tick / FS_HZ
-
-    @property
-    def requested_s(self) -> float:
-        """Recording time (s) up to which samples were asked for (every sample before it delivered)."""
-        return self._requested_s
-
-    def advance(self, n_ticks: int) -> RawChunk:
-        """The next ``n_ticks`` PVDF ticks (2 kHz) and the SingleTact samples (100 Hz) among them."""
-        n = int(n_ticks)
-        if n < 0:
-            raise ValueError("n_ticks must be >= 0")
-        chunk = self._advance(n)
-        self._requested_s = max(self._requested_s, self.time_s)
-        return chunk
-
-    def read(self, duration_s: float) -> RawChunk:
-        """All samples with times before (previous end + ``duration_s``)."""
-        if duration_s < 0:
-            raise ValueError("duration_s must be >= 0")
-        self._requested_s += float(duration_s)
-        end_tick = math.ceil((self._requested_s - self.t0_s) * FS_HZ - 1e-6)
-        return self._advance(max(end_tick - self.tick, 0))
+    def clock_t0_s(self) -> float:
+        return self.t0_s
 
     # -- simulation ------------------------------------------------------------------------------------
     def _advance(self, n: int) -> RawChunk:

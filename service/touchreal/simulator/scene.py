@@ -23,6 +23,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from .eskin import FS_HZ, ContactInput, ESkin, SkinParams
+from .reads import TickReads
 from ..raw import RawChunk
 from .stimuli import RampHold, Robot, RobotParams, SineBurst, Stimulus, TextureSlide, executed_command
 
@@ -120,7 +121,7 @@ def default_scene(positions_mm: Sequence[Sequence[float]] = ((0.0, 0.0),), skin:
     return Scene(tuple(events), loop_s=round(t, 4))
 
 
-class SceneSource:
+class SceneSource(TickReads):
     """Sans-I/O streaming source: the next raw samples of N simulated taxels playing a scene.
 
     Args:
@@ -165,41 +166,18 @@ class SceneSource:
         return self.eskin.n_taxels
 
     @property
-    def fs_hz(self) -> float:
-        return FS_HZ
-
-    @property
     def tick(self) -> int:
         """Index of the next PVDF tick (2 kHz) since the clock's start."""
         return self.eskin.tick
 
     @property
+    def clock_t0_s(self) -> float:
+        return self.eskin.t0_s
+
+    @property
     def st_phase(self) -> int:
         """The tick (0-19) of the first SingleTact sample: SingleTact samples fall on ticks = this mod 20."""
         return self.eskin.st_phase
-
-    @property
-    def time_s(self) -> float:
-        """Recording time (s) up to which samples have been produced (time of the next tick)."""
-        return self.eskin.time_s
-
-    @property
-    def requested_s(self) -> float:
-        """Recording time (s) up to which samples were asked for (:meth:`read`): every sample before
-        it has been delivered, none after it."""
-        return self._requested_s
-
-    def advance(self, n_ticks: int) -> RawChunk:
-        """The next ``n_ticks`` PVDF ticks (2 kHz) and the SingleTact samples among them.
-
-        Afterwards the clock of :meth:`read` stands at the time of the next tick.
-        """
-        n = int(n_ticks)
-        if n < 0:
-            raise ValueError("n_ticks must be >= 0")
-        chunk = self._advance(n)
-        self._requested_s = max(self._requested_s, self.time_s)
-        return chunk
 
     def _advance(self, n: int) -> RawChunk:
         k = self.eskin.tick + np.arange(n)
@@ -208,14 +186,6 @@ class SceneSource:
         depth, x = self.robot.track(cmd["depth"], cmd["x"])
         contact = ContactInput(depth, cmd["vib"], cmd["xy"], cmd["comb"], x, cmd["spacing"])
         return self.eskin.process(contact)
-
-    def read(self, duration_s: float) -> RawChunk:
-        """All samples with times before (previous end + ``duration_s``); the clock keeps the remainder."""
-        if duration_s < 0:
-            raise ValueError("duration_s must be >= 0")
-        self._requested_s += float(duration_s)
-        end_tick = math.ceil((self._requested_s - self.eskin.t0_s) * FS_HZ - 1e-6)
-        return self._advance(max(end_tick - self.eskin.tick, 0))
 
 
 @dataclass
