@@ -37,7 +37,7 @@ from ..simulator.large import LargeSkinSource
 from ..simulator.scene import SceneSource, default_scene
 
 
-MAX_CATCH_UP_HOPS = 64  #: a sim that fell behind hands over up to this many hops at once
+MAX_CATCH_UP_HOPS = 64  #: a sim or replay that fell behind hands over up to this many hops at once
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 #: a replayed trial's span on the wire runs this long past its last sample, so that no spike of it (stamped at
 #: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
@@ -105,6 +105,15 @@ class _Paced:
             return False
         self._due_s = t_s
         return True
+
+    def take_passed(self, limit: int) -> int:
+        """How many of the next regular releases (:meth:`wait_next`'s) are already past, up to
+        ``limit``; they count as released (a source that fell behind hands them over at once)."""
+        n = 0
+        while n < limit and self.passed((self._k + 1) * self.period_s):
+            self._k += 1
+            n += 1
+        return n
 
     def close(self) -> None:
         self._closed.set()
@@ -389,8 +398,15 @@ class ReplayLiveSource:
         elif self._pace.epoch != self._pace_epoch:
             self._epoch += 1  # resumed after a pause for demand
         self._pace_epoch = self._pace.epoch
-        chunk = self._player.read(self.update_s)
-        self._clock = ClockPoint(self.offset_us + int(round(self._player.now_s * 1e6)), self._pace.release_wall_us(),
+        # behind (a fast replay on a slow machine): the hops already due within this trial go in this chunk too
+        left = math.ceil((self._player.trial.duration_s - self._player.now_s) / self.update_s) - 1
+        hops = 1 + self._pace.take_passed(min(MAX_CATCH_UP_HOPS - 1, left))
+        start_s = self._player.now_s
+        chunk = self._player.read(hops * self.update_s)
+        # anchored at the chunk's first instant (acquired hops periods before its release): a new trial's first
+        # point then precedes all its spikes, which a client maps by the latest point at or before them
+        self._clock = ClockPoint(self.offset_us + int(round(start_s * 1e6)),
+                                 self._pace.release_wall_us() - int(round(hops * self._pace.period_s * 1e6)),
                                  1.0 / self.speed, 0, self._epoch)
         return chunk
 
