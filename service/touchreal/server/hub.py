@@ -66,6 +66,12 @@ def _taxel_key(s: P.Subscription) -> tuple:
     return None if s.taxels is None else tuple(s.taxels), s.region
 
 
+def _render_key(s: P.Subscription, taxel_key: tuple) -> tuple:
+    """What decides the frames a subscription is sent (hashable): subscribers with equal keys share them."""
+    return (taxel_key, None if s.classes is None else tuple(s.classes), tuple(s.streams), s.encoding,
+            s.decimation, None if s.decoders is None else tuple(s.decoders))
+
+
 @dataclass
 class Queued:
     kind: int  #: P.KIND_*
@@ -86,6 +92,9 @@ class Subscriber:
         self.slow_timeout_s = slow_timeout_s
         self.clock = clock
         self.subscription: P.Subscription | None = None
+        #: the subscription's taxel and render keys, made once when it is set (a taxel list may be long)
+        self.taxel_key: tuple = ()
+        self.render_key: tuple = ()
         self.queue: deque[Queued] = deque()
         self.seq = 0
         self.dropped = 0
@@ -245,6 +254,9 @@ class Hub:
 
     def subscribe(self, sub: Subscriber, subscription: P.Subscription | None) -> None:
         sub.subscription = subscription
+        if subscription is not None:
+            sub.taxel_key = _taxel_key(subscription)
+            sub.render_key = _render_key(subscription, sub.taxel_key)
         self.demand_changed()
 
     def demand_changed(self) -> None:
@@ -312,10 +324,10 @@ class Hub:
         self._picked.clear()
         self.refresh_demand()
 
-    def picked(self, s: P.Subscription) -> Picked | None:
-        """The taxels subscription ``s`` names (its ``taxels`` and ``region``), resolved once per distinct
-        pair while the skin stays the same; None: every taxel."""
-        key = _taxel_key(s)
+    def picked(self, s: P.Subscription, key: tuple | None = None) -> Picked | None:
+        """The taxels subscription ``s`` names (its ``taxels`` and ``region``; ``key``: its :func:`_taxel_key`
+        if known), resolved once per distinct pair while the skin stays the same; None: every taxel."""
+        key = _taxel_key(s) if key is None else key
         if key not in self._picked:
             ids = s.taxel_ids(self.n_taxels, self.positions_mm)
             if ids is None:
@@ -331,15 +343,16 @@ class Hub:
             self._refresh.cancel()
             self._refresh = None
         self._refreshed_at = self.clock()
-        subs = [s.subscription for s in self.subscribers.values() if s.subscription is not None]
-        keys = {_taxel_key(s) for s in subs}
-        self._picked = {k: v for k, v in self._picked.items() if k in keys}  # forget subscriptions gone
-        self.demand = build_demand(subs, self.n_taxels, self.allowed_classes, self.decoder_classes, self.picked_ids)
+        subs = [s for s in self.subscribers.values() if s.subscription is not None]
+        keys = {id(s.subscription): s.taxel_key for s in subs}
+        self._picked = {k: v for k, v in self._picked.items() if k in keys.values()}  # forget subscriptions gone
 
-    def picked_ids(self, s: P.Subscription) -> np.ndarray | None:
-        """The ids of :meth:`picked` (None: every taxel)."""
-        p = self.picked(s)
-        return None if p is None else p.ids
+        def picked_ids(s: P.Subscription) -> np.ndarray | None:
+            p = self.picked(s, keys[id(s)])
+            return None if p is None else p.ids
+
+        self.demand = build_demand([s.subscription for s in subs], self.n_taxels, self.allowed_classes,
+                                   self.decoder_classes, picked_ids)
 
     # -- fan-out --------------------------------------------------------------------------------
     def publish(self, upd: Update) -> None:
@@ -349,8 +362,7 @@ class Hub:
             s = sub.subscription
             if s is None or sub.kick is not None:
                 continue
-            key = (_taxel_key(s), None if s.classes is None else tuple(s.classes), tuple(s.streams), s.encoding,
-                   s.decimation, None if s.decoders is None else tuple(s.decoders))
+            key = sub.render_key
             frames = cache.get(key)
             if frames is None:
                 frames = cache[key] = self._render(upd, s, key)
@@ -374,7 +386,7 @@ class Hub:
         """The frames of ``upd`` for subscription ``s`` (``key``), without a spikes frame that has
         nothing new for it."""
         out: list[P.Frame] = []
-        picked = self.picked(s)
+        picked = self.picked(s, key[0])
         taxels = np.arange(self.n_taxels) if picked is None else picked.ids
         if "spikes" in s.streams and upd.spikes:
             h = P.Header(P.KIND_SPIKES, upd.update, upd.emit_us, upd.params_rev, upd.flags)
