@@ -17,6 +17,7 @@ from touchreal_client.clock import ClockMap, ClockPoint
 from touchreal.server.settings import RuntimeConfig
 
 MAX_LAG_MS = 250.0
+DELIVERY_MS = 150.0  #: the hub and loopback, allowed generously for a loaded CI machine
 
 
 async def _watch(addr: str, done, deadline_s: float) -> dict:
@@ -75,10 +76,10 @@ def test_a_skin_too_large_for_the_machine_sheds_load_and_says_so(tmp_path):
     shed = float(next(line.split()[1] for line in metrics.splitlines() if line.startswith("touchreal_shed_seconds_total")))
     assert shed > 0
     assert 'touchreal_dropped_frames_total{reason="upstream_loss"}' in metrics
-    # the spikes that do go out are bounded in time: the lag bound, the SA1 look-ahead (20 ms) and one
-    # update's compute on a machine that cannot keep up (at most the bound again)
+    # the spikes that do go out are bounded in time: the server checks the lag bound after each phase's
+    # compute, so only SA1's look-ahead (20 ms) and the delivery to this client (hub, loopback) add to it
     lat = np.array(state["sa1_latency_ms"])
-    assert lat.max() < 2 * MAX_LAG_MS + 50, np.percentile(lat, [50, 99, 100])
+    assert lat.max() < MAX_LAG_MS + 20 + DELIVERY_MS, np.percentile(lat, [50, 99, 100])
 
 
 def test_a_skin_the_machine_serves_streams_without_shedding(tmp_path):

@@ -6,7 +6,7 @@ import pytest
 from touchreal.encoding.encoder import Encoder, SpikeEvents
 from touchreal.params import default_params
 from touchreal.preprocess.pipeline import Channels, preprocess_trial, preprocess_trial_windows
-from touchreal.raw import RawChunk
+from touchreal.raw import RawChunk, spatial_order, taxel_grid
 from touchreal.sources.replay import ReplaySource
 from touchreal.settings import CLASSES
 from touchreal.stream import StreamEncoder, class_source, encode_chunks
@@ -391,6 +391,52 @@ def test_taxel_blocks_give_the_same_channels_where_they_are_wanted():
     # taxel 4 has no channels exactly from where its block stopped to where it restarted (raw history)
     assert np.array_equal(np.isnan(b[:, 4]).any(axis=1), (ks >= stop) & (ks < restart)) and restart - stop > 1500
     np.testing.assert_allclose(b[ks >= restart, 4, 0], w[ks >= restart, 4, 0], atol=0.02)
+
+
+def test_blocks_in_a_spatial_order_give_the_spikes_and_channels_of_id_order():
+    """Blocks that take the taxels in another order (patches of the skin) compute the same thing: every
+    taxel's spikes bit for bit, its channels to rounding, both addressed by taxel id; demand follows
+    the order (taxels 0 and 2 share a block when the order puts them together)."""
+    params = _params({"SA1": 16.0, "RA": 16.0, "PC": 128.0})
+    chunks = _two_taxel_chunks(0.004, n_taxels=5)
+    order = np.array([4, 0, 2, 3, 1])  # blocks of 2: {4, 0}, {2, 3}, {1}
+
+    def run(order, active):
+        se = StreamEncoder(params, n_taxels=5, taxel_block=2, order=order)
+        se.set_active(active, channels=range(5))
+        parts, rows = [], []
+        for c in chunks:
+            ch, ev = se.process_channels(c)
+            parts.append(ev)
+            rows.append(ch.data)
+        parts.append(se.finish())
+        events = type(parts[0]).concatenate(parts)
+        return events, np.concatenate(rows), se
+
+    every = {c: range(5) for c in CLASSES}
+    by_id, ch_id, _ = run(None, every)
+    ordered, ch_ordered, _ = run(order, every)
+    _assert_trains_equal(_trains(by_id, 5), _trains(ordered, 5))
+    assert len(by_id) > 0 and sorted(zip(by_id.t_s, by_id.taxel, by_id.cls)) == sorted(zip(ordered.t_s, ordered.taxel, ordered.cls))
+    np.testing.assert_allclose(ch_ordered, ch_id, rtol=0, atol=1e-10)
+    se = StreamEncoder(params, n_taxels=5, taxel_block=2, order=order)
+    se.set_active({"SA1": [0, 4]})  # one block in this order, two by id
+    se.process(chunks[0])
+    assert [b.pre.running["singletact"] for b in se.blocks] == [True, False, False]
+    with pytest.raises(ValueError, match="permutation"):
+        StreamEncoder(params, n_taxels=5, taxel_block=2, order=[0, 1, 2, 3, 3])
+
+
+def test_spatial_order_cuts_a_grid_into_square_tiles_and_any_layout_into_patches():
+    grid = taxel_grid(64 * 64)
+    tiles = grid[spatial_order(grid)].reshape(16, 256, 2)  # runs of 256: 16 x 16 taxels
+    assert np.all(np.ptp(tiles, axis=1) == 150.0)  # (16 - 1) x the 10 mm pitch along x and y
+    rng = np.random.default_rng(0)
+    scattered = rng.uniform(0, 100, (1000, 2))
+    runs = scattered[spatial_order(scattered)].reshape(10, 100, 2)
+    by_id = scattered.reshape(10, 100, 2)
+    assert np.mean(np.ptp(runs, axis=1)) < 0.5 * np.mean(np.ptp(by_id, axis=1))  # compact patches
+    assert np.array_equal(np.sort(spatial_order(scattered)), np.arange(1000))
 
 
 def test_class_channels_give_the_stream_spikes_offline():

@@ -42,6 +42,25 @@ class RawChunk:
         return RawChunk(*(np.concatenate([getattr(c, f) for c in chunks]) for f in ("st_t", "st", "pvdf_t", "pvdf")))
 
 
+def spatial_order(positions_mm: np.ndarray) -> np.ndarray:
+    """A permutation of the taxels (int64) that keeps neighbours on the skin near each other: the Z
+    (Morton) order of their ranks along x and along y. Cut into runs of consecutive positions it
+    gives compact patches of the skin for any layout: on a grid of 2^k x 2^k taxels, runs of 4^j
+    are exactly square tiles, where runs of ids are strips along the rows."""
+    p = np.asarray(positions_mm, np.float64).reshape(-1, 2)
+    ix = np.unique(p[:, 0], return_inverse=True)[1].astype(np.uint64)
+    iy = np.unique(p[:, 1], return_inverse=True)[1].astype(np.uint64)
+    return np.argsort(_spread_bits(ix) | (_spread_bits(iy) << np.uint64(1)), kind="stable")
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """Each of the low 32 bits of ``v`` (uint64) moved to twice its position (bit i -> bit 2i)."""
+    for shift, mask in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F),
+                        (2, 0x3333333333333333), (1, 0x5555555555555555)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
 def taxel_grid(n: int, pitch_mm: float = 10.0) -> np.ndarray:
     """(n, 2) taxel centres (mm): a near-square grid of pitch ``pitch_mm`` centred on (0, 0)."""
     if n < 1:

@@ -97,7 +97,11 @@ class StreamEncoder:
     acquisition but nothing else: a block with no active column runs nothing, so a few subscribed
     taxels of a large skin cost about one block's preprocessing; with every column active, one
     block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent);
-    channels equal to rounding (~1e-15).
+    channels equal to rounding (~1e-15). ``order`` (a permutation of the taxel ids, e.g.
+    :func:`~touchreal.raw.spatial_order` of their positions) is the order the blocks take the taxels
+    in, so that a block is a patch of the skin rather than a strip of ids: a touch wakes, and a
+    region demands, fewer blocks. Spikes and channels stay addressed by taxel id; spikes of one
+    instant come sorted by id.
 
     ``update_s`` (the service's ``preprocess.update_ms``) splits the sources into two cadences: a
     PVDF window whose gate emits at most once per update (window / 4 >= ``update_s``: the 128 ms
@@ -126,6 +130,7 @@ class StreamEncoder:
         taxel_block: int | None = None,
         update_s: float | None = None,
         activity: ActivityPlan | None = None,
+        order: np.ndarray | None = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
@@ -135,6 +140,14 @@ class StreamEncoder:
             raise ValueError("taxel_block must be >= 1")
         if update_s is not None and not update_s > 0:
             raise ValueError("update_s must be > 0")
+        #: the taxels in the order the blocks take them (None: by id), and each taxel's place in it
+        self._order: np.ndarray | None = None
+        self._place: np.ndarray | None = None
+        if order is not None:
+            self._order = np.asarray(order, np.int64)
+            if not np.array_equal(np.sort(self._order), np.arange(n_taxels)):
+                raise ValueError(f"order must be a permutation of the {n_taxels} taxel ids")
+            self._place = np.argsort(self._order)
         self.params = params
         self.n_taxels = n_taxels
         self.dtype = np.dtype(dtype)  #: of the channels and of the preprocessing's arithmetic
@@ -194,9 +207,13 @@ class StreamEncoder:
         bad = sorted({x for xs in [*want.values(), shown] for x in xs if not 0 <= x < self.n_taxels})
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
+        placed, shown_at = want, shown  # by place in the blocks' order
+        if self._place is not None:
+            placed = {c: sorted(self._place[list(xs)].tolist()) for c, xs in want.items()}
+            shown_at = set(self._place[sorted(shown)].tolist())
         for i, block in enumerate(self.blocks):
-            self._wants[i] = ({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in want.items()},
-                              bool(shown.intersection(block.taxels)))
+            self._wants[i] = ({c: [x - block.taxels.start for x in xs if x in block.taxels] for c, xs in placed.items()},
+                              bool(shown_at.intersection(block.taxels)))
             self._set_block(i)
         self.active = {c: xs for c, xs in want.items() if xs}
 
@@ -274,6 +291,8 @@ class StreamEncoder:
         return self._encode(final=True)[1]
 
     def _feed(self, chunk: RawChunk) -> None:
+        if self._order is not None:  # the blocks' order from here on; spikes and channels go back to ids in _encode
+            chunk = RawChunk(chunk.st_t, chunk.st[:, self._order], chunk.pvdf_t, chunk.pvdf[:, self._order])
         if self.detector is not None:
             self._follow_activity(chunk)
         new = self.acq.push(chunk.st_t, chunk.st, chunk.pvdf_t, chunk.pvdf)
@@ -315,10 +334,14 @@ class StreamEncoder:
                 shown.append((block.taxels, ch))
             parts += evs
         events = SpikeEvents.concatenate(parts)
-        if len(parts) > 1:
-            order = np.argsort(events.t_s, kind="stable")
+        channels = self._assemble(shown)
+        if self._order is not None:  # back to taxel ids
+            events = SpikeEvents(events.t_s, self._order[events.taxel].astype(events.taxel.dtype), events.cls)
+            channels = Channels(channels.k0, channels.data[:, self._place])
+        if len(parts) > 1 or self._order is not None:
+            order = np.lexsort((events.taxel, events.t_s)) if self._order is not None else np.argsort(events.t_s, kind="stable")
             events = SpikeEvents(events.t_s[order], events.taxel[order], events.cls[order])
-        return self._assemble(shown), events
+        return channels, events
 
     def _assemble(self, shown: list[tuple[range, Channels]]) -> Channels:
         """One block's channels as they are when it covers every taxel; else the blocks' channels on

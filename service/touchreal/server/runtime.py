@@ -37,7 +37,7 @@ from ..params import EncoderParams
 from ..preprocess.activity import ActivityPlan
 from ..preprocess.pipeline import Channels
 from ..sources.live import LiveSource
-from ..raw import RawChunk
+from ..raw import RawChunk, spatial_order
 from ..settings import CLASSES, PVDF_FS_HZ, ST_FS_HZ
 from ..stream import StreamEncoder
 from .demand import Demand
@@ -52,6 +52,41 @@ _RTF_AVERAGE_S = 1.0  #: the real-time factor averages over about this much sign
 
 def wall_us() -> int:
     return time.time_ns() // 1000
+
+
+class _ComputeCost:
+    """What a chunk will cost to encode (s of wall time), learned from the chunks before it: the fast
+    phase in proportion to the chunk's signal time, plus, once a slow source's frame falls due (every
+    ``update_s`` of signal or so), the slow phase in proportion to the signal since its last run. A
+    slow frame costs many fast hops on a large skin, so one average per second of signal would
+    promise a chunk the time its slow frame then takes."""
+
+    def __init__(self, average_s: float = _RTF_AVERAGE_S):
+        self.average_s = average_s
+        self.fast_per_s = 0.0  #: fast phase: wall s per s of signal
+        self.slow_per_s = 0.0  #: slow phase: wall s per s of signal since its previous run
+        self.slow_every_s = float("inf")  #: signal between two slow runs (s), as last seen
+        self._since_slow_s = 0.0
+
+    def predict_s(self, span_s: float) -> float:
+        """The compute (s) a chunk of ``span_s`` of signal will take, its slow frame included if one falls due."""
+        slow = self._since_slow_s + span_s >= self.slow_every_s
+        return self.fast_per_s * span_s + (self.slow_per_s * (self._since_slow_s + span_s) if slow else 0.0)
+
+    def restart(self) -> None:
+        """A new pipeline: nothing fed since its (first) slow frame."""
+        self._since_slow_s = 0.0
+
+    def fast(self, span_s: float, spent_s: float) -> None:
+        if span_s > 0:
+            self.fast_per_s += min(1.0, span_s / self.average_s) * (spent_s / span_s - self.fast_per_s)
+            self._since_slow_s += span_s
+
+    def slow(self, spent_s: float) -> None:
+        if self._since_slow_s > 0:
+            self.slow_per_s += min(1.0, self._since_slow_s / self.average_s) * (spent_s / self._since_slow_s - self.slow_per_s)
+            self.slow_every_s = self._since_slow_s
+        self._since_slow_s = 0.0
 
 
 @dataclass
@@ -109,7 +144,10 @@ class Runtime:
         self.source = source
         #: activity-driven compute for the StreamEncoder (None: dense); only a skin of several taxel blocks
         #: uses it: a single block always runs, so its spikes are the offline encoder's bit for bit
-        self.activity = activity if taxel_block is not None and source.n_taxels > taxel_block else None
+        blocks = taxel_block is not None and source.n_taxels > taxel_block
+        self.activity = activity if blocks else None
+        #: the order the blocks take the taxels in: patches of the skin (:func:`~touchreal.raw.spatial_order`)
+        self.order = spatial_order(source.positions_mm) if blocks else None
         #: a chunk whose spikes would leave more than this (s) after its oldest sample is shed (:meth:`_shed`)
         self.max_lag_s = max_lag_s
         #: a replay is never shed: its frames stay ``touchreal encode``'s, and one that falls behind catches up
@@ -120,6 +158,7 @@ class Runtime:
         self._draining = False  #: a shed is dropping the backlog
         self.lag_s = 0.0  #: age (s, clock model) of the latest chunk's oldest sample when its compute started
         self.real_time_factor = 0.0  #: wall time spent per second of signal encoded, ~1 s average (< 1 keeps up)
+        self._cost = _ComputeCost()  #: what the next chunk will cost, from what the recent ones did
         self.shed_s = 0.0  #: seconds of signal acquired but not encoded because compute was behind
         self.sheds = 0  #: chunks shed
         self.last_shed_us: int | None = None  #: wall clock (us) of the latest shed
@@ -212,7 +251,7 @@ class Runtime:
             self.lag_s = self._lag_s(chunk, wall_us())
             # the chunk's spikes would leave this late: its lag plus its compute at the recent real-time factor
             # (while a shed drops the backlog, the lag alone: the factor is not updated then)
-            due_s = self.lag_s + (0.0 if self._draining else self.real_time_factor * self._span_s(chunk))
+            due_s = self.lag_s + (0.0 if self._draining else self._cost.predict_s(self._span_s(chunk)))
             if self._sheds and due_s > (self.max_lag_s * _DRAIN_TO if self._draining else self.max_lag_s):
                 self._shed(chunk)
                 return None
@@ -234,16 +273,35 @@ class Runtime:
         t0 = time.perf_counter()
         ch, ev = self.encoder.process_fast(chunk)
         compute = time.perf_counter() - t0
+        self._cost.fast(self._span_s(chunk), compute)
         flags |= self._count_sanitizer()
+        if self._late(chunk):  # the estimate fell short: these spikes would leave after the bound
+            self._pending_flags |= flags
+            return None
         self._pending_flags = 0
         self.state = "running"
         upd = self._emit(ev, flags, acq_us, compute, ch if demand.channel_taxels else None)
         if self.encoder.slow_due():
             t0 = time.perf_counter()
             ch, ev = self.encoder.process_slow()
+            self._cost.slow(time.perf_counter() - t0)
+            if self._late(chunk):
+                return None
             upd = self._emit(ev, 0, acq_us, time.perf_counter() - t0, ch if demand.channel_taxels else None)
         self._follow_real_time(chunk, time.perf_counter() - start)
         return upd
+
+    def _late(self, chunk: RawChunk) -> bool:
+        """After a phase's compute: if its spikes would now leave more than ``max_lag_s`` after the chunk's
+        oldest sample, they are dropped and the pipeline sheds (:meth:`_shed`), so no spike leaves later
+        than the bound whatever the estimate said."""
+        if not self._sheds:
+            return False
+        self.lag_s = self._lag_s(chunk, wall_us())
+        if self.lag_s <= self.max_lag_s:
+            return False
+        self._shed(chunk)
+        return True
 
     # -- real time, or honest about it ----------------------------------------------------------
     def _lag_s(self, chunk: RawChunk, now_us: int) -> float:
@@ -310,8 +368,10 @@ class Runtime:
         """A pipeline from rest for parameter revision ``rev`` (every column demanded until set_active)."""
         self.enc_rev, self.active, self._enc_stats = rev, None, {}
         self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
-                                     update_s=params.preprocess.update_ms / 1000.0, activity=self.activity)
+                                     update_s=params.preprocess.update_ms / 1000.0, activity=self.activity,
+                                     order=self.order)
         self.decoders = {}
+        self._cost.restart()
 
     def _flush_segment(self, acq_us: int) -> None:
         """The source began its next segment (a replayed trial): the encoder's last spikes go out
