@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import pytest
 import yaml
 from server_harness import free_port, wait_until
 from touchreal_client import Client
@@ -148,6 +149,7 @@ def test_compose_and_kubernetes_manifests_reference_the_real_ports_paths_setting
     assert claim == docs["PersistentVolumeClaim"]["metadata"]["name"]
 
 
+@pytest.mark.slow  # ~100 s: out of the default suite; .ci/run runs it (pytest -m slow)
 def test_image_entrypoint_serves_and_streams_from_a_fresh_venv_with_only_the_wheels(tmp_path):
     """~60 s: the wheels build without index access for our own code; dependencies come from the
     pip cache (--no-compile keeps it bounded); the venv is deleted afterwards."""

@@ -11,6 +11,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from server_harness import connect, hello_and_subscribe, running_server, until
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockMap
@@ -165,6 +166,7 @@ async def _sent(procs: list[asyncio.subprocess.Process]) -> list[int]:
     return out
 
 
+@pytest.mark.slow  # ~25 s stress: out of the default suite; .ci/run runs it (pytest -m slow)
 def test_a_steady_clients_frame_rate_and_latency_hold_while_another_floods_subscriptions(tmp_path):
     """The steady client is measured while two other clients hold their subscriptions (decoded
     outputs on; a 64 KiB taxel list), then while the same clients flood: decoded toggled on and off
