@@ -169,7 +169,6 @@ class StreamEncoder:
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
         self._wants: list[tuple[dict[str, list[int]], bool]] = [({c: list(range(len(b.taxels))) for c in self.classes}, True)
                                                               for b in self.blocks]
-        #: per block: running (dense: always; activity-driven: asleep until the detector wakes it)
         self._awake = np.ones(len(self.blocks), bool)  #: per block: running (all, until the detector says)
         self._spiked_s = np.full(len(self.blocks), -np.inf)  #: per block: sensor time (s) of its latest spikes
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
@@ -335,12 +334,13 @@ class StreamEncoder:
             parts += evs
         events = SpikeEvents.concatenate(parts)
         channels = self._assemble(shown)
-        if self._order is not None:  # back to taxel ids
-            events = SpikeEvents(events.t_s, self._order[events.taxel].astype(events.taxel.dtype), events.cls)
-            channels = Channels(channels.k0, channels.data[:, self._place])
-        if len(parts) > 1 or self._order is not None:
-            order = np.lexsort((events.taxel, events.t_s)) if self._order is not None else np.argsort(events.t_s, kind="stable")
-            events = SpikeEvents(events.t_s[order], events.taxel[order], events.cls[order])
+        if self._order is not None:  # back to taxel ids, an instant's spikes sorted by id
+            taxel = self._order[events.taxel].astype(events.taxel.dtype)
+            by = np.lexsort((taxel, events.t_s))
+            return Channels(channels.k0, channels.data[:, self._place]), SpikeEvents(events.t_s[by], taxel[by], events.cls[by])
+        if len(parts) > 1:
+            by = np.argsort(events.t_s, kind="stable")
+            events = SpikeEvents(events.t_s[by], events.taxel[by], events.cls[by])
         return channels, events
 
     def _assemble(self, shown: list[tuple[range, Channels]]) -> Channels:

@@ -44,10 +44,10 @@ from ..settings import PVDF_RANGE_V, ST_RESOLUTION_N
 
 _PVDF_ADC_STEP_V = (PVDF_RANGE_V[1] - PVDF_RANGE_V[0]) / 4096.0  #: the 12-bit PVDF converter's step
 _JUDGED_AFTER = 0.25  #: a new taxel is judged once it has learned its noise for this fraction of noise_tau_s
-_STUCK_MIN_SAMPLES = 8
+_STUCK_MIN_SAMPLES = 8  #: a chunk needs this many PVDF samples for "all identical" to mean stuck
 #: the vibration test's high-pass: 2nd-order Butterworth at 20 Hz on the 2 kHz PVDF (drift and baseline out)
 _HP_SOS = butter(2, 20.0, "highpass", fs=2000.0, output="sos")
-_HP_ZI = sosfilt_zi(_HP_SOS)  #: a chunk needs this many PVDF samples for "all identical" to mean stuck
+_HP_ZI = sosfilt_zi(_HP_SOS)
 
 
 @dataclass(frozen=True)

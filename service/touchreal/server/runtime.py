@@ -47,7 +47,7 @@ log = logging.getLogger("touchreal.server")
 _SOURCE_FAULTS = ("gaps", "crc_errors", "resyncs", "reconnects", "bad_times")  # source counters that flag a gap
 _SANITIZER_FAULTS = ("non_finite", "gaps", "bad_time", "duplicate", "out_of_range")
 _DRAIN_TO = 0.25  #: a shed drops chunks until one is less than this fraction of max_lag_s old
-_RTF_AVERAGE_S = 1.0  #: the real-time factor averages over about this much signal (s)
+_RTF_AVERAGE_S = 1.0  #: the compute cost (and so the real-time factor) averages over about this much signal (s)
 
 
 def wall_us() -> int:
@@ -157,7 +157,6 @@ class Runtime:
         self._on_shed = on_shed
         self._draining = False  #: a shed is dropping the backlog
         self.lag_s = 0.0  #: age (s, clock model) of the latest chunk's oldest sample when its compute started
-        self.real_time_factor = 0.0  #: wall time spent per second of signal encoded, ~1 s average (< 1 keeps up)
         self._cost = _ComputeCost()  #: what the next chunk will cost, from what the recent ones did
         self.shed_s = 0.0  #: seconds of signal acquired but not encoded because compute was behind
         self.sheds = 0  #: chunks shed
@@ -246,11 +245,10 @@ class Runtime:
         self._follow_clock(chunk, acq_us, clock)
         flags = self._pending_flags | self._source_flags()
         demand = self._demand()
-        start = time.perf_counter()
         if not demand.empty:  # real time, or honest about it: before anything is built or computed
             self.lag_s = self._lag_s(chunk, wall_us())
-            # the chunk's spikes would leave this late: its lag plus its compute at the recent real-time factor
-            # (while a shed drops the backlog, the lag alone: the factor is not updated then)
+            # the chunk's spikes would leave this late: its lag plus its predicted compute (while a shed drops
+            # the backlog, the lag alone: nothing is computed then)
             due_s = self.lag_s + (0.0 if self._draining else self._cost.predict_s(self._span_s(chunk)))
             if self._sheds and due_s > (self.max_lag_s * _DRAIN_TO if self._draining else self.max_lag_s):
                 self._shed(chunk)
@@ -288,7 +286,6 @@ class Runtime:
             if self._late(chunk):
                 return None
             upd = self._emit(ev, 0, acq_us, time.perf_counter() - t0, ch if demand.channel_taxels else None)
-        self._follow_real_time(chunk, time.perf_counter() - start)
         return upd
 
     def _late(self, chunk: RawChunk) -> bool:
@@ -350,12 +347,10 @@ class Runtime:
         """The chunk's signal time (s): its PVDF samples at the PVDF rate, else its SingleTact samples."""
         return chunk.pvdf_t.size / PVDF_FS_HZ if chunk.pvdf_t.size else chunk.st_t.size / ST_FS_HZ
 
-    def _follow_real_time(self, chunk: RawChunk, spent_s: float) -> None:
-        """The real-time factor: wall time spent per second of signal, averaged over about a second."""
-        span = self._span_s(chunk)
-        if span > 0:
-            a = min(1.0, span / _RTF_AVERAGE_S)
-            self.real_time_factor += a * (spent_s / span - self.real_time_factor)
+    @property
+    def real_time_factor(self) -> float:
+        """Wall time spent computing per second of signal, about a 1 s average (< 1 keeps up)."""
+        return self._cost.fast_per_s + self._cost.slow_per_s
 
     def _apply_demand(self, demand: Demand) -> None:
         """Make the encoder compute what ``demand`` asks of the classes it serves."""
