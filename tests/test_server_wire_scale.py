@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import httpx
 import numpy as np
 from server_harness import collect, connect, hello_and_subscribe, running_server, until
 from touchreal_client import protocol as P
@@ -55,16 +56,20 @@ def test_a_large_skin_says_hello_in_a_few_hundred_bytes_and_serves_a_region(tmp_
 
 def test_a_16384_taxel_skin_says_hello_and_admits_a_region_at_once(tmp_path):
     """At 16,384 taxels (frames aside: the simulated e-skin falls behind at this size here): the hello the
-    service sends, and the demand a region subscription makes."""
+    service sends, the demand a region subscription makes, and /v1/status, which gives it as id ranges."""
     with running_server(tmp_path, RuntimeConfig(taxels=16384)) as (addr, svc):
 
         async def go():
             async with connect(addr, max_size=P.MAX_CLIENT_MESSAGE_BYTES) as ws:  # no more than a server accepts
                 hello, subscribed = await hello_and_subscribe(ws, classes=["RA"], region={"ranges": [[100, 16384]]})
                 await until(lambda: svc.hub.demand.columns.get("RA"), 10, "the demand follows the region")
-                return hello, subscribed, svc.hub.demand
+                async with httpx.AsyncClient(base_url=f"http://{addr}") as http:
+                    status = await http.get("/v1/status")
+                return hello, subscribed, svc.hub.demand, status
 
-        hello, subscribed, demand = asyncio.run(asyncio.wait_for(go(), 60))
+        hello, subscribed, demand, status = asyncio.run(asyncio.wait_for(go(), 60))
     assert hello["n_taxels"] == 16384 and hello["taxels"] is None and P.hello_positions(hello).shape == (16384, 2)
     assert subscribed["region"] == {"ranges": [[100, 16384]], "rects": []}
     assert demand.columns == {"RA": tuple(range(100, 16384))}
+    assert status.json()["demand"]["columns"] == {"RA": [[100, 16384]]}
+    assert len(status.content) < 16_000, f"/v1/status is {len(status.content)} bytes"
