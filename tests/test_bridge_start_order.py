@@ -31,7 +31,9 @@ async def _start_in_order(order: tuple[str, ...], state_dir, url: str, stack: As
         elif step == "gateway":
             ga = await asyncio.to_thread(stack.enter_context, serving_app(create_gateway_app(gw)))
         else:
-            ws = await stack.enter_async_context(connect(ga))
+            # it reads no more once it holds its frames: an unbounded queue lets its close handshake through
+            # at once (a full one stops websockets reading the socket, so the close waited 10 s for its timeout)
+            ws = await stack.enter_async_context(connect(ga, max_queue=None))
             await ws.send(json.dumps({"type": "subscribe"}))
 
     def hellos_in(got: list) -> list[dict]:
@@ -60,15 +62,16 @@ def test_client_gets_frames_whatever_the_start_order(tmp_path, nats_url, order):
 
 def test_gateway_and_client_before_the_service(tmp_path, nats_url):  # noqa: F811
     """The client subscribes against the gateway's placeholder hello (no taxels); it gets the real
-    hello and its frames as soon as the service appears."""
+    hello and its frames as soon as the service appears. Repeated: the order was racy."""
     from touchreal.bridge import natsd
 
-    # a broker of its own: nothing of another test's publisher can answer on it
-    with natsd.local_nats_server() as url:
-        async def go():
-            async with AsyncExitStack() as stack:
-                return await _start_in_order(("gateway", "client", "service"), tmp_path, url, stack)
+    for run in range(3):
+        # a broker of its own per run: nothing of the previous run's publisher can answer on it
+        with natsd.local_nats_server() as url:
+            async def go():
+                async with AsyncExitStack() as stack:
+                    return await _start_in_order(("gateway", "client", "service"), tmp_path / str(run), url, stack)
 
-        hellos, frames, svc = asyncio.run(asyncio.wait_for(go(), 90))
-    assert hellos[0]["taxels"] == [] and hellos[0]["session"] is None  # the placeholder came first
-    _check(hellos, frames, svc)
+            hellos, frames, svc = asyncio.run(asyncio.wait_for(go(), 90))
+        assert hellos[0]["taxels"] == [] and hellos[0]["session"] is None  # the placeholder came first
+        _check(hellos, frames, svc)
