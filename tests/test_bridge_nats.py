@@ -262,7 +262,7 @@ def test_decoded_outputs_cross_nats_on_demand_and_equal_the_service_direct(tmp_p
     assert lanes[f"touchreal.{SENSOR}.frames"] is None and lanes[f"touchreal.{SENSOR}.channels"] is None
     assert (lanes[subject].taxels, lanes[subject].streams, lanes[subject].decoders) == ([0, 2], ["decoded"], ["force"])
     assert demand == {"force": (0, 2)} and running == ["force"]
-    assert announced == {"columns": {}, "channel_taxels": [], "decoders": {"force": [0, 2]}}
+    assert announced == {"columns": {}, "channel_taxels": [], "decoders": {"force": [[0, 1], [2, 3]]}}  # id ranges
     assert after[subject].subscription is None and running_after == []
     fv, fd = _decoded(fv), _decoded(fd)
     assert fv and _consecutive(fv) and fv[-1].header.dropped == 0
@@ -443,3 +443,43 @@ def test_retention_without_jetstream_is_reported_and_publishing_goes_on(tmp_path
         status = httpx.get(f"http://{addr}/v1/status").json()["nats"]
     assert status["retain"]["seconds"] == 2.0 and "-js" in status["retain"]["error"]
     assert status["connected"] and status["published"] >= 20  # the service's own /v1/status tells
+
+
+def test_frames_over_the_brokers_max_payload_cross_in_parts_and_equal_the_service_direct(tmp_path):
+    """A broker with a 16 kB max_payload (1 MB by default): the full-rate channels of 16 taxels are 41 kB
+    per update, so each crosses in parts and the gateway puts it together again, equal to the service's
+    own frame; a client sees no gap and the publisher counts the parted frames."""
+    if not natsd.available():
+        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+    conf = tmp_path / "small.conf"
+    conf.write_text("max_payload: 16384\n")
+    with natsd.local_nats_server(config=conf) as url, \
+            publishing(tmp_path / "svc", url, RuntimeConfig(taxels=16)) as (addr, svc, pub), gateway(url) as (ga, gw):
+
+        async def go():
+            async with connect(ga, max_size=None) as via, connect(addr, max_size=None) as direct:
+                for ws in (via, direct):
+                    await hello_and_subscribe(ws, streams=["spikes", "channels"], channels={"decimation": 1})
+                fv, fd = [], []
+
+                def enough(_) -> bool:
+                    return _shared(fv, fd, P.ChannelsFrame) > 30 and _shared(fv, fd, P.SpikesFrame) > 30
+
+                await asyncio.gather(*(collect(ws, 60.0, enough, into=fs, what="over 30 shared frames of each kind")
+                                       for ws, fs in ((via, fv), (direct, fd))))
+                return fv, fd, pub.status(), gw.status()
+
+        fv, fd, pub_status, gw_status = run(go())
+    assert pub_status["max_payload"] == 16384 and pub_status["parted"] >= 30 and pub_status["failures"] == 0
+    assert gw_status["upstream"]["parted_frames_dropped"] == 0 and gw_status["upstream"]["bad_frames"] == 0
+    direct = {(type(f), f.header.update): f for f in fd if isinstance(f, (P.ChannelsFrame, P.SpikesFrame))}
+    shared = [f for f in fv if (type(f), f.header.update) in direct]
+    assert sum(isinstance(f, P.ChannelsFrame) and f.data.nbytes > 16384 for f in shared) > 30
+    for f in shared:
+        d = direct[(type(f), f.header.update)]
+        if isinstance(f, P.ChannelsFrame):
+            assert (f.t0_us, f.period_us) == (d.t0_us, d.period_us) and np.array_equal(f.taxels, d.taxels)
+            assert np.array_equal(f.data, d.data)
+        else:
+            assert np.array_equal(f.t_us, d.t_us) and np.array_equal(f.taxel, d.taxel) and np.array_equal(f.cls, d.cls)
+    assert _consecutive(fv) and fv[-1].header.dropped == 0

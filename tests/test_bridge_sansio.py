@@ -130,6 +130,56 @@ def test_announcements_are_bounded_and_the_gateway_count_is_capped():
     assert fd.gateways == ["b", "c"]
 
 
+def test_a_large_skins_demand_is_announced_as_id_ranges_within_the_bound():
+    from touchreal.bridge.demand import MAX_ANNOUNCEMENT_BYTES
+
+    every = range(65536)
+    data = announcement("g", Announced({c: every for c in P.CLASSES}, every, {"force": every}))
+    assert len(data) < 400  # 4 x 65,536 ids as single ids took about 1.6 MB, over the 256 kB bound
+    d, _ = parse_announcement("g", data, 65536)
+    assert all(list(d.columns[c]) == list(every) for c in P.CLASSES) and list(d.decoders["force"]) == list(every)
+    # ranges may overlap and mix with single ids (a gateway from before ranges); the set is what counts
+    d, _ = parse_announcement("g", b'{"gateway": "g", "ttl_ms": 5, "columns": {"RA": [[2, 5], [3, 7], 9, [9, 9]]}}', 10)
+    assert d.columns["RA"] == [2, 3, 4, 5, 6, 9]
+    for bad, why in ((b'{"gateway": "g", "ttl_ms": 5, "columns": {"RA": [[5, 2]]}}', "malformed"),
+                     (b'{"gateway": "g", "ttl_ms": 5, "columns": {"RA": [[0, 1, 2]]}}', "malformed"),
+                     (b'{"gateway": "g", "ttl_ms": 5, "columns": {"RA": [[0, 65537]]}}', "malformed"),
+                     (b'{"gateway": "g", "ttl_ms": 5, "columns": {"RA": [[0, 11]]}}', "out_of_range")):
+        with pytest.raises(Rejected) as exc:
+            parse_announcement("g", bad, 10)
+        assert exc.value.reason == why, bad
+    assert P.id_ranges([5, 0, 1, 2, 2, 9]) == [[0, 3], [5, 6], [9, 10]] and P.id_ranges([]) == []
+
+
+def test_a_frame_over_the_brokers_max_payload_crosses_in_parts_and_a_broken_one_is_dropped_and_counted():
+    from touchreal.bridge.parts import HEADROOM_BYTES, MAX_PARTS, Reassembler, split
+
+    room = 4096 - HEADROOM_BYTES
+    frame = bytes(range(256)) * 40  # 10,240 bytes: 4 parts of at most `room`
+    pieces = split(frame, 4096)
+    assert [h for h, _ in pieces] == ["1/4", "2/4", "3/4", "4/4"] and all(len(b) <= room for _, b in pieces)
+    assert split(b"small", 4096) == [(None, b"small")]
+    with pytest.raises(ValueError, match="parts"):
+        split(b"x" * (room * MAX_PARTS + 1), 4096)
+    r = Reassembler()
+    got = [r.push("s", h, b) for h, b in pieces]
+    assert got[:3] == [None] * 3 and got[3] == frame and r.dropped == 0 and r.pending_bytes == 0
+    # subjects are put together apart; a whole frame passes straight through
+    other = split(b"y" * 5000, 4096)
+    assert r.push("t", *other[0]) is None and r.push("s", None, b"whole") == b"whole" and r.push("t", *other[1]) == b"y" * 5000
+    # a lost part: the frame begun is given up (counted), the next one is whole again
+    assert [r.push("s", h, b) for h, b in (pieces[0], pieces[2], pieces[3])] == [None, None, None] and r.dropped == 1
+    assert [r.push("s", h, b) for h, b in pieces][-1] == frame
+    # joined mid-frame: its tail is counted once; a new first part restarts; a bad header is an error
+    assert [r.push("s", h, b) for h, b in pieces[2:]] == [None, None] and r.dropped == 2
+    r.push("s", *pieces[0])
+    assert r.push("s", *pieces[0]) is None and r.dropped == 3  # a first part again: the one begun is dropped
+    for bad in ("0/4", "5/4", "x/4", "1/999", "3"):
+        with pytest.raises(ValueError):
+            r.push("s", bad, b"")
+    assert r.pending_bytes == 0 and r.dropped == 4
+
+
 def test_an_announcement_counts_for_the_gateway_whose_subject_it_came_on_only():
     silence = announcement("victim", Announced({}))
     with pytest.raises(Rejected) as exc:  # on the attacker's own subject, naming its victim: dropped

@@ -29,6 +29,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 from touchreal_client import protocol as P
 
 from .subjects import token_ok
@@ -64,16 +65,36 @@ class Announced:
 
 
 def announcement(gateway_id: str, demand: Announced, ttl_s: float = DEFAULT_TTL_S) -> bytes:
-    """A gateway's demand message:
-    ``{"gateway": ID, "ttl_ms": N, "columns": {"SA1": [0, 1], ...}, "channels": [0], "decoders": {"force": [0]}}``."""
-    cols = {c: sorted(int(t) for t in demand.columns[c]) for c in P.CLASSES if demand.columns.get(c)}
-    decs = {n: sorted(int(t) for t in taxels) for n, taxels in sorted(demand.decoders.items()) if taxels}
+    """A gateway's demand message, its taxel sets as id ranges (:func:`touchreal_client.protocol.id_ranges`:
+    every taxel of a 65,536-taxel skin is ``[[0, 65536]]``):
+    ``{"gateway": ID, "ttl_ms": N, "columns": {"SA1": [[0, 2]], ...}, "channels": [[0, 1]], "decoders": {"force": [[0, 1]]}}``."""
+    cols = {c: P.id_ranges(demand.columns[c]) for c in P.CLASSES if demand.columns.get(c)}
+    decs = {n: P.id_ranges(taxels) for n, taxels in sorted(demand.decoders.items()) if taxels}
     return json.dumps({"gateway": gateway_id, "ttl_ms": int(ttl_s * 1000), "columns": cols,
-                       "channels": sorted(int(t) for t in demand.channels), "decoders": decs}).encode()
+                       "channels": P.id_ranges(demand.channels), "decoders": decs}).encode()
+
+
+def _id(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 65536
 
 
 def _taxel_list(v) -> bool:
-    return isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 65536 for x in v)
+    """A list of ranges ``[start, stop]`` (0 <= start <= stop <= 65536) or of single ids (as gateways
+    before id ranges announced)."""
+    return isinstance(v, list) and all(_id(x) and x < 65536 or isinstance(x, list) and len(x) == 2 and _id(x[0])
+                                       and _id(x[1]) and x[0] <= x[1] for x in v)
+
+
+def _taxels(v: list, n_taxels: int) -> list[int]:
+    """The sorted ids of a checked :func:`_taxel_list` (at most ``n_taxels``, however many ranges overlap);
+    :class:`Rejected` ``out_of_range`` for an id at or past ``n_taxels``."""
+    mask = np.zeros(n_taxels, bool)
+    for x in v:
+        a, b = (x, x + 1) if isinstance(x, int) else x
+        if b > n_taxels:
+            raise Rejected("out_of_range", f"taxel {b - 1} does not exist (ids 0..{n_taxels - 1})")
+        mask[a:b] = True
+    return np.flatnonzero(mask).tolist()
 
 
 def parse_announcement(sender: str, data: bytes, n_taxels: int = 65536) -> tuple[Announced, float]:
@@ -95,14 +116,15 @@ def parse_announcement(sender: str, data: bytes, n_taxels: int = 65536) -> tuple
         raise Rejected("malformed", f"malformed demand announcement: {exc!r}"[:300]) from exc
     if not ok:
         raise Rejected("malformed", f"malformed demand announcement: expected gateway (a subject token), ttl_ms "
-                       f"(1..{MAX_TTL_MS}), columns {{class: [taxel]}}, channels [taxel], decoders {{name: [taxel]}} "
-                       f"(at most {MAX_DECODERS})")
+                       f"(1..{MAX_TTL_MS}), columns {{class: [[start, stop]]}}, channels [[start, stop]], decoders "
+                       f"{{name: [[start, stop]]}} (at most {MAX_DECODERS})")
     if gid != sender:
         raise Rejected("identity_mismatch", f"an announcement for gateway {gid} on the subject of gateway {sender}")
-    taxels = [*chan, *(t for ts in cols.values() for t in ts), *(t for ts in decs.values() for t in ts)]
-    if taxels and max(taxels) >= n_taxels:
-        raise Rejected("out_of_range", f"gateway {gid}: taxel {max(taxels)} does not exist (ids 0..{n_taxels - 1})")
-    announced = Announced({c: list(t) for c, t in cols.items()}, list(chan), {n: list(t) for n, t in decs.items()})
+    try:
+        announced = Announced({c: _taxels(t, n_taxels) for c, t in cols.items()}, _taxels(chan, n_taxels),
+                              {n: _taxels(t, n_taxels) for n, t in decs.items()})
+    except Rejected as exc:
+        raise Rejected(exc.reason, f"gateway {gid}: {exc}") from None
     return announced, ttl / 1000.0
 
 

@@ -43,7 +43,7 @@ from ..server.api_docs import add_docs
 from ..server.browser import SecurityHeaders, server_error
 from ..server.hub import Hub, limits
 from ..server.metrics import Metrics
-from . import connection, subjects
+from . import connection, parts, subjects
 from .auth import NatsAuth, servers
 from .demand import DEFAULT_TTL_S, Announced, announcement
 from .settings import GatewaySettings
@@ -109,6 +109,7 @@ class Gateway:
         self.ended: dict[str, Any] | None = None  #: what ws.py says after hello once a stream has ended (not relayed yet)
         self.last_frame_mono: float | None = None
         self.bad_frames = 0
+        self.parts = parts.Reassembler()  #: frames over the broker's max_payload arrive in parts
         self.loop: asyncio.AbstractEventLoop | None = None
         self.nc: nats.NATS | None = None
         self._tasks: list[asyncio.Task] = []
@@ -206,8 +207,11 @@ class Gateway:
     # -- frames ---------------------------------------------------------------------------------
     async def _on_frame(self, msg) -> None:
         try:
-            frame = P.decode_frame(msg.data)
-        except P.ProtocolError as exc:
+            data = self.parts.push(msg.subject, (msg.headers or {}).get(parts.PART_HEADER), msg.data)
+            if data is None:  # a part of a frame still being put together, or of one given up
+                return
+            frame = P.decode_frame(data)
+        except (P.ProtocolError, ValueError) as exc:
             self.bad_frames += 1
             log.warning("bad frame on %s: %s", msg.subject, exc)
             return
@@ -312,10 +316,11 @@ class Gateway:
                 "upstream": {"session": u.session, "frames": u.frames, "lost": u.lost, "sessions": u.sessions,
                              "channels_frames": self.upstream_channels.frames, "channels_lost": self.upstream_channels.lost,
                              "decoded": {n: {"frames": t.frames, "lost": t.lost} for n, t in self.upstream_decoded.items()},
-                             "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get())},
-                "demand": {"columns": {c: list(t) for c, t in self.hub.announced.columns.items()},
-                           "channel_taxels": list(self.hub.announced.channels),
-                           "decoders": {n: list(t) for n, t in self.hub.announced.decoders.items()}},
+                             "bad_frames": self.bad_frames, "slow_consumer": int(self.m_slow._value.get()),
+                             "parted_frames_dropped": self.parts.dropped},
+                "demand": {"columns": {c: P.id_ranges(t) for c, t in self.hub.announced.columns.items()},
+                           "channel_taxels": P.id_ranges(self.hub.announced.channels),
+                           "decoders": {n: P.id_ranges(t) for n, t in self.hub.announced.decoders.items()}},
                 "clients": [{"id": c.id, "seq": c.seq, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue)}
                             for c in self.hub.subscribers.values()]}
 

@@ -40,7 +40,7 @@ from ..decoding.model import DecoderModelError
 from ..redaction import redact
 from ..server.hub import Subscriber
 from ..server.service import Service
-from . import connection, subjects
+from . import connection, parts, subjects
 from .auth import NatsAuth, servers
 from .demand import MAX_GATEWAYS, REJECT_REASONS, ForwardedDemand, Rejected, parse_announcement
 
@@ -77,7 +77,9 @@ class NatsPublisher:
         r = service.metrics.registry
         self.m_published = Counter("touchreal_nats_published_frames", "frames published to NATS", registry=r)
         self.m_failed = Counter("touchreal_nats_publish_failures", "frames NATS refused (disconnected and its "
-                                "buffer full, or closed)", registry=r)
+                                "buffer full, or closed) or too large to publish in parts", registry=r)
+        self.m_parted = Counter("touchreal_nats_parted_frames", "frames over the broker's max_payload, "
+                                "published in parts", registry=r)
         self.m_connected = Gauge("touchreal_nats_connected", "1 while the publisher is connected to NATS", registry=r)
         self.m_gateways = Gauge("touchreal_nats_gateways", "gateways whose forwarded demand is live", registry=r)
         self.m_rejected = Counter("touchreal_nats_demand_rejected", "demand announcements dropped (oversized, "
@@ -111,6 +113,8 @@ class NatsPublisher:
         return {"url": self.url, "sensor_id": self.sensor_id, "auth": self.auth.describe(self.servers),
                 "connected": bool(self.nc and self.nc.is_connected),
                 "published": self.published, "failures": int(self.m_failed._value.get()),
+                "parted": int(self.m_parted._value.get()),
+                "max_payload": self.nc.max_payload if self.nc and self.nc.is_connected else None,
                 "gateways": self.demand.gateways,
                 "demand_rejected": {r: int(self.m_rejected.labels(r)._value.get()) for r in REJECT_REASONS},
                 "retain": {"seconds": self.retain_s, "max_bytes": self.retain_bytes,
@@ -148,13 +152,29 @@ class NatsPublisher:
                     item = sub.queue.popleft()
                     data, _ = sub.render(item)
                     await self._announce_if_changed(P.decode_header(data).params_rev)
-                    try:
-                        await self.nc.publish(subject, data, headers=headers)
-                        self.published += 1
-                        self.m_published.inc()
-                    except (NatsError, OSError) as exc:
-                        self.m_failed.inc()
-                        log.debug("publish failed: %s", redact(repr(exc)))
+                    await self._publish_frame(subject, data, headers)
+
+    async def _publish_frame(self, subject: str, data: bytes, headers: dict[str, str]) -> None:
+        """Publish one frame, in parts when it exceeds the broker's ``max_payload`` (:mod:`.parts`);
+        a frame NATS refuses (disconnected, or too large for :data:`.parts.MAX_PARTS` parts) is counted
+        as a failure, and its ``seq`` gap tells the gateways' clients."""
+        try:
+            pieces = parts.split(data, self.nc.max_payload)
+        except ValueError as exc:
+            self.m_failed.inc()
+            log.warning("frame on %s not published: %s", subject, exc)
+            return
+        try:
+            for part, piece in pieces:
+                await self.nc.publish(subject, piece, headers=headers if part is None else
+                                      {**headers, parts.PART_HEADER: part})
+            self.published += 1
+            self.m_published.inc()
+            if len(pieces) > 1:
+                self.m_parted.inc()
+        except (NatsError, OSError) as exc:
+            self.m_failed.inc()
+            log.debug("publish failed: %s", redact(repr(exc)))
 
     async def _retain(self) -> None:
         """Create (or reconfigure) the in-memory stream over this sensor's frame subjects."""

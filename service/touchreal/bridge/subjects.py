@@ -21,6 +21,9 @@
   :data:`ERROR_HEADER` naming why not. So a gateway serves the decoder routes too.
 * ``clock``: the service's ``clock`` messages (its clock model), as it tells its own clients.
 
+A frame over the broker's ``max_payload`` goes in parts with the header ``Touchreal-Part: k/n``
+(:mod:`.parts`).
+
 With ``--retain-s`` the frame subjects are also kept, for that many seconds, in the in-memory
 JetStream stream :func:`stream_name`.
 """

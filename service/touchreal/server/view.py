@@ -4,11 +4,9 @@ readiness and health, the config and decoder views. Nothing here changes the ser
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from touchreal_client import protocol as P
 
@@ -18,16 +16,6 @@ from ..redaction import redact
 from .hub import limits
 from .runtime import wall_us
 
-
-def id_ranges(ids: Iterable[int]) -> list[list[int]]:
-    """Taxel ids as sorted half-open ranges ``[[start, stop], ...]`` (the form of a subscription's
-    ``region.ranges``): ``[0, 1, 2, 5]`` -> ``[[0, 3], [5, 6]]``."""
-    a = np.unique(np.fromiter(ids, np.int64))
-    if a.size == 0:
-        return []
-    cuts = np.flatnonzero(np.diff(a) != 1) + 1
-    starts, stops = a[np.r_[0, cuts]], a[np.r_[cuts - 1, a.size - 1]] + 1
-    return np.stack([starts, stops], axis=1).tolist()
 
 SHED_DEGRADED_S = 10.0  #: health stays ``degraded`` this long (s) after compute last shed load
 
@@ -130,8 +118,8 @@ class ServiceView:
     def status(self) -> dict[str, Any]:
         """``GET /v1/status``; the source's spec, its texts and the pipeline's error go through
         :func:`~touchreal.redaction.redact` (a URL source or port may carry credentials). Sets of
-        taxels (demand, active columns) are given as :func:`id_ranges`, so the status of a
-        65,536-taxel skin stays a few kilobytes."""
+        taxels (demand, active columns) are id ranges (:func:`touchreal_client.protocol.id_ranges`),
+        so the status of a 65,536-taxel skin stays a few kilobytes."""
         rt = self.service.runtime
         src = rt.source.status() if rt is not None else {"state": "failed", "error": self.service.source_error}
         error = rt.error if rt else self.service.source_error
@@ -141,10 +129,10 @@ class ServiceView:
                        for k, v in {"spec": self.service.config.source, **src}.items()},
             "pipeline": {"state": rt.state if rt else "stopped", "error": error and redact(error),
                          "updates": rt.update_no if rt else 0,
-                         "active": {c: id_ranges(t) for c, t in rt.active.items()} if rt and rt.active is not None else None},
-            "demand": {"columns": {c: id_ranges(t) for c, t in self.service.hub.demand.columns.items()},
-                       "channel_taxels": id_ranges(self.service.hub.demand.channel_taxels),
-                       "decoders": {n: id_ranges(t) for n, t in self.service.hub.demand.decoders.items()}},
+                         "active": {c: P.id_ranges(t) for c, t in rt.active.items()} if rt and rt.active is not None else None},
+            "demand": {"columns": {c: P.id_ranges(t) for c, t in self.service.hub.demand.columns.items()},
+                       "channel_taxels": P.id_ranges(self.service.hub.demand.channel_taxels),
+                       "decoders": {n: P.id_ranges(t) for n, t in self.service.hub.demand.decoders.items()}},
             "clients": [{"id": s.id, "seq": s.seq, "sent": s.sent, "dropped": s.dropped, "queued": len(s.queue)}
                         for s in self.service.hub.subscribers.values()],
             "realtime": self.realtime(),

@@ -20,6 +20,7 @@ import json
 import math
 import re
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -333,6 +334,18 @@ def frame_from_json(msg: dict[str, Any]) -> Frame:
 
 
 # -- control messages --------------------------------------------------------------------------------
+def id_ranges(ids: Iterable[int]) -> list[list[int]]:
+    """Taxel ids as sorted half-open ranges ``[[start, stop], ...]`` (the form of a region's
+    ``ranges``): ``[0, 1, 2, 5]`` -> ``[[0, 3], [5, 6]]``. A set of ids that a large skin makes
+    (every taxel, a patch) stays a few numbers: ``/v1/status`` and the gateways' demand use it."""
+    a = np.unique(np.fromiter(ids, np.int64))
+    if a.size == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(a) != 1) + 1
+    starts, stops = a[np.r_[0, cuts]], a[np.r_[cuts - 1, a.size - 1]] + 1
+    return np.stack([starts, stops], axis=1).tolist()
+
+
 @dataclass(frozen=True)
 class Region:
     """A part of the skin: the taxels in any of its id ranges or rectangles.
