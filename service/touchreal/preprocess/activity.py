@@ -36,11 +36,13 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import numba
 import numpy as np
-from scipy.signal import butter, sosfilt, sosfilt_zi
+from scipy.signal import butter, sosfilt_zi
 
 from ..raw import RawChunk
 from ..settings import PVDF_RANGE_V, ST_RESOLUTION_N
+from .filters import sos_step
 
 _PVDF_ADC_STEP_V = (PVDF_RANGE_V[1] - PVDF_RANGE_V[0]) / 4096.0  #: the 12-bit PVDF converter's step
 _JUDGED_AFTER = 0.25  #: a new taxel is judged once it has learned its noise for this fraction of noise_tau_s
@@ -68,6 +70,93 @@ class ActivityPlan:
         return asdict(self)
 
 
+@numba.njit(cache=True, nogil=True)
+def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, energy_ratio, a_recent, k_noise, floor,
+                 a_base, a_drift, a_noise, learned, stuck_min, out):  # pragma: no cover - compiled
+    """One chunk ``x`` (n, N) through a :class:`_Band`'s test and learning, state in place; ``out`` (N,)
+    gets the out-of-band verdicts. Returns (non-finite samples, taxels stuck: all ``n`` >= ``stuck_min``
+    samples identical; 0 for shorter chunks). Per taxel: the chunk's finite samples give its mean, the mean
+    square and peak of their deviation from the baseline, and (``energy_ratio`` > 0) the mean square
+    of their high-pass (a non-finite sample stands in as the previous chunk's newest sample); then
+    the baseline and noise levels follow (:meth:`_Band.step`). A taxel without a finite sample
+    keeps its state."""
+    n, m = x.shape
+    cnt = np.zeros(m)
+    total = np.zeros(m)
+    moved = np.zeros(m, np.bool_)
+    for k in range(n):
+        for i in range(m):
+            v = x[k, i]
+            if np.isfinite(v):
+                cnt[i] += 1.0
+                total[i] += v
+            if v != x[0, i]:  # NaN included: a sensor that reads NaN is not stuck at a value
+                moved[i] = True
+    stuck = 0
+    if n >= stuck_min:
+        for i in range(m):
+            stuck += not moved[i]
+    non_finite = n * m - int(cnt.sum())
+    ms = np.zeros(m)
+    peak = np.zeros(m)
+    mean = np.zeros(m)
+    for i in range(m):
+        if cnt[i] > 0.0:
+            mean[i] = total[i] / cnt[i]
+            if not known[i]:
+                base[i], known[i] = mean[i], True
+                seen[i] = -1.0  # marks "new in this chunk" until its noise level is set below
+    for k in range(n):
+        for i in range(m):
+            v = x[k, i]
+            if np.isfinite(v):
+                d = v - base[i]
+                ms[i] += d * d
+                peak[i] = max(peak[i], abs(d))
+    hms = np.zeros(m)
+    if energy_ratio > 0.0:
+        row = np.empty(m)
+        sos1 = sos.reshape((1,) + sos.shape)
+        zi1 = zi.reshape((1,) + zi.shape)
+        for k in range(n):
+            for i in range(m):
+                v = x[k, i]
+                row[i] = v if np.isfinite(v) else last_x[i]
+            sos_step(sos1, 0, row, zi1, 0, m)
+            for i in range(m):
+                hms[i] += row[i] * row[i]
+        for i in range(m):
+            v = x[n - 1, i]
+            if np.isfinite(v):
+                last_x[i] = v
+            hms[i] /= n
+    for i in range(m):
+        if cnt[i] == 0.0:
+            out[i] = False
+            continue
+        ms[i] /= cnt[i]
+        if seen[i] < 0.0:  # new: its noise level starts at this chunk's
+            seen[i], var[i] = 0.0, ms[i]
+        loud = peak[i] > k_noise * np.sqrt(var[i]) + floor
+        if energy_ratio > 0.0:
+            if hp_var[i] == 0.0:
+                hp_var[i] = recent[i] = hms[i]
+            recent[i] += a_recent * (hms[i] - recent[i])
+            loud = loud or recent[i] > energy_ratio * hp_var[i] + floor * floor
+        out[i] = loud and seen[i] >= learned
+        quiet = not out[i]
+        base[i] += (a_base if quiet else a_drift) * (mean[i] - base[i])
+        # while a taxel is new, the noise level is the running mean of every chunk's (learned in a few chunks)
+        if seen[i] < 1.0:
+            rate = min(1.0, a_noise / max(seen[i], a_noise))
+        else:
+            rate = a_noise if quiet else 0.0
+        var[i] += rate * (ms[i] - var[i])
+        if energy_ratio > 0.0:
+            hp_var[i] += rate * (hms[i] - hp_var[i])
+    return non_finite, stuck
+
+
 class _Band:
     """Baseline and noise level of one sensor for every taxel."""
 
@@ -80,57 +169,31 @@ class _Band:
         self.recent = np.zeros(n_taxels)  #: mean square of the high-passed samples over about ``energy_tau_s``
         self.hp_var = np.zeros(n_taxels)  #: mean square of the high-passed quiet samples
         self.zi: np.ndarray | None = None  #: the high-pass's state
-        self.last_x = np.zeros(n_taxels)  #: each taxel's newest finite sample (stands in for a non-finite one)
-        self._hms: np.ndarray | None = None  #: the latest chunk's high-passed mean square (for follow)
+        self.last_x = np.zeros(n_taxels)  #: each taxel's newest sample if finite (stands in for a non-finite one)
+        self.non_finite = 0  #: the latest chunk's non-finite samples
+        self.stuck = 0  #: taxels whose samples were all identical in the latest chunk (of :data:`_STUCK_MIN_SAMPLES` or more)
 
-    def out(self, x: np.ndarray, k_noise: float, energy_ratio: float, a_recent: float
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(out of band (N,), chunk mean (N,), mean square deviation (N,)) of samples ``x`` (n, N); NaN
-        ignored. Out of band: a sample beyond ``k_noise`` x the noise level, or the recent mean square
-        deviation above ``energy_ratio`` x the noise's (a sustained small vibration)."""
-        finite = np.isfinite(x)
-        has = finite.any(axis=0)
-        xs = np.where(finite, x, 0.0)
-        count = np.maximum(finite.sum(axis=0), 1)
-        mean = xs.sum(axis=0) / count
-        new = has & ~self.known
-        self.base[new], self.known[new] = mean[new], True
-        d = np.where(finite, xs - self.base, 0.0)
-        ms = (d * d).sum(axis=0) / count
-        self.var[new] = ms[new]
-        peak = np.abs(d).max(axis=0)
-        loud = peak > k_noise * np.sqrt(self.var) + self.floor
-        if energy_ratio:
-            loud |= self._vibration(x, finite, energy_ratio, a_recent)
-        return has & loud & (self.seen >= _JUDGED_AFTER), mean, ms
+    def step(self, x: np.ndarray, k_noise: float, energy_ratio: float, a_recent: float, a_base: float,
+             a_drift: float, a_noise: float, learned_by: float) -> np.ndarray:
+        """The (N,) out-of-band mask of samples ``x`` (n, N), NaN ignored, then learn from them.
 
-    def _vibration(self, x: np.ndarray, finite: np.ndarray, energy_ratio: float, a_recent: float) -> np.ndarray:
-        """Whether the recent mean square of the high-passed samples (:data:`_HP_SOS`: drift and baseline
-        removed, vibration kept) exceeds ``energy_ratio`` x the noise's; the noise's is learned on
-        quiet taxels (:meth:`follow`)."""
+        Out of band: a sample beyond ``k_noise`` x the noise level (+ the floor), or (``energy_ratio`` >
+        0) the recent mean square of the high-passed samples (:data:`_HP_SOS`: drift and baseline
+        removed, vibration kept) above ``energy_ratio`` x the noise's (a sustained small vibration);
+        never before the taxel has learned for ``learned_by`` (a fraction of ``noise_tau_s``).
+        Learning: quiet taxels' baseline (rate ``a_base``) and noise levels (``a_noise``) follow the
+        chunk; loud ones' baseline drifts slowly (``a_drift``) and their noise levels stay; while a
+        taxel is new every chunk teaches it. ``seen`` advances by the chunk's share of ``noise_tau_s``
+        elsewhere (:meth:`ActivityDetector.push`)."""
+        x = np.ascontiguousarray(x, np.float64)
         if self.zi is None:
-            first = np.where(finite[0], x[0], 0.0)
-            self.zi = (_HP_ZI[:, :, None] * first[None, None, :]).copy()
-        hp, self.zi = sosfilt(_HP_SOS, np.where(finite, x, self.last_x), axis=0, zi=self.zi)
-        self.last_x = np.where(finite, x, self.last_x)[-1]
-        self._hms = (hp * hp).mean(axis=0)
-        fresh = self.hp_var == 0
-        self.hp_var[fresh] = self.recent[fresh] = self._hms[fresh]
-        self.recent += a_recent * (self._hms - self.recent)
-        return self.recent > energy_ratio * self.hp_var + self.floor * self.floor
-
-    def follow(self, quiet: np.ndarray, mean: np.ndarray, ms: np.ndarray, a_base: float, a_drift: float,
-               a_noise: float) -> None:
-        """Quiet taxels' baseline and noise level follow the chunk, loud ones' baseline drifts slowly
-        and their noise level stays (every chunk teaches a taxel still being learned)."""
-        self.base += np.where(quiet, a_base, a_drift) * (mean - self.base)
-        # while a taxel is new, the noise level is the running mean of every chunk's (learned in a few chunks)
-        learning = np.minimum(1.0, a_noise / np.maximum(self.seen, a_noise))
-        rate = np.where(self.seen < 1.0, learning, np.where(quiet, a_noise, 0.0))
-        self.var += rate * (ms - self.var)
-        if self._hms is not None:
-            self.hp_var += rate * (self._hms - self.hp_var)
-            self._hms = None
+            first = np.where(np.isfinite(x[0]), x[0], 0.0) if x.shape[0] else np.zeros(self.base.size)
+            self.zi = np.ascontiguousarray(_HP_ZI[:, :, None] * first[None, None, :])
+        out = np.empty(self.base.size, bool)
+        self.non_finite, self.stuck = _band_kernel(
+            x, self.base, self.var, self.known, self.seen, self.recent, self.hp_var, self.zi, self.last_x, _HP_SOS,
+            energy_ratio, a_recent, k_noise, self.floor, a_base, a_drift, a_noise, learned_by, _STUCK_MIN_SAMPLES, out)
+        return out
 
 
 class ActivityDetector:
@@ -160,15 +223,11 @@ class ActivityDetector:
         for band, x, ratio in ((self._st, chunk.st, 0.0), (self._pv, chunk.pvdf, p.energy_ratio)):
             if x.shape[0] == 0:
                 continue
-            out, mean, dev = band.out(x, p.k_noise, ratio, min(1.0, span / p.energy_tau_s))
-            band.follow(~out, mean, dev, *rates)
+            loud |= band.step(x, p.k_noise, ratio, min(1.0, span / p.energy_tau_s), *rates, _JUDGED_AFTER)
             band.seen += span / p.noise_tau_s
-            loud |= out
-        bad = ~np.isfinite(chunk.pvdf)
-        if bad.any():
-            self.counters["non_finite"] += int(bad.sum()) + int((~np.isfinite(chunk.st)).sum())
+            self.counters["non_finite"] += band.non_finite
         if chunk.pvdf.shape[0] >= _STUCK_MIN_SAMPLES:
-            self.stuck = int((np.ptp(chunk.pvdf, axis=0) == 0).sum())
+            self.stuck = self._pv.stuck
         awake_before = self.last_out_s >= now - p.hold_s - span
         self.counters["wakes"] += int((loud & ~awake_before).sum())
         self.last_out_s[loud] = now
