@@ -1,7 +1,9 @@
-"""``touchreal bridge {foxglove,lsl} --from URL``: a live stream into Foxglove or Lab Streaming Layer.
+"""``touchreal bridge {foxglove,lsl,ros2} --from URL``: a live stream into Foxglove, Lab Streaming
+Layer or ROS 2.
 
-The bridges live in the client package (``touchreal_client.bridges``, extras ``[foxglove]`` and
-``[lsl]``); this module only parses the command line and runs one until Ctrl-C (docs/ecosystem.md).
+The bridges live in the client package (``touchreal_client.bridges``, extras ``[foxglove]``,
+``[lsl]`` and ``[ros2]``); this module only parses the command line and runs one until Ctrl-C
+(docs/ecosystem.md).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ DEFAULT_FROM = "ws://127.0.0.1:8765/v1/stream"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bridge", help="bridge a live /v1/stream into Foxglove or Lab Streaming Layer")
+    p = sub.add_parser("bridge", help="bridge a live /v1/stream into Foxglove, Lab Streaming Layer or ROS 2")
     kinds = p.add_subparsers(dest="bridge", required=True, metavar="KIND")
     fox = kinds.add_parser("foxglove", help="serve the Foxglove WebSocket protocol (open ws://HOST:PORT in Foxglove)")
     fox.add_argument("--from", dest="url", default=DEFAULT_FROM, help=f"a service's or gateway's stream (default {DEFAULT_FROM})")
@@ -31,6 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     lsl.add_argument("--name", default="TouchReal", help="stream name prefix (default TouchReal)")
     lsl.add_argument("--decimation", type=int, default=25, help="channels: one 5 kHz sample in N (default 25 = 200 Hz)")
     lsl.set_defaults(func=run_lsl)
+    ros = kinds.add_parser("ros2", help="ROS 2 topics over DDS (ros2 topic list / echo on the same ROS_DOMAIN_ID)")
+    ros.add_argument("--from", dest="url", default=DEFAULT_FROM, help=f"a service's or gateway's stream (default {DEFAULT_FROM})")
+    ros.add_argument("--domain-id", type=int, default=None,
+                     help="DDS domain, as ROS_DOMAIN_ID (default: the ROS_DOMAIN_ID environment variable, else 0)")
+    ros.add_argument("--decimation", type=int, default=25, help="channels: one 5 kHz sample in N (default 25 = 200 Hz)")
+    ros.set_defaults(func=run_ros2)
 
 
 def _check_decimation(n: int) -> None:
@@ -79,3 +87,13 @@ def run_lsl(args: argparse.Namespace) -> int:
     _check_decimation(args.decimation)
     bridge = LslBridge(args.url, name=args.name, decimation=args.decimation)
     return _serve(bridge, lambda: f"LSL outlets {', '.join(bridge.outlet_names)} from {args.url}")
+
+
+def run_ros2(args: argparse.Namespace) -> int:
+    from touchreal_client.bridges.ros2 import Ros2Bridge, default_domain_id
+
+    _check_decimation(args.decimation)
+    domain = default_domain_id() if args.domain_id is None else args.domain_id
+    bridge = Ros2Bridge(args.url, domain_id=domain, decimation=args.decimation)
+    return _serve(bridge, lambda: f"ROS 2 topics on DDS domain {domain} from {args.url}: {', '.join(bridge.topics)} "
+                                  "(ros2 topic list; ros2 topic echo /touchreal/spikes/SA1)")
