@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "each trial up to the second after its last spike)")
     n.add_argument("--description", default=None, help="the NWB session description")
     n.set_defaults(func=run)
-    r = fmt.add_parser("rosbag2", help="an MCAP recording or an encode folder -> a rosbag2 (MCAP, CDR) for ros2 bag play")
+    r = fmt.add_parser("rosbag2", help="an MCAP recording or an encode folder -> a rosbag2 folder for ros2 bag play")
     r.add_argument("src", type=Path, help="a .mcap file of touchreal record, or a folder of touchreal encode")
     r.add_argument("out", type=Path, help="the bag folder to create (it must not exist)")
     r.add_argument("--dataset", type=Path, default=None,
@@ -57,6 +57,8 @@ def run_rosbag2(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as exc:
         raise ValueError(f"needs the ros2 extra: pip install 'touchreal-client[ros2]' ({exc})") from exc
 
+    if args.out.exists():  # before reading what may be a long recording
+        raise FileExistsError(f"{args.out} exists already (a bag is written as a new folder)")
     session = _session(args.src, args.dataset)
     counts = write_rosbag2(session, args.out)
     stamps = "the recorded clock model" if session.clock else "the recording's start (no clock points)"

@@ -14,6 +14,7 @@ Every data message also carries its frame's ``update`` and ``params_rev``; NaN i
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -78,3 +79,14 @@ def json_lists(a: np.ndarray) -> list[Any]:
     if np.isfinite(v).all():
         return v.tolist()
     return np.where(np.isfinite(v), v, None).tolist()
+
+
+def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
+    """The upstream subscription that feeds exactly ``topics`` (nothing at all for none)."""
+    topics = set(topics)
+    classes = [c for c in P.CLASSES if spikes_topic(c) in topics]
+    decoders = sorted(t[len(DECODED_PREFIX):] for t in topics if t.startswith(DECODED_PREFIX))
+    streams = [s for s, on in (("spikes", bool(classes)), ("channels", bool(topics & {CHANNELS_TOPIC, FORCE_TOPIC})),
+                               ("decoded", bool(decoders))) if on]
+    return P.Subscription(taxels=None, classes=classes, streams=streams, decimation=decimation,
+                          decoders=decoders or None)

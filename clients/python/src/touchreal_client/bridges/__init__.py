@@ -2,8 +2,9 @@
 
 * :mod:`.foxglove`: a Foxglove WebSocket server (extra ``foxglove``: foxglove-sdk), demand-driven.
 * :mod:`.lsl`: Lab Streaming Layer outlets (extra ``lsl``: pylsl).
+* :mod:`.ros2`: ROS 2 topics over DDS (extra ``ros2``: cyclonedds, rosbags), demand-driven.
 
-Both stamp what they forward with the stream's clock model (:mod:`touchreal_client.clock`): a
+All stamp what they forward with the stream's clock model (:mod:`touchreal_client.clock`): a
 sample stamped ``t_us`` on the wire clock is placed at this machine's wall time of its acquisition,
 not at the time it arrived. They import their library only when used, so the base client stays light.
 """

@@ -20,7 +20,7 @@ import asyncio
 import json
 import logging
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,25 +30,14 @@ from .. import protocol as P
 from ..errors import StreamClosed, StreamError
 from ..events import wait_set
 from ..stream import AsyncStream
-from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_PREFIX, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
-                      SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic)
+from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
+                      SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic, wanted_subscription)
 from . import FIRST_SYNC_SAMPLES, keep_clock_synced
 
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
 DEFAULT_PORT = 8767  #: serve uses 8765, the gateway 8766
 FOLLOW_PERIOD_S = 0.5  #: how often the upstream session and a failed subscription are looked at again (s)
-
-
-def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
-    """The upstream subscription that feeds exactly ``topics`` (nothing at all for none)."""
-    topics = set(topics)
-    classes = [c for c in P.CLASSES if spikes_topic(c) in topics]
-    decoders = sorted(t[len(DECODED_PREFIX):] for t in topics if t.startswith(DECODED_PREFIX))
-    streams = [s for s, on in (("spikes", bool(classes)), ("channels", bool(topics & {CHANNELS_TOPIC, FORCE_TOPIC})),
-                               ("decoded", bool(decoders))) if on]
-    return P.Subscription(taxels=None, classes=classes, streams=streams, decimation=decimation,
-                          decoders=decoders or None)
 
 
 class DemandListener:
