@@ -14,7 +14,10 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from ..errors import TouchRealError
+import websockets
+
+from .. import protocol as P
+from ..errors import StreamClosed, StreamError, TouchRealError
 from ..stream import AsyncStream
 
 log = logging.getLogger("touchreal_client.bridges")
@@ -35,3 +38,20 @@ async def keep_clock_synced(stream: AsyncStream, period_s: float = CLOCK_SYNC_PE
             await stream.sync_clock(5)
         except (TouchRealError, asyncio.TimeoutError) as exc:
             log.info("clock sync failed (%r); retrying in %.0f s", exc, period_s)
+
+
+async def resubscribe(stream: AsyncStream, want: P.Subscription, refused: P.Subscription | None) -> P.Subscription | None:
+    """Subscribe ``stream`` upstream to ``want`` unless it is already, or the server refused that very
+    subscription before; returns the subscription refused so far (tried again only once the demand
+    changes). A failure while the stream reconnects is logged and retried at the next call."""
+    if want == stream.subscription or want == refused:
+        return refused
+    try:
+        await stream.subscribe(want)
+        return None
+    except StreamError as exc:
+        log.warning("upstream refused subscription %s: %s", want.to_json(), exc)
+        return want
+    except (StreamClosed, websockets.ConnectionClosed, asyncio.TimeoutError) as exc:
+        log.info("upstream subscribe failed (%r); retrying while the stream reconnects", exc)
+        return refused

@@ -24,15 +24,13 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import websockets
 
 from .. import protocol as P
-from ..errors import StreamClosed, StreamError
 from ..events import wait_set
 from ..stream import AsyncStream
 from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
                       SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic, wanted_subscription)
-from . import FIRST_SYNC_SAMPLES, keep_clock_synced
+from . import FIRST_SYNC_SAMPLES, keep_clock_synced, resubscribe
 
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
@@ -160,16 +158,7 @@ class FoxgloveBridge:
                     server.clear_session(str(session))
                 self._advertise(hello)
             want = wanted_subscription(self._listener.topics(), self.decimation)
-            if want == stream.subscription or want == refused:
-                continue
-            try:
-                await stream.subscribe(want)
-                refused = None
-            except StreamError as exc:  # the server refused it: tried again only once the demand changes
-                refused = want
-                log.warning("upstream refused subscription %s: %s", want.to_json(), exc)
-            except (StreamClosed, websockets.ConnectionClosed, asyncio.TimeoutError) as exc:
-                log.info("upstream subscribe failed (%r); retrying while the stream reconnects", exc)
+            refused = await resubscribe(stream, want, refused)
 
     # -- publishing -----------------------------------------------------------------------------
     def _log_times_ns(self, t_us: np.ndarray) -> list[int | None]:

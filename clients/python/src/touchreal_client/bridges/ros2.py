@@ -59,16 +59,15 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
-import websockets
 
 from .. import protocol as P
-from ..errors import StreamClosed, StreamError, TouchRealError
+from ..errors import TouchRealError
 from ..events import wait_set
 from ..ros2 import messages as M
 from ..ros2.types import typestore
 from ..stream import AsyncStream
 from ..topics import wanted_subscription
-from . import FIRST_SYNC_SAMPLES, keep_clock_synced
+from . import FIRST_SYNC_SAMPLES, keep_clock_synced, resubscribe
 
 log = logging.getLogger("touchreal_client.bridges.ros2")
 
@@ -349,16 +348,7 @@ class Ros2Bridge:
                     log.warning("cannot advertise the new hello's topics: %r", exc)
             self._live = self._matched()
             want = wanted_subscription(self._live, self.decimation)
-            if want == stream.subscription or want == refused:
-                continue
-            try:
-                await stream.subscribe(want)
-                refused = None
-            except StreamError as exc:  # the server refused it: tried again only once the demand changes
-                refused = want
-                log.warning("upstream refused subscription %s: %s", want.to_json(), exc)
-            except (StreamClosed, websockets.ConnectionClosed, asyncio.TimeoutError) as exc:
-                log.info("upstream subscribe failed (%r); retrying while the stream reconnects", exc)
+            refused = await resubscribe(stream, want, refused)
 
     # -- publishing -----------------------------------------------------------------------------
     def _local_ns(self, t_us: np.ndarray) -> np.ndarray:
