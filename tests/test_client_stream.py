@@ -162,6 +162,23 @@ def test_decoded_outputs_come_named_from_the_hello(tmp_path):
     assert all(len(o.outputs) == o.values.shape[2] >= 2 for o in texture)  # one probability per label
 
 
+def test_a_decoded_frame_is_named_whatever_shape_the_hello_gives_its_decoders():
+    """A hello is input like any other: decoders in a shape they should not have leave the frame named
+    by its index (``#i``), not an exception that would end a bridge."""
+    from touchreal_client import AsyncStream
+
+    frame = P.DecodedFrame(P.Header(kind=P.KIND_DECODED), 1, np.array([0], np.uint16), np.array([32_000], np.uint64),
+                           np.zeros((1, 1, 1), np.float32))
+    stream = AsyncStream("ws://127.0.0.1:9/v1/stream", Subscription())
+    for hello in ({}, {"streams": []}, {"streams": {"decoded": 3}}, {"streams": {"decoded": {"decoders": "x"}}},
+                  {"streams": {"decoded": {"decoders": [{}, "force"]}}}, {"streams": {"decoded": {"decoders": [{}, {"outputs": 5}]}}}):
+        stream.hello = hello
+        out = stream.name_decoded(frame)
+        assert (out.name, out.outputs) == ("#1", []), hello
+    stream.hello = {"streams": {"decoded": {"decoders": [{}, {"name": "force", "outputs": ["force_N"]}]}}}
+    assert (stream.name_decoded(frame).name, stream.name_decoded(frame).outputs) == ("force", ["force_N"])
+
+
 def test_the_client_places_spikes_on_its_own_clock(tmp_path):
     """to_local / spike_latency_us / summary().spike_us against a real server, as a robot would use them:
     each spike's cause lands before its receipt and within the class's stated latency + an update + slack."""

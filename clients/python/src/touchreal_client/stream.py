@@ -334,8 +334,13 @@ class AsyncStream:
                 yield self.name_decoded(f)
 
     def name_decoded(self, f: P.DecodedFrame) -> DecodedOutput:
-        """A decoded frame with its decoder's name and output names (``#i`` for an index the hello lacks)."""
-        decoders: list[dict[str, Any]] = self.hello.get("streams", {}).get("decoded", {}).get("decoders", [])
-        d = decoders[f.decoder] if f.decoder < len(decoders) else {}
-        return DecodedOutput(str(d.get("name", f"#{f.decoder}")), [str(o) for o in d.get("outputs", [])],
+        """A decoded frame with its decoder's name and output names (``#i`` for an index the hello lacks
+        or describes in a shape it should not: a hello is input like any other)."""
+        streams = self.hello.get("streams")
+        decoded = streams.get("decoded") if isinstance(streams, dict) else None
+        decoders = decoded.get("decoders") if isinstance(decoded, dict) else None
+        d = decoders[f.decoder] if isinstance(decoders, list) and f.decoder < len(decoders) else None
+        d = d if isinstance(d, dict) else {}
+        outputs = d.get("outputs")
+        return DecodedOutput(str(d.get("name", f"#{f.decoder}")), [str(o) for o in outputs] if isinstance(outputs, list) else [],
                              f.taxels, f.t_us, f.values, f.header)
