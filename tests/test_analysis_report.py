@@ -29,6 +29,7 @@ def tiny(rig, tmp_path_factory):
     return tiny_rig_subset(rig, tmp_path_factory.mktemp("tiny"))
 
 
+@pytest.mark.slow  # ~18 s: the whole report with its sweep and spatial figures; .ci/run runs it (pytest -m slow)
 def test_evaluate_writes_every_file_and_consistent_metrics(tiny, tmp_path):
     out = tmp_path / "report"
     cfg = R.EvalConfig(sweep_windows_ms=(32.0, 128.0), sweep_max_ramp_conditions=1, latency_trials=0)

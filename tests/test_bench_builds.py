@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from touchreal.cli import main
 from touchreal.fitting.describe import rule_summary
 from touchreal.fitting.policy import RULES
 from touchreal.settings import CLASSES
 
 
+@pytest.mark.slow  # ~22 s: simulates, fits and evaluates two builds; .ci/run runs it (pytest -m slow)
 def test_each_build_row_is_its_own_fit_scored_on_its_held_out_trials(tmp_path, capsys):
     recipe = tmp_path / "short.json"
     recipe.write_text(json.dumps({"generations": 2, "popsize": 4}))
