@@ -474,7 +474,7 @@ def test_frames_over_the_brokers_max_payload_cross_in_parts_and_equal_the_servic
     assert gw_status["upstream"]["parted_frames_dropped"] == 0 and gw_status["upstream"]["bad_frames"] == 0
     direct = {(type(f), f.header.update): f for f in fd if isinstance(f, (P.ChannelsFrame, P.SpikesFrame))}
     shared = [f for f in fv if (type(f), f.header.update) in direct]
-    assert sum(isinstance(f, P.ChannelsFrame) and f.data.nbytes > 16384 for f in shared) > 30
+    assert sum(isinstance(f, P.ChannelsFrame) and f.data.nbytes > 16384 for f in shared) >= 25  # all but a short first one or so
     for f in shared:
         d = direct[(type(f), f.header.update)]
         if isinstance(f, P.ChannelsFrame):
