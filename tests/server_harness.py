@@ -6,10 +6,12 @@ import asyncio
 import json
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
+import httpx
 import waiting
 import websockets
 from touchreal_client import protocol as P
@@ -164,3 +166,22 @@ async def stall_one_of_two(addr: str, hub, metrics, seconds: float) -> tuple[lis
                 await asyncio.wait_for(stalled.recv(), 10)
         except websockets.ConnectionClosed as closed:
             return frames, closed.rcvd, gone
+
+
+async def status_when(addr: str, ok: Callable[[dict], bool], what: str, seconds: float = 20.0) -> dict:
+    """The service's /v1/status once ``ok(status)`` holds (``until`` polls it); a failure names ``what``
+    and the last demand seen."""
+    last: dict[str, Any] = {}
+    async with httpx.AsyncClient(base_url=f"http://{addr}") as http:
+
+        async def get() -> dict | None:
+            last.update((await http.get("/v1/status")).json())
+            return dict(last) if ok(last) else None
+
+        return await until(get, seconds, lambda: f"{what} (demand: {last.get('demand')})", interval=0.05)
+
+
+def no_demand(status: dict) -> bool:
+    """Whether the service's /v1/status shows no demand at all (no spikes, channels or decoders)."""
+    d = status["demand"]
+    return not d["columns"] and not d["channel_taxels"] and not d["decoders"]

@@ -15,12 +15,11 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import httpx
 import jsonschema
 import numpy as np
 import pytest
 import websockets
-from server_harness import free_port, running_server, until
+from server_harness import free_port, no_demand, running_server, status_when, until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 
@@ -95,24 +94,6 @@ def server(tmp_path_factory) -> Iterator[tuple[str, Any]]:
         yield addr, svc
 
 
-async def status_when(addr: str, ok: Callable[[dict], bool], what: str, seconds: float = 20.0) -> dict:
-    """The service's /v1/status once ``ok(status)`` holds (``until`` polls it); a failure names ``what``
-    and the last demand seen."""
-    last: dict[str, Any] = {}
-    async with httpx.AsyncClient(base_url=f"http://{addr}") as http:
-
-        async def get() -> dict | None:
-            last.update((await http.get("/v1/status")).json())
-            return dict(last) if ok(last) else None
-
-        return await until(get, seconds, lambda: f"{what} (demand: {last.get('demand')})", interval=0.05)
-
-
-def _no_demand(status: dict) -> bool:
-    d = status["demand"]
-    return not d["columns"] and not d["channel_taxels"] and not d["decoders"]
-
-
 async def _bridge(addr: str) -> tuple[FoxgloveBridge, asyncio.Task]:
     bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
     task = asyncio.create_task(bridge.run())
@@ -142,7 +123,7 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                 await until(lambda: bridge.stream is not None and bridge.stream.subscribed is not None, 20,
                             "the bridge subscribed upstream")
                 status = await status_when(addr, lambda s: len(s["clients"]) == 1, "the bridge is the one client")
-                assert _no_demand(status), status["demand"]
+                assert no_demand(status), status["demand"]
 
                 sub_id = await fox.subscribe("/touchreal/spikes/SA1")
                 status = await status_when(addr, lambda s: "SA1" in s["demand"]["columns"], "SA1 demanded")

@@ -16,13 +16,12 @@ import random
 import signal
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
-from server_harness import free_port, running_server, until, wait_until
+from server_harness import free_port, no_demand, running_server, status_when, until, wait_until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 from touchreal_client.ros2.messages import MSG_PACKAGE
@@ -131,23 +130,6 @@ class RosSide:
         return out
 
 
-async def status_when(addr: str, ok: Callable[[dict], bool], what: str, seconds: float = 20.0) -> dict:
-    """The service's /v1/status once ``ok(status)`` holds; a failure names ``what`` and the last demand."""
-    last: dict[str, Any] = {}
-    async with httpx.AsyncClient(base_url=f"http://{addr}") as http:
-
-        async def get() -> dict | None:
-            last.update((await http.get("/v1/status")).json())
-            return dict(last) if ok(last) else None
-
-        return await until(get, seconds, lambda: f"{what} (demand: {last.get('demand')})", interval=0.05)
-
-
-def _no_demand(status: dict) -> bool:
-    d = status["demand"]
-    return not d["columns"] and not d["channel_taxels"] and not d["decoders"]
-
-
 async def _bridge(addr: str, domain_id: int) -> tuple[Ros2Bridge, asyncio.Task]:
     bridge = Ros2Bridge(f"ws://{addr}/v1/stream", domain_id=domain_id)
     task = asyncio.create_task(bridge.run())
@@ -184,7 +166,7 @@ def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anythi
             # the writers exist, no reader: nothing demanded upstream, channels least of all
             await until(lambda: bridge.stream.subscribed is not None, 20, "the bridge subscribed upstream")
             status = await status_when(addr, lambda s: len(s["clients"]) == 1, "the bridge is the one client")
-            assert _no_demand(status), status["demand"]
+            assert no_demand(status), status["demand"]
             assert "channels" not in bridge.stream.subscription.streams
 
             # a late-joining transient-local reader still gets the description
