@@ -149,7 +149,7 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                     sync_error_us = bridge.stream.clock.offset_error_us
 
                 await fox.unsubscribe("/touchreal/spikes/SA1")
-                await status_when(addr, _no_demand, "nothing demanded")
+                await status_when(addr, no_demand, "nothing demanded")
                 return fox.payloads(sub_id), frames, mapped, sync_error_us
         finally:
             await _stop(task)
@@ -190,7 +190,7 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
                 await fox.read_until(lambda: all(len(fox.payloads(i)) >= 10 for i in ids.values()), 30)
                 for t in topics:
                     await fox.unsubscribe(t)
-                await status_when(addr, _no_demand, "nothing demanded")
+                await status_when(addr, no_demand, "nothing demanded")
                 schemas = {t: json.loads(fox.channels[t]["schema"]) for t in topics}
                 return {t: fox.payloads(i) for t, i in ids.items()}, schemas
         finally:
@@ -320,7 +320,7 @@ def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_client
                     sub_id = await good.subscribe("/touchreal/spikes/RA")
                     await good.read_until(lambda: len(good.payloads(sub_id)) >= 3, 30)
             assert not task.done()
-            await status_when(addr, _no_demand, "nothing demanded")  # both gone
+            await status_when(addr, no_demand, "nothing demanded")  # both gone
         finally:
             await _stop(task)
 

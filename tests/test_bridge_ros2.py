@@ -195,7 +195,7 @@ def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anythi
             sync_error_us = bridge.stream.clock.offset_error_us or 0.0
             for t in spike_topics:
                 ros.unsubscribe(t)
-            await status_when(addr, _no_demand, "nothing demanded once the readers left")
+            await status_when(addr, no_demand, "nothing demanded once the readers left")
             return ros.publications, description, svc.view.hello(), frames, got, direct.clock, sync_error_us, ros.store
         finally:
             await _stop(task)
@@ -283,7 +283,7 @@ def test_force_channels_and_decoded_messages_are_the_streams(server, domain):
             sync_error_us = bridge.stream.clock.offset_error_us or 0.0
             for t in topics:
                 ros.unsubscribe(t)
-            await status_when(addr, _no_demand, "nothing demanded once the readers left")
+            await status_when(addr, no_demand, "nothing demanded once the readers left")
             return frames, got, direct.clock, sync_error_us
         finally:
             await _stop(task)
