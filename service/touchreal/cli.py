@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "touchreal.commands.record",
     "touchreal.commands.export",
     "touchreal.commands.bridge",
+    "touchreal.commands.population",
 )
 
 

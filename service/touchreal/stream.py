@@ -14,6 +14,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 
 from .encoding.encoder import Encoder, SpikeEvents
+from .population.encoder import Population, PopulationEncoder
 from .params import EncoderParams
 from .preprocess.activity import ActivityDetector, ActivityPlan
 from .preprocess.parallel import split_run
@@ -49,16 +50,17 @@ class _TaxelBlock:
     its branches (re)start without touching any other block's columns."""
 
     def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]],
-                 dtype: type, channels_source: Source, index: int = 0):
+                 dtype: type, channels_source: Source, index: int = 0, population: Population | None = None):
         self.taxels = taxels
         self.index = index  #: position in the encoder's blocks
         self.channels_source = channels_source
         self.shows = True  #: channels wanted from this block (every taxel at first, like every column)
-        self.encoders = {s: Encoder(params, len(taxels), cs) for s, cs in groups.items()}
+        self.encoders = {s: Encoder(params, len(taxels), cs) if population is None else PopulationEncoder(params, population, cs)
+                         for s, cs in groups.items()}
         self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
 
     def set_active(self, want: Mapping[str, Sequence[int]], shows: bool) -> None:
-        """``want``: per class, the block's own (local) taxel indices; ``shows``: channels are wanted
+        """``want``: per class, the block's own (local) taxel indices (afferent ids with a population); ``shows``: channels are wanted
         from this block (its channels source then runs even when none of its columns is active)."""
         for enc in self.encoders.values():
             enc.set_columns({c: want.get(c, ()) for c in enc.classes})
@@ -131,6 +133,7 @@ class StreamEncoder:
         update_s: float | None = None,
         activity: ActivityPlan | None = None,
         order: np.ndarray | None = None,
+        population: Population | None = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
@@ -140,6 +143,14 @@ class StreamEncoder:
             raise ValueError("taxel_block must be >= 1")
         if update_s is not None and not update_s > 0:
             raise ValueError("update_s must be > 0")
+        if population is not None and (taxel_block is not None or activity is not None or order is not None):
+            raise ValueError("a population runs on one taxel block (its afferents mix neighbouring taxels): no taxel_block, "
+                             "activity or order")
+        if population is not None and len(population.taxels_xy_mm) != n_taxels:
+            raise ValueError(f"the population is built on {len(population.taxels_xy_mm)} taxels, the stream has {n_taxels}")
+        self.population = population
+        #: ids spikes address and columns select: taxels, or a population's afferents
+        self.n_units = n_taxels if population is None else len(population)
         #: the taxels in the order the blocks take them (None: by id), and each taxel's place in it
         self._order: np.ndarray | None = None
         self._place: np.ndarray | None = None
@@ -162,13 +173,15 @@ class StreamEncoder:
         self.channels_source: Source = max(windows) if windows else None
         size = n_taxels if taxel_block is None else taxel_block
         self._block_starts = np.arange(0, n_taxels, n_taxels if taxel_block is None else taxel_block)
-        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source, i)
+        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source, i,
+                                   population)
                        for i, a in enumerate(range(0, n_taxels, size))]
-        self.active: dict[str, tuple[int, ...]] = {c: tuple(range(n_taxels)) for c in self.classes}
+        self.active: dict[str, tuple[int, ...]] = {c: tuple(self.units(c)) for c in self.classes}
         #: activity-driven compute (None: dense, every demanded block runs on every chunk)
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
-        self._wants: list[tuple[dict[str, list[int]], bool]] = [({c: list(range(len(b.taxels))) for c in self.classes}, True)
-                                                              for b in self.blocks]
+        self._wants: list[tuple[dict[str, list[int]], bool]] = [
+            ({c: list(range(len(b.taxels))) if population is None else list(self.active[c]) for c in self.classes}, True)
+            for b in self.blocks]
         self._awake = np.ones(len(self.blocks), bool)  #: per block: running (all, until the detector says)
         self._spiked_s = np.full(len(self.blocks), -np.inf)  #: per block: sensor time (s) of its latest spikes
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
@@ -176,6 +189,10 @@ class StreamEncoder:
         self._work = 0  #: size of the last chunk for split_run (see _feed)
         self.slow: frozenset[Source] = frozenset(
             s for s in windows if update_s is not None and frame_length(s, PVDF_FS_HZ) / 4 / PVDF_FS_HZ >= update_s - 1e-9)
+
+    def units(self, cls: str) -> range | np.ndarray:
+        """The ids of ``cls``'s columns: every taxel, or the population's afferents of that class."""
+        return range(self.n_taxels) if self.population is None else self.population.layout.ids(cls)
 
     # -- demand ---------------------------------------------------------------------------------
     def set_active(self, columns: Mapping[str, Iterable[int]], channels: Iterable[int] = ()) -> None:
@@ -203,9 +220,17 @@ class StreamEncoder:
             raise ValueError(f"classes {sorted(unknown)} are not served (have {list(self.classes)})")
         want = {c: tuple(sorted({int(x) for x in columns.get(c, ())})) for c in self.classes}
         shown = {int(x) for x in channels}
-        bad = sorted({x for xs in [*want.values(), shown] for x in xs if not 0 <= x < self.n_taxels})
+        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_units})
+        if bad:
+            raise ValueError(f"{'taxels' if self.population is None else 'afferents'} {bad} out of range 0..{self.n_units - 1}")
+        bad = sorted(x for x in shown if not 0 <= x < self.n_taxels)
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
+        if self.population is not None:  # one block: afferent ids are its columns' ids
+            self._wants[0] = ({c: list(xs) for c, xs in want.items()}, bool(shown))
+            self._set_block(0)
+            self.active = {c: xs for c, xs in want.items() if xs}
+            return
         placed, shown_at = want, shown  # by place in the blocks' order
         if self._place is not None:
             placed = {c: sorted(self._place[list(xs)].tolist()) for c, xs in want.items()}
@@ -426,11 +451,12 @@ def class_channels(trial: Trial, params: EncoderParams, classes: Sequence[str] |
 
 def encode_chunks(
     params: EncoderParams, chunks: Iterable[RawChunk], n_taxels: int = 1, dtype: type = np.float64, classes: Sequence[str] | None = None,
-    update_s: float | None = None,
+    update_s: float | None = None, population: Population | None = None,
 ) -> SpikeEvents:
     """Encode a finite stream of chunks (flushing at the end), every class on its own window
-    (``update_s``: the slow sources' cadence, see :class:`StreamEncoder`; it never changes the spikes)."""
-    se = StreamEncoder(params, n_taxels, classes, dtype=dtype, update_s=update_s)
+    (``update_s``: the slow sources' cadence, see :class:`StreamEncoder`; it never changes the spikes;
+    ``population``: spikes of its afferents instead of one per taxel and class)."""
+    se = StreamEncoder(params, n_taxels, classes, dtype=dtype, update_s=update_s, population=population)
     parts = [se.process(c) for c in chunks]
     parts.append(se.finish())
     return SpikeEvents.concatenate(parts)

@@ -390,17 +390,38 @@ class Encoder:
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in classes)
         self.class_index = np.array([CLASSES.index(c) for c in self.classes])
-        self._build([(x, c) for x in range(n_taxels) for c in self.classes])
+        self._build([(x, c) for x in range(self.n_units) for c in self.classes if self._has(x, c)])
 
     def _build(self, columns: list[tuple[int, str]]) -> None:
         """Fresh input stages and neurons for ``columns`` [(taxel, class)], taxel-major."""
         self.columns = columns
-        cps = [self.params.classes[c] for _, c in columns]
+        cps = [self._column_params(x, c) for x, c in columns]
         tau, ih, self._delay_n = class_columns(cps)
         self._taxel_n = np.array([x for x, _ in columns], dtype=np.int64)
         self._cls_n = np.array([CLASSES.index(c) for _, c in columns], dtype=np.int64)
-        self.inputs = InputStage(cps, self._taxel_n)
+        self.inputs = InputStage(cps, self._input_rows())
         self.lif = LifPopulation(tau, ih)
+
+    # -- what a subclass with other units than taxels (a population) changes ------------------------
+    @property
+    def n_units(self) -> int:
+        """Units a column can address (the taxels here)."""
+        return self.n_taxels
+
+    def _has(self, unit: int, cls: str) -> bool:
+        """A (unit, class) column exists (every taxel has every class)."""
+        return True
+
+    def _column_params(self, unit: int, cls: str) -> ClassParams:
+        return self.params.classes[cls]
+
+    def _input_rows(self) -> np.ndarray:
+        """Per column, its row of the array :meth:`_inputs` returns (the taxel)."""
+        return self._taxel_n
+
+    def _inputs(self, data: np.ndarray) -> np.ndarray:
+        """(T, n_taxels, 4) channels -> the (T, rows, 4) input the columns read (the channels)."""
+        return data
 
     @property
     def n_columns(self) -> int:
@@ -412,10 +433,10 @@ class Encoder:
         if unknown:
             raise ValueError(f"classes {sorted(unknown)} are not encoded here (have {list(self.classes)})")
         want = {c: {int(x) for x in columns.get(c, ())} for c in self.classes}
-        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_taxels})
+        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_units})
         if bad:
-            raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
-        new = [(x, c) for x in range(self.n_taxels) for c in self.classes if x in want[c]]
+            raise ValueError(f"units {bad} out of range 0..{self.n_units - 1}")
+        new = [(x, c) for x in range(self.n_units) for c in self.classes if x in want[c] and self._has(x, c)]
         if new == self.columns:
             return
         old_index = {col: i for i, col in enumerate(self.columns)}
@@ -437,7 +458,7 @@ class Encoder:
 
     def currents(self, data: np.ndarray) -> np.ndarray:
         """(T, n_taxels, 4) channels -> (T, n_columns) input current (advances the states)."""
-        return self.inputs.process(data)
+        return self.inputs.process(self._inputs(data))
 
     def process(self, channels, k0: int | None = None) -> SpikeEvents:
         data = channels.data if k0 is None else channels
@@ -446,7 +467,7 @@ class Encoder:
             raise ValueError(f"channels must be (T, {self.n_taxels}, 4), got {data.shape}")
         if data.shape[0] == 0 or not self.columns:
             return SpikeEvents.concatenate([])
-        k, n = self.inputs.spikes(data, self.lif)
+        k, n = self.inputs.spikes(self._inputs(data), self.lif)
         if not k.size:
             return SpikeEvents.concatenate([])
         t = (k0 + k + 1) / OUT_FS_HZ + self._delay_n[n]
