@@ -152,3 +152,22 @@ def test_cli_trial_counts_per_protocol(tmp_path, capsys):
     assert "not being simulated" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli_main(["simulate", "ramp", "--trials", "ramp=0", "--out", str(tmp_path / "f")])
+
+
+def test_texture_hard_draws_depth_and_build_per_trial_at_the_chosen_speeds(tmp_path, capsys):
+    ds = simulate_dataset("texture-hard", tmp_path / "hard", trials=10, seed=2, reference=False, speeds_mm_s=(20.0, 60.0))
+    assert ds.manifest["counts"] == {"texture_hard": 10} and ds.manifest["simulator"]["speeds_mm_s"] == [20.0, 60.0]
+    design = ds.manifest["protocols"]["texture_hard"]
+    depths, couplings, lags = set(), set(), set()
+    for e, tr in ds:
+        v, var = e["params"]["speed_mm_s"], e["variation"]
+        assert e["protocol"] == "texture" and v in (20.0, 60.0) and e["texture"] == f"comb_{e['params']['spacing_mm']:g}mm"
+        assert tr.cmd_x.max() == pytest.approx(v * design["slide_s"])  # slid at its speed
+        assert tr.cmd_depth.max() == pytest.approx(var["depth_mm"], abs=1e-6)  # pressed to its own depth
+        assert 0.4 <= var["depth_mm"] <= 0.6 and 6.5 <= var["build"]["rig_lag_ms"] <= 60.0
+        lo, hi = design["build_ratio"]["pvdf_coupling"]
+        assert lo <= var["build"]["pvdf_coupling"] <= hi
+        depths.add(var["depth_mm"]), couplings.add(var["build"]["pvdf_coupling"]), lags.add(var["build"]["rig_lag_ms"])
+    assert len(depths) == len(couplings) == len(lags) == 10  # independent draws per trial
+    assert cli_main(["simulate", "texture", "--speeds", "30", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert "--speeds applies to texture-hard only" in capsys.readouterr().err

@@ -18,12 +18,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("protocols", nargs="+", choices=sorted(PROTOCOL_GROUPS) + ["all"], metavar="PROTOCOL",
                    help="ramp, sine, texture, spatial (spatial_ramp + spatial_sine), all (the paper's four), or "
-                   "texture-fine (eight close combs at three close speeds, for the texture decoder)")
+                   "texture-fine (eight close combs at three close speeds, for the texture decoder), texture-hard (ten close "
+                   "combs at 20-60 mm/s, press depth and sensor build drawn per trial)")
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--trials", type=_trial_counts, default=4,
                    help="trials per protocol, spread over its conditions: N for every protocol, or "
                    "PROTOCOL=N,... (e.g. ramp=896,sine=100; default 4)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--speeds", type=_speeds, default=None, metavar="V,...",
+                   help="texture-hard: its scanning speeds in mm/s (default 20,30,40,50,60), e.g. to hold a speed out")
     p.add_argument("--no-reference", action="store_true", help="skip the TouchSim reference spike trains")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     g = p.add_argument_group("sensor build (docs/simulator.md; ratios to the nominal rig-v1 build)")
@@ -61,6 +64,16 @@ def build_from_args(args: argparse.Namespace):
     return dataclasses.replace(base, **over, name=base.name if not over else f"{base.name}+custom")
 
 
+def _speeds(text: str) -> tuple[float, ...]:
+    try:
+        speeds = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected speeds in mm/s like 20,30,50; got {text!r}") from None
+    if not speeds or min(speeds) <= 0:
+        raise argparse.ArgumentTypeError("speeds must be > 0 mm/s")
+    return speeds
+
+
 def _trial_counts(text: str) -> int | dict[str, int]:
     try:
         if "=" not in text:
@@ -80,15 +93,18 @@ def run(args: argparse.Namespace) -> int:
     from ..simulator.simulate import simulate_dataset
 
     if isinstance(args.trials, dict):
-        unknown = set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS["spatial"]) - set(PROTOCOL_GROUPS["texture-fine"])
+        unknown = (set(args.trials) - set(args.protocols) - set(PROTOCOL_GROUPS["spatial"]) - set(PROTOCOL_GROUPS["texture-fine"])
+                   - set(PROTOCOL_GROUPS["texture-hard"]))
         if unknown:
             raise ValueError(f"--trials names protocols not being simulated: {sorted(unknown)}")
-    protocols = [g for g in PROTOCOL_GROUPS if g != "texture-fine"] if "all" in args.protocols else args.protocols
+    protocols = [g for g in PROTOCOL_GROUPS if not g.startswith("texture-")] if "all" in args.protocols else args.protocols
+    if args.speeds is not None and "texture-hard" not in protocols:
+        raise ValueError("--speeds applies to texture-hard only")
     t0 = time.perf_counter()
     progress = None if args.quiet else (lambda tid: print(f"  {tid}", file=sys.stderr))
     build = build_from_args(args)
     ds = simulate_dataset(protocols, args.out, args.trials, args.seed, reference=not args.no_reference, build=build,
-                          progress=progress)
+                          speeds_mm_s=args.speeds, progress=progress)
     counts = ", ".join(f"{k} {v}" for k, v in ds.manifest["counts"].items())
     print(f"wrote {len(ds.trials)} trials ({counts}) to {ds.root} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -10,6 +10,7 @@ rig-v1's. Design of every protocol: :data:`PROTOCOL_DESIGN` (the paper's full de
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ import numpy as np
 
 from ..recording import Dataset, Trial, write_dataset
 from ..settings import PVDF_FS_HZ, ST_FS_HZ
-from .build import SensorBuild
+from .build import LIMITS, SensorBuild
 from .eskin import SkinParams
 from .scene import Scene, SceneEvent, SceneSource
 from .stimuli import RampHold, RobotParams, SineBurst, Stimulus, TextureSlide
@@ -71,6 +72,24 @@ PROTOCOL_DESIGN: dict[str, Any] = {
         "labels": ["comb_1mm", "comb_1.25mm", "comb_1.5mm", "comb_1.75mm", "comb_2mm", "comb_2.25mm", "comb_2.5mm",
                    "comb_2.75mm"],
     },
+    "texture_hard": {
+        "stimulus": "ten comb textures of close spacings slid at five speeds; per trial an independent press depth "
+        "and sensor build (ratios drawn around the dataset's build); recorded as protocol 'texture', label = the comb",
+        "spacing_mm": [1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75, 3.0, 3.25],
+        "speed_mm_s": [20.0, 30.0, 40.0, 50.0, 60.0],
+        "depth_mm": [0.4, 0.6],
+        "build_ratio": {"pvdf_coupling": [0.7, 1.4], "st_gain": [0.85, 1.15], "st_noise": [0.5, 2.0],
+                        "pvdf_noise": [0.5, 2.0], "mains_level": [0.5, 2.0]},
+        "rig_lag_ms": [6.5, 60.0],
+        "press_speed_mm_s": 10.0,
+        "dwell_s": 0.1,
+        "slide_s": 2.0,
+        "record_s": 3.0,
+        "labels": ["comb_1mm", "comb_1.25mm", "comb_1.5mm", "comb_1.75mm", "comb_2mm", "comb_2.25mm", "comb_2.5mm",
+                   "comb_2.75mm", "comb_3mm", "comb_3.25mm"],
+        "note": "uniform draws per trial: depth_mm in its range, each build ratio in its range times the dataset build's "
+        "value, rig_lag_ms in its range (replaces the build's); depth and build are recorded in the trial's 'variation'",
+    },
     "spatial_ramp": {
         "probe": "1 mm probe at offset (r, theta) from the sensor centre",
         "v_mm_s": 10.0,
@@ -83,10 +102,12 @@ PROTOCOL_DESIGN: dict[str, Any] = {
 }
 
 #: Independent noisy TouchSim repeats per trial (as rig-v1).
-REFERENCE_REPEATS = {"ramp": 6, "sine": 10, "texture": 0, "texture_fine": 0, "spatial_ramp": 3, "spatial_sine": 3}
+REFERENCE_REPEATS = {"ramp": 6, "sine": 10, "texture": 0, "texture_fine": 0, "texture_hard": 0, "spatial_ramp": 3,
+                     "spatial_sine": 3}
 
 #: CLI protocol names -> recording protocols.
 PROTOCOL_GROUPS = {"ramp": ("ramp",), "sine": ("sine",), "texture": ("texture",), "texture-fine": ("texture_fine",),
+                   "texture-hard": ("texture_hard",),
                    "spatial": ("spatial_ramp", "spatial_sine")}
 
 
@@ -115,8 +136,9 @@ def _offsets() -> list[tuple[float, float]]:
     return [(0.0, 0.0)] + [(float(r), float(th)) for r in d["r_mm"] if r > 0 for th in d["theta_deg"]]
 
 
-def conditions(protocol: str, skin: SkinParams | None = None) -> list[Condition]:
-    """Every condition of ``protocol`` in the design (fixed order)."""
+def conditions(protocol: str, skin: SkinParams | None = None, speeds_mm_s: Iterable[float] | None = None) -> list[Condition]:
+    """Every condition of ``protocol`` in the design (fixed order); ``speeds_mm_s``: the scanning
+    speeds of ``texture_hard`` (default: the design's five)."""
     skin = skin or SkinParams()
     d = PROTOCOL_DESIGN
     if protocol == "ramp":
@@ -139,6 +161,13 @@ def conditions(protocol: str, skin: SkinParams | None = None) -> list[Condition]
             Condition("texture", f"texture_fine_s{s}_v{v:g}", TextureSlide(float(s), float(v), t["depth_mm"], t["press_speed_mm_s"], t["dwell_s"], t["slide_s"]))
             for s in t["spacing_mm"] for v in t["speed_mm_s"]
         ]
+    if protocol == "texture_hard":
+        t = d["texture_hard"]
+        mid = float(np.mean(t["depth_mm"]))  # the nominal press; each trial draws its own (vary_trial)
+        return [
+            Condition("texture", f"texture_hard_s{s}_v{v:g}", TextureSlide(float(s), float(v), mid, t["press_speed_mm_s"], t["dwell_s"], t["slide_s"]))
+            for s in t["spacing_mm"] for v in (t["speed_mm_s"] if speeds_mm_s is None else speeds_mm_s)
+        ]
     if protocol == "spatial_ramp":
         sr = d["spatial_ramp"]
         return [
@@ -152,6 +181,22 @@ def conditions(protocol: str, skin: SkinParams | None = None) -> list[Condition]
             for f in d["spatial_sine"]["freq_hz"] for r, th in _offsets()
         ]
     raise ValueError(f"unknown protocol {protocol!r}")
+
+
+def vary_trial(cond: Condition, rng: np.random.Generator, build: SensorBuild | None = None) -> tuple[Condition, SensorBuild, dict[str, Any]]:
+    """A ``texture_hard`` trial's own press depth (mm) and sensor build: uniform draws in the design's
+    ranges (:data:`PROTOCOL_DESIGN` ``texture_hard``), build ratios times ``build``'s values (clipped to
+    the simulator's limits). Returns the condition with that depth, the build and the manifest's
+    ``variation`` record."""
+    t = PROTOCOL_DESIGN["texture_hard"]
+    base = build or SensorBuild()
+    depth = round(float(rng.uniform(*t["depth_mm"])), 4)
+    ratios = {k: float(rng.uniform(*r)) for k, r in t["build_ratio"].items()}
+    fields = {k: round(float(np.clip(getattr(base, k) * r, *LIMITS[k])), 4) for k, r in ratios.items()}
+    fields["rig_lag_ms"] = round(float(rng.uniform(*t["rig_lag_ms"])), 2)
+    trial_build = dataclasses.replace(base, name=f"{base.name}~trial", **fields)
+    stim = dataclasses.replace(cond.stimulus, depth_mm=depth)
+    return dataclasses.replace(cond, stimulus=stim), trial_build, {"depth_mm": depth, "build": trial_build.to_json()}
 
 
 def pick_trials(conds: list[Condition], n: int, rng: np.random.Generator) -> list[tuple[Condition, int]]:
@@ -245,6 +290,7 @@ def simulate_dataset(
     skin: SkinParams | None = None,
     robot: RobotParams | None = None,
     build: SensorBuild | None = None,
+    speeds_mm_s: Iterable[float] | None = None,
     progress=None,
 ) -> Dataset:
     """Write a dataset of ``trials`` trials per recording protocol to the folder ``out``.
@@ -256,8 +302,10 @@ def simulate_dataset(
     ``spatial_ramp``, ``spatial_sine``) or the CLI group ``spatial`` (both spatial protocols).
 
     ``build``: a sensor build (:mod:`.build`) applied to ``skin`` and ``robot`` (default: nominal);
-    the manifest records it under ``simulator.build``.
+    the manifest records it under ``simulator.build``. ``texture_hard`` trials each draw their own
+    press depth and a build around it (:func:`vary_trial`); ``speeds_mm_s`` replaces its scanning speeds.
     """
+    base_skin, base_robot = skin, robot
     if build is not None:
         skin, robot = build.skin(skin), build.robot(robot)
     protos: list[str] = []
@@ -275,10 +323,17 @@ def simulate_dataset(
     entries, recorded = [], {}
     for proto, pss in zip(protos, root.spawn(len(protos))):
         pick_ss, trial_ss = pss.spawn(2)
-        picked = pick_trials(conditions(proto, skin), per_protocol[proto], np.random.default_rng(pick_ss))
+        picked = pick_trials(conditions(proto, skin, speeds_mm_s), per_protocol[proto], np.random.default_rng(pick_ss))
         for (cond, rep), tss in zip(picked, trial_ss.spawn(len(picked))):
             tid = f"{proto}_{len(entries):04d}"
-            entry, trial = simulate_trial(cond, rep, tid, tss, reference=reference, skin=skin, robot=robot)
+            if proto == "texture_hard":
+                vary_ss, tss = tss.spawn(2)
+                cond, trial_build, variation = vary_trial(cond, np.random.default_rng(vary_ss), build)
+                entry, trial = simulate_trial(cond, rep, tid, tss, reference=reference, skin=trial_build.skin(base_skin),
+                                              robot=trial_build.robot(base_robot))
+                entry["variation"] = variation
+            else:
+                entry, trial = simulate_trial(cond, rep, tid, tss, reference=reference, skin=skin, robot=robot)
             entries.append(entry)
             recorded[tid] = trial
             if progress is not None:
@@ -294,7 +349,8 @@ def simulate_dataset(
         "reference": _reference_meta(reference),
         "counts": counts,
         "simulator": {"module": "touchreal.simulator", "seed": seed, "trials_per_protocol": trials,
-                      "build": (build or SensorBuild()).to_json()},
+                      "build": (build or SensorBuild()).to_json(),
+                      **({"speeds_mm_s": [float(v) for v in speeds_mm_s]} if speeds_mm_s is not None else {})},
         "trials": entries,
     }
     return write_dataset(out, manifest, recorded)
