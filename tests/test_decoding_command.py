@@ -31,7 +31,7 @@ def trained(datasets, tmp_path_factory):
 def test_train_writes_models_with_metadata(trained, datasets):
     names = sorted(p.stem for p in trained.glob("*.onnx"))
     assert names == ["force", "force_fast", "force_ra", "force_sa1", "texture", "texture_both", "texture_rate",
-                     "texture_spectral"]
+                     "texture_spatial", "texture_spectral"]
     tex = load_model(trained / "texture.onnx").meta
     assert tex["labels"] == ["comb_0.5mm", "comb_2mm", "comb_4mm"]
     assert tex["training"]["split"] == "train" and tex["training"]["heldout_trials"] == 6
@@ -42,8 +42,10 @@ def test_train_writes_models_with_metadata(trained, datasets):
     fast = load_model(trained / "force_fast.onnx").meta
     assert fast["window_ms"] == fast["step_ms"] == 32.0 and fast["input"]["shape"] == [None, 4, 2]
     assert fast["state"]["size"] == 12 and fast["outputs"] == ["force_N", "state_out"]
+    scan = load_model(trained / "texture_spatial.onnx").meta  # the scanning model: speed input, no anchor
+    assert scan["alignment"] is None and scan["context"]["input"] == "speed_mm_s" and scan["metrics"]["n_windows"] > 0
     held = json.loads((trained / "metrics.json").read_text())
-    assert "texture.temporal.acc_500ms" in held and held["info.split"] == "heldout"
+    assert "texture.temporal.acc_500ms" in held and "texture.spatial.acc_200ms" in held and held["info.split"] == "heldout"
 
 
 def test_train_only_named_models_and_unknown_names_are_an_error(datasets, tmp_path, capsys):

@@ -53,7 +53,7 @@ def fine(tmp_path_factory):
 def test_trained_spectral_model_streams_the_offline_outputs(fine, tmp_path):
     spec = ModelSpec("texture_spectral", "texture", ("SA1", "RA", "PC"), 100.0, "spectral", bin_ms=1.0)
     fs = feature_spec(spec)
-    counts, labels, groups, _ = windows(spec, fine[:8])
+    counts, labels, groups, _, _ = windows(spec, fine[:8])
     assert counts.shape[1:] == (100, 3) and counts[..., :2].sum() > 0  # SA1 and RA read too
     pipe = fit_pipeline(spec, fs.transform(counts), labels, groups, seed=0)
     meta = metadata(spec, fs, pipe, default_params(), {"dataset": "synthetic", "protocol": "texture"})
@@ -61,7 +61,7 @@ def test_trained_spectral_model_streams_the_offline_outputs(fine, tmp_path):
     assert model.meta["bin_ms"] == 1.0 and model.meta["classes"] == ["SA1", "RA", "PC"]
     assert spec_from_meta(model.meta) == spec
     tr = fine[9]
-    held, _, _, steps = windows(spec, [tr])
+    held, _, _, steps, _ = windows(spec, [tr])
     expected = model.run(model.session(1), held)[0]
     np.testing.assert_allclose(expected, pipe.predict_proba(fs.transform(held)), atol=1e-4)
     t = np.concatenate([tr.spikes_us[c] for c in CLASSES])

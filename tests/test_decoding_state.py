@@ -57,7 +57,7 @@ def ramp_trials(tmp_path_factory):
 def stateful(ramp_trials, tmp_path_factory):
     spec = ModelSpec("force_fast", "force", ("SA1", "RA"), 32.0, "counts", state_taus_ms=TAUS)
     fs = feature_spec(spec)
-    counts, force, groups, _ = windows(spec, ramp_trials[:4])
+    counts, force, groups, _, _ = windows(spec, ramp_trials[:4])
     pipe = fit_pipeline(spec, fs.transform(counts, groups), force, groups, seed=0)
     meta = metadata(spec, fs, pipe, default_params(), {"dataset": "synthetic", "protocol": "ramp"})
     path = write_model(tmp_path_factory.mktemp("m"), to_onnx(pipe, fs, meta), meta)
@@ -68,7 +68,7 @@ def test_exported_file_run_by_a_client_equals_scikit_learn(stateful, ramp_trials
     model, pipe, fs, spec = stateful
     assert model.stateful and model.meta["state"]["size"] == 4 and model.meta["step_ms"] == 32.0
     assert model.meta["outputs"] == ["force_N", "state_out"] and spec_from_meta(model.meta) == spec
-    counts, _, groups, _ = windows(spec, ramp_trials[4:])  # trials never trained on
+    counts, _, groups, _, _ = windows(spec, ramp_trials[4:])  # trials never trained on
     ref = pipe.predict(fs.transform(counts, groups))
     # a client: plain onnxruntime on the file's bytes, its own state fed back step by step, per trial
     sess = ort.InferenceSession(model.path.read_bytes(), providers=["CPUExecutionProvider"])
@@ -89,7 +89,7 @@ def test_exported_file_run_by_a_client_equals_scikit_learn(stateful, ramp_trials
 def test_streaming_stateful_decoder_equals_the_offline_windows(stateful, ramp_trials):
     model, _, _, spec = stateful
     tr = ramp_trials[5]
-    counts, _, groups, steps = windows(spec, [tr])
+    counts, _, groups, steps, _ = windows(spec, [tr])
     expected = model.run_windows(model.session(1), counts, groups)
     t = np.concatenate([tr.spikes_us[c] for c in CLASSES])
     cls = np.concatenate([np.full(tr.spikes_us[c].size, i) for i, c in enumerate(CLASSES)])
@@ -174,8 +174,8 @@ def test_state_carries_the_force_that_a_32_ms_window_misses(tmp_path):
     for taus in ((), (32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)):
         spec = ModelSpec("f", "force", ("SA1", "RA"), 32.0, "counts", state_taus_ms=taus)
         fs = feature_spec(spec)
-        x, y, g, _ = windows(spec, trials[:12])
-        hx, hy, hg, _ = windows(spec, trials[12:])
+        x, y, g, _, _ = windows(spec, trials[:12])
+        hx, hy, hg, _, _ = windows(spec, trials[12:])
         pipe = fit_pipeline(spec, fs.transform(x, g), y, g, seed=0)
         r2[bool(taus)] = force_metrics(hy, pipe.predict(fs.transform(hx, hg)), hg)["r2"]
     assert r2[True] > 0.93 and r2[True] > r2[False] + 0.05, r2

@@ -44,7 +44,7 @@ def _stream(dec, events, bounds_us) -> dict[int, np.ndarray]:
 def test_stream_equals_offline_windows(trials, name, protocol):
     model = ModelStore().load(name)
     tr = trials[protocol]
-    counts, _, _, steps = windows(spec_from_meta(model.meta), [tr])
+    counts, _, _, steps, _ = windows(spec_from_meta(model.meta), [tr])
     assert steps.size > 10
     expected, _ = model.run(model.session(1), counts)
     t, _, cls = _events(tr, 3)

@@ -62,10 +62,10 @@ class TrialCache:
 def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads: int = 1) -> dict[str, Any]:
     """Metrics of one model on ``trials`` (its windows), through onnxruntime."""
     spec = spec_from_meta(model.meta)
-    counts, target, groups, _ = windows(spec, trials)
+    counts, target, groups, _, speed = windows(spec, trials)
     if counts.shape[0] == 0:
         return {"n_windows": 0}
-    out = model.run_windows(model.session(threads), counts, groups)
+    out = model.run_windows(model.session(threads), counts, groups, speed)
     if spec.task == "force":
         return force_metrics(target, out[:, 0], groups)
     labels = np.asarray(model.meta["labels"], dtype=object)

@@ -17,6 +17,13 @@ constant matrices built here are the single definition both sides use.
   (:data:`SPECTRUM_HZ`, evaluated at these frequencies whatever the window), divided by
   ``max(count, 1)``: a count-normalised line spectrum that carries the spike timing (a texture's
   temporal frequency speed / spacing and its harmonics) apart from the rate.
+* ``spatial`` (any classes, fine bins, and the scanning speed ``v`` (mm/s) as a second input): per
+  class its spikes per mm of scanned surface, ``count / (v * window)``, then the magnitude of the
+  Hann-tapered Fourier transform of its count sequence at the temporal frequencies ``f = k * v``
+  for the spatial frequencies ``k`` of :data:`SPATIAL_CYCLES_PER_MM` (log-spaced), divided by
+  ``max(count, 1)``: each class's phase locking (vector strength) to a surface period ``1 / k``
+  mm, the same numbers for one surface at any speed. The phases ``2 pi k v t`` are computed in the
+  graph from ``v``.
 
 A spec with a ``state`` filter (:class:`~touchreal.decoding.state.ExpFilter`, force models at
 closed-loop speed) appends the filtered counts carried across steps to ``counts``; its graph has a
@@ -33,10 +40,15 @@ from onnx import TensorProto, helper, numpy_helper
 
 from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
 
-FEATURE_SETS = ("counts", "temporal", "rate", "both", "spectral")
+FEATURE_SETS = ("counts", "temporal", "rate", "both", "spectral", "spatial")
 SMOOTH_SIGMA_MS = 20.0
 BANDS_HZ = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 50.0))
 SPECTRUM_HZ = (4.0, 80.0, 1.0)  #: spectral set: first, last, step of the evaluated frequencies (Hz)
+#: spatial set: first, last (cycles per mm) and number of its log-spaced spatial frequencies: surface
+#: periods 0.25-6.7 mm, so the fundamental and second harmonic of periods of about 0.5-6 mm
+SPATIAL_CYCLES_PER_MM = (0.15, 4.0, 70)
+SPATIAL_CHUNK = 1024  #: rows per numpy pass of the spatial set
+SPEED_INPUT = "speed_mm_s"  #: the spatial set's second input: scanning speed (mm/s), (batch, 1) or (1, 1)
 
 
 @dataclass(frozen=True)
@@ -53,7 +65,7 @@ class FeatureSpec:
     def __post_init__(self) -> None:
         if self.kind not in FEATURE_SETS:
             raise ValueError(f"unknown feature set {self.kind!r}; expected one of {FEATURE_SETS}")
-        if self.kind not in ("counts", "spectral") and self.n_classes != 1:
+        if self.kind not in ("counts", "spectral", "spatial") and self.n_classes != 1:
             raise ValueError(f"feature set {self.kind!r} takes one class")
         if self.state is not None and (self.kind != "counts" or self.state.n_bins != self.n_bins
                                        or self.state.n_classes != self.n_classes or self.state.step_ms != self.window_ms):
@@ -93,13 +105,23 @@ class FeatureSpec:
         taper = np.hanning(nb + 2)[1:-1]
         cos = np.zeros((nb * nc, nc * nf))
         sin = np.zeros((nb * nc, nc * nf))
-        total = np.zeros((nb * nc, nc))
         for c in range(nc):
             cos[c::nc, c * nf:(c + 1) * nf] = np.cos(2 * np.pi * np.outer(t, freqs)) * taper[:, None]
             sin[c::nc, c * nf:(c + 1) * nf] = np.sin(2 * np.pi * np.outer(t, freqs)) * taper[:, None]
-            total[c::nc, c] = 1.0
-        expand = np.kron(np.eye(nc), np.ones((1, nf)))
-        return cos, sin, total, expand
+        return (cos, sin, *self.count_matrices(nf))
+
+    @property
+    def needs_speed(self) -> bool:
+        """True when the features read the scanning speed (:data:`SPEED_INPUT`) beside the counts."""
+        return self.kind == "spatial"
+
+    def spatial_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(spatial frequencies k (cycles/mm), bin-centre times x k (s cycles/mm, (n_bins, n_k)), Hann
+        taper (n_bins,)): the phase of bin ``b`` at ``k`` for speed ``v`` is ``2 pi v * tk[b, k]``."""
+        lo, hi, n = SPATIAL_CYCLES_PER_MM
+        k = np.geomspace(lo, hi, n)
+        t = (np.arange(self.n_bins) + 0.5) * self.bin_ms / 1000.0
+        return k, np.outer(t, k), np.hanning(self.n_bins + 2)[1:-1]
 
     # ---------------------------------------------------------------------- names
     def names(self) -> list[str]:
@@ -112,16 +134,21 @@ class FeatureSpec:
             freqs = np.arange(lo, hi + df / 2, df)
             return [f"count[c{c}]" for c in range(self.n_classes)] + [
                 f"spectrum[c{c}][{f:g}Hz]" for c in range(self.n_classes) for f in freqs]
+        if self.kind == "spatial":
+            k = self.spatial_grid()[0]
+            return [f"per_mm[c{c}]" for c in range(self.n_classes)] + [
+                f"locking[c{c}][{x:.4g}/mm]" for c in range(self.n_classes) for x in k]
         temporal = [f"psth[bin{b}]" for b in range(self.n_bins)]
         rate = ["rate_hz", "count_var", "frac_nonempty"] + [f"dft_{lo:g}_{hi:g}Hz" for lo, hi in BANDS_HZ]
         return {"temporal": temporal, "rate": rate, "both": temporal + rate}[self.kind]
 
     # ---------------------------------------------------------------------- numpy
-    def transform(self, counts: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+    def transform(self, counts: np.ndarray, groups: np.ndarray | None = None, speed: np.ndarray | None = None) -> np.ndarray:
         """Features of a ``(batch, n_bins, n_classes)`` counts tensor, float32 like the graph.
 
         With a state filter the rows are consecutive steps and ``groups`` (trial of each row) is
-        required: the state restarts at zero on each trial (:meth:`ExpFilter.sequence`)."""
+        required: the state restarts at zero on each trial (:meth:`ExpFilter.sequence`). The
+        ``spatial`` set requires ``speed``: scanning speed (mm/s) per row, ``(batch, 1)``, or ``(1, 1)``."""
         c = np.asarray(counts, dtype=np.float32)
         if c.ndim != 3 or c.shape[1:] != (self.n_bins, self.n_classes):
             raise ValueError(f"counts must be (batch, {self.n_bins}, {self.n_classes}), got {c.shape}")
@@ -132,6 +159,8 @@ class FeatureSpec:
             if groups is None or len(groups) != x.shape[0]:
                 raise ValueError("stateful features need the trial of every row (groups)")
             return np.concatenate([x, self.state.sequence(c, groups)], axis=1)
+        if self.kind == "spatial":
+            return self._spatial(c, x, speed)
         if self.kind == "spectral":
             cos, sin, total, expand = (m.astype(np.float32) for m in self.spectrum())
             re, im = x @ cos, x @ sin
@@ -151,6 +180,34 @@ class FeatureSpec:
             rate = mean * np.float32(1000.0 / self.bin_ms)
             parts += [rate, mean_sq - mean * mean, frac, mag @ band.astype(np.float32)]
         return np.concatenate(parts, axis=1)
+
+    def _spatial(self, c: np.ndarray, flat: np.ndarray, speed: np.ndarray | None) -> np.ndarray:
+        if speed is None:
+            raise ValueError("spatial features need the scanning speed (mm/s) of every row")
+        v = np.asarray(speed, np.float32).reshape(-1, 1)
+        if v.shape[0] not in (1, c.shape[0]):
+            raise ValueError(f"speed must be (batch, 1) or (1, 1), got {np.shape(speed)} for {c.shape[0]} rows")
+        _, tk, taper = self.spatial_grid()
+        two_pi_tk, tap = (2 * np.pi * tk).astype(np.float32)[None], taper.astype(np.float32)[:, None]
+        xt = np.transpose(c, (0, 2, 1))
+        mag = np.empty((c.shape[0], self.n_classes * tk.shape[1]), np.float32)
+        for a in range(0, c.shape[0], SPATIAL_CHUNK):  # the phases are (rows, n_bins, n_k): bounded memory
+            rows = slice(a, a + SPATIAL_CHUNK)
+            phase = (v if v.shape[0] == 1 else v[rows])[:, :, None] * two_pi_tk
+            re, im = xt[rows] @ (np.cos(phase) * tap), xt[rows] @ (np.sin(phase) * tap)
+            mag[rows] = np.sqrt(re * re + im * im).reshape(re.shape[0], -1)
+        total, expand = (m.astype(np.float32) for m in self.count_matrices(SPATIAL_CYCLES_PER_MM[2]))
+        n = flat @ total
+        per_mm = n / (v * np.float32(self.window_ms / 1000.0))
+        return np.concatenate([per_mm, mag / np.maximum(n @ expand, np.float32(1.0))], axis=1)
+
+    def count_matrices(self, n_freqs: int) -> tuple[np.ndarray, np.ndarray]:
+        """(total, expand): ``count = flat @ total`` (n_classes) of the flattened counts, ``count @
+        expand`` repeats each class's count for each of its ``n_freqs`` spectrum values."""
+        total = np.zeros((self.n_bins * self.n_classes, self.n_classes))
+        for c in range(self.n_classes):
+            total[c::self.n_classes, c] = 1.0
+        return total, np.kron(np.eye(self.n_classes), np.ones((1, n_freqs)))
 
     # ----------------------------------------------------------------------- ONNX
     def graph(self, opset: int, ir_version: int, input_name: str = "counts", output_name: str = "features") -> onnx.ModelProto:
@@ -178,6 +235,25 @@ class FeatureSpec:
             node("Concat", [flat, STATE_OUTPUT], output_name, axis=1)
             inputs.append(self.state.value_info(STATE_INPUT))
             outputs.append(self.state.value_info(STATE_OUTPUT))
+        elif self.kind == "spatial":
+            inputs.append(helper.make_tensor_value_info(SPEED_INPUT, TensorProto.FLOAT, [None, 1]))
+            _, tk, taper = self.spatial_grid()
+            total, expand = self.count_matrices(SPATIAL_CYCLES_PER_MM[2])
+            inits.append(numpy_helper.from_array(np.array([-1, 1, 1], np.int64), "speed_shape"))
+            v3 = node("Reshape", [SPEED_INPUT, "speed_shape"], "speed3")
+            phase = node("Mul", [v3, const("two_pi_tk", 2 * np.pi * tk)], "phase")
+            tap = const("taper", taper[:, None])
+            cos = node("Mul", [node("Cos", [phase], "cos_raw"), tap], "cos")
+            sin = node("Mul", [node("Sin", [phase], "sin_raw"), tap], "sin")
+            xt = node("Transpose", [input_name], "counts_t", perm=[0, 2, 1])
+            re = node("MatMul", [xt, cos], "re")
+            im = node("MatMul", [xt, sin], "im")
+            power = node("Add", [node("Mul", [re, re], "re2"), node("Mul", [im, im], "im2")], "power")
+            mag = node("Flatten", [node("Sqrt", [power], "mag3")], "mag", axis=1)
+            n = node("MatMul", [flat, const("total", total)], "n")
+            per = node("Max", [node("MatMul", [n, const("expand", expand)], "n_per_k"), const("one", np.ones(1))], "n_floor")
+            scanned = node("Mul", [SPEED_INPUT, const("window_s", np.full(1, self.window_ms / 1000.0))], "scanned_mm")
+            node("Concat", [node("Div", [n, scanned], "per_mm"), node("Div", [mag, per], "locking")], output_name, axis=1)
         elif self.kind == "spectral":
             cos, sin, total, expand = self.spectrum()
             re = node("MatMul", [flat, const("spec_cos", cos)], "re")

@@ -22,6 +22,7 @@ from touchreal_client import features as F
 from ..params import EncoderParams
 from ..settings import PACKAGE_DATA
 from .export import META_KEY
+from .features import SPEED_INPUT
 from .state import step_index
 
 SCHEMA = "touchreal.decoder"
@@ -88,6 +89,11 @@ def validate_metadata(meta: Any, where: str) -> dict[str, Any]:
         raise DecoderModelError(f"{where}: unknown alignment {align!r}")
     if meta["task"] == "texture" and (not meta.get("labels") or meta["output_names"] != meta["labels"]):
         raise DecoderModelError(f"{where}: a texture model names its labels (output_names == labels)")
+    context = meta.get("context")
+    if context is not None and (not isinstance(context, dict) or context.get("input") != SPEED_INPUT
+                                or context.get("shape") != [None, 1] or context.get("unit") != "mm/s"):
+        raise DecoderModelError(f"{where}: the one context input is {{'input': {SPEED_INPUT!r}, 'shape': [null, 1], "
+                                f"'unit': 'mm/s'}}; got {context!r}")
     state = meta.get("state")
     if state is not None:
         ok = (isinstance(state, dict) and isinstance(state.get("size"), int) and state["size"] > 0
@@ -141,6 +147,11 @@ class DecoderModel:
         return ort.InferenceSession(self.onnx_bytes, so, providers=["CPUExecutionProvider"])
 
     @property
+    def needs_speed(self) -> bool:
+        """True when the graph reads the scanning speed (metadata ``context``, input ``speed_mm_s``)."""
+        return self.meta.get("context") is not None
+
+    @property
     def stateful(self) -> bool:
         """True when the graph carries state across steps (metadata ``state``)."""
         return self.meta.get("state") is not None
@@ -149,11 +160,17 @@ class DecoderModel:
         """The state before the first step: zeros ``(batch, size)`` float32 (``(batch, 0)`` stateless)."""
         return np.zeros((batch, self.meta["state"]["size"] if self.stateful else 0), np.float32)
 
-    def run(self, session, counts: np.ndarray, state: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    def run(self, session, counts: np.ndarray, state: np.ndarray | None = None,
+            speed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """One step: ((batch, n_outputs) float32 force (N) or label probabilities, the next state or
         None) from a counts tensor and, for a stateful model, the previous state (required; a
-        stateless model ignores it)."""
+        stateless model ignores it); a model with a speed context needs ``speed`` (mm/s, (batch, 1)
+        or (1, 1)), others ignore it."""
         feeds = {self.meta["input"]["name"]: np.asarray(counts, np.float32)}
+        if self.needs_speed:
+            if speed is None:
+                raise ValueError(f"{self.name} reads the scanning speed: pass speed (mm/s)")
+            feeds[SPEED_INPUT] = np.asarray(speed, np.float32).reshape(-1, 1)
         if not self.stateful:
             return session.run([self.meta["outputs"][0]], feeds)[0], None
         if state is None:
@@ -162,12 +179,18 @@ class DecoderModel:
         out, nxt = session.run([self.meta["outputs"][0], self.meta["state"]["output"]], feeds)
         return out, nxt
 
-    def run_windows(self, session, counts: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    def run_windows(self, session, counts: np.ndarray, groups: np.ndarray, speed: np.ndarray | None = None,
+                    chunk: int = 1024) -> np.ndarray:
         """(n, n_outputs) for the windows of recorded trials (``groups``: trial of each row, a trial's
-        windows contiguous and consecutive steps). A stateful model runs one step of every trial per
+        windows contiguous and consecutive steps; ``speed`` (n, 1) mm/s for a model that reads it).
+        A stateless model runs ``chunk`` rows per call; a stateful one one step of every trial per
         call, each trial's state from zero, as a stream of it would."""
         if not self.stateful:
-            return self.run(session, counts)[0]
+            out = np.zeros((counts.shape[0], len(self.meta["output_names"])), np.float32)
+            for a in range(0, counts.shape[0], chunk):
+                rows = slice(a, a + chunk)
+                out[rows] = self.run(session, counts[rows], None, None if speed is None else speed[rows])[0]
+            return out
         pos = step_index(groups)
         out = np.zeros((pos.size, len(self.meta["output_names"])), np.float32)
         state = self.initial_state(pos.size)
@@ -212,6 +235,8 @@ def load_model(path: str | Path) -> DecoderModel:
             raise DecoderModelError(f"{sidecar}: metadata does not match the one embedded in {path.name} (keys {diff})")
     inputs = [(i.name, _graph_shape(i)[1:]) for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
     want = [(meta["input"]["name"], meta["input"]["shape"][1:])]
+    if meta.get("context") is not None:
+        want.append((meta["context"]["input"], meta["context"]["shape"][1:]))
     if meta.get("state") is not None:
         want.append((meta["state"]["input"], [meta["state"]["size"]]))
     if inputs != want:

@@ -3,9 +3,10 @@
 Product models (top folder, installed and served): ``force`` (SA1 + RA, 128 ms), ``force_sa1``,
 ``force_ra``, ``force_fast`` (SA1 + RA, 32 ms window and step, with filtered counts carried across
 steps), ``texture`` (temporal features, 500 ms), ``texture_rate``, ``texture_both``,
-``texture_spectral`` (SA1 + RA + PC spectra in 1 ms bins, 200 ms).
+``texture_spectral`` (SA1 + RA + PC spectra in 1 ms bins, 200 ms), ``texture_spatial`` (SA1 + RA + PC
+phase locking on a spatial-frequency axis, with the scanning speed as a second input, 1 ms bins, 200 ms).
 Sweep models (``sweep/``): force SA1 + RA per other decoding window, the stateful force model per
-other step, the spectral texture model per other window, texture per feature set and
+other step, the spectral texture model per other window, the spatial texture model per other window, texture per feature set and
 other inference window (the product models are the sweeps' 128 ms and 500 ms points), and texture (temporal, 500 ms) per PC causal preprocessing window (the paper's
 Fig. 16: the spikes are re-encoded with that causal PVDF window).
 """
@@ -29,6 +30,9 @@ SPECTRAL_CLASSES = ("SA1", "RA", "PC")
 SPECTRAL_BIN_MS = 1.0
 SPECTRAL_WINDOW_MS = 200.0
 SPECTRAL_SWEEP_MS = (100.0, 200.0, 500.0)
+#: the scanning texture decoder: the same classes and bins, features on a spatial-frequency axis (speed input)
+SPATIAL_WINDOW_MS = 200.0
+SPATIAL_SWEEP_MS = (100.0, 200.0, 500.0)
 TEXTURE_WINDOW_MS = 500.0
 TEXTURE_SWEEP_MS = (100.0, 200.0, 300.0, 400.0, 500.0, 750.0)
 PRE_WINDOW_SWEEP_MS = (4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0)
@@ -110,6 +114,11 @@ def plan(tasks: Sequence[str] = TASKS, sweeps: bool = True) -> list[ModelSpec]:
         if sweeps:
             for w in (w for w in SPECTRAL_SWEEP_MS if w != SPECTRAL_WINDOW_MS):
                 specs.append(ModelSpec(f"texture_spectral_w{_ms(w)}", "texture", SPECTRAL_CLASSES, w, "spectral", "sweep",
+                                       bin_ms=SPECTRAL_BIN_MS))
+        specs.append(ModelSpec("texture_spatial", "texture", SPECTRAL_CLASSES, SPATIAL_WINDOW_MS, "spatial", bin_ms=SPECTRAL_BIN_MS))
+        if sweeps:
+            for w in (w for w in SPATIAL_SWEEP_MS if w != SPATIAL_WINDOW_MS):
+                specs.append(ModelSpec(f"texture_spatial_w{_ms(w)}", "texture", SPECTRAL_CLASSES, w, "spatial", "sweep",
                                        bin_ms=SPECTRAL_BIN_MS))
             for pw in PRE_WINDOW_SWEEP_MS:
                 specs.append(ModelSpec(f"texture_temporal_w{_ms(TEXTURE_WINDOW_MS)}_pre{_ms(pw)}", "texture", ("PC",),

@@ -32,6 +32,11 @@ class StreamingDecoder:
       at the last such edge ``<= T``) and slides along it while the touch goes on. A taxel with
       no anchor yet or a window not yet filled outputs NaN. Outputs: one probability per label
       (``output_names``); the predicted label is their argmax.
+    * Scanning texture models (metadata ``context``: input ``speed_mm_s``): the window is
+      ``[T - window, T)`` as for force, and the caller passes the scanning speed (mm/s) with each
+      :meth:`push`: one number for every taxel or one per taxel, the speed over the windows of the
+      steps that push completes. Rows whose speed is missing, not finite or not > 0 (no scanning)
+      output NaN; so does every row of a push without ``speed_mm_s``.
 
     ``start_us``: the first step is the first grid point at or after it; None = at or after the
     completeness time of the first :meth:`push` (earlier steps would lack their history).
@@ -53,17 +58,30 @@ class StreamingDecoder:
         return list(self.model.meta["output_names"])
 
     def push(
-        self, t_us: np.ndarray, taxel: np.ndarray, cls: np.ndarray, final_us: dict[str, int]
+        self, t_us: np.ndarray, taxel: np.ndarray, cls: np.ndarray, final_us: dict[str, int],
+        speed_mm_s: float | np.ndarray | None = None,
     ) -> list[tuple[int, np.ndarray]]:
         """Add the spike events of one update (sensor clock, us; ``cls`` indexes SA1, RA, PC);
         return ``(T, values (n_taxels, n_outputs) float32)`` for every step it completes, in time
-        order, rows in the order of ``taxels``."""
+        order, rows in the order of ``taxels``. ``speed_mm_s``: the scanning speed (mm/s) of these
+        steps for a model that reads it (scalar or per taxel); other models ignore it."""
+        speed, scanning = self._speed(speed_mm_s)
         out = []
         for step, counts, filled in self.binner.push(t_us, taxel, cls, final_us):
-            values, state = self.model.run(self._session, counts, self._state)  # a stateless model ignores it
+            filled = filled & scanning
+            values, state = self.model.run(self._session, counts, self._state, speed)  # stateless / no speed: ignored
             if state is not None:
                 self._state = state
             values = np.asarray(values, dtype=np.float32).reshape(counts.shape[0], -1)
             values[~filled] = np.nan
             out.append((step, values))
         return out
+
+    def _speed(self, speed_mm_s: float | np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
+        """(speed fed to the model (n_taxels, 1) float32 or None, rows scanning (n_taxels,) bool)."""
+        n = self.taxels.size
+        if not self.model.needs_speed:
+            return None, np.ones(n, bool)
+        v = np.full(n, np.nan) if speed_mm_s is None else np.broadcast_to(np.asarray(speed_mm_s, np.float64).reshape(-1), (n,))
+        scanning = np.isfinite(v) & (v > 0)
+        return np.where(scanning, v, 1.0).astype(np.float32).reshape(n, 1), scanning

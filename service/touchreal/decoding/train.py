@@ -1,8 +1,8 @@
 """Training: windows of the training trials -> scikit-learn pipeline -> ONNX with metadata.
 
 Force: ``StandardScaler`` + ``MLPRegressor`` (64, 32 ReLU units, early stopping) on the flattened
-counts (and, stateful, their filtered counts carried across steps). Texture ``spectral``:
-``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping). Other texture sets:
+counts (and, stateful, their filtered counts carried across steps). Texture ``spectral`` and
+``spatial``: ``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping). Other texture sets:
 ``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
 ``CalibratedClassifierCV(ensemble=False)`` on folds of whole trials (scikit-learn's own
 ``SVC(probability=True)`` is deprecated and calibrates on folds of windows, which would mix a
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import onnx
@@ -32,11 +32,11 @@ from touchreal_client import features as F
 from .. import __version__
 from ..params import EncoderParams
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
-from .features import BANDS_HZ, SMOOTH_SIGMA_MS, SPECTRUM_HZ, FeatureSpec
+from .features import BANDS_HZ, SMOOTH_SIGMA_MS, SPATIAL_CYCLES_PER_MM, SPECTRUM_HZ, SPEED_INPUT, FeatureSpec
 from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
 from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
-from .windows import TEXTURE_SILENCE_US, EncodedTrial, force_windows, texture_windows
+from .windows import SCAN_STEADY, TEXTURE_SILENCE_US, EncodedTrial, force_windows, scan_windows, texture_windows
 
 SVC_C = 10.0
 CALIBRATION_FOLDS = 3
@@ -48,14 +48,28 @@ def feature_spec(spec: ModelSpec) -> FeatureSpec:
     return FeatureSpec(spec.features, nb, len(spec.classes), spec.bin_ms, spec.window_ms, state)
 
 
-def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(counts, target, trial index, step us) of ``trials`` for ``spec``: force (N) or label strings.
-    A stateful model's windows are every step of each trial from the recording's start."""
-    w_us = round(spec.window_ms * 1000)
+class Windows(NamedTuple):
+    """Decoding windows of recorded trials for one model."""
+
+    counts: np.ndarray  #: (n, n_bins, n_classes) float32
+    target: np.ndarray  #: force (N) or label strings (object)
+    groups: np.ndarray  #: trial index of each window
+    steps: np.ndarray  #: step time T (us)
+    speed: np.ndarray | None  #: (n, 1) float32 scanning speed (mm/s) for a model that reads it, else None
+
+
+def windows(spec: ModelSpec, trials: Sequence[EncodedTrial]) -> Windows:
+    """The windows of ``trials`` for ``spec``. A stateful model's windows are every step of each
+    trial from the recording's start; a ``spatial`` texture model's the scanning windows."""
+    w_us, bin_us = round(spec.window_ms * 1000), round(spec.bin_ms * 1000)
     if spec.task == "force":
-        return force_windows(trials, spec.classes, w_us, step_us=round(spec.step_ms * 1000), from_start=bool(spec.state_taus_ms))
-    x, labels, g, t = texture_windows(trials, w_us, bin_us=round(spec.bin_ms * 1000), classes=spec.classes)
-    return x, np.asarray(labels, dtype=object), g, t
+        return Windows(*force_windows(trials, spec.classes, w_us, step_us=round(spec.step_ms * 1000),
+                                      from_start=bool(spec.state_taus_ms)), None)
+    if spec.features == "spatial":
+        x, labels, g, t, v = scan_windows(trials, w_us, bin_us, spec.classes)
+        return Windows(x, np.asarray(labels, dtype=object), g, t, v.astype(np.float32).reshape(-1, 1))
+    x, labels, g, t = texture_windows(trials, w_us, bin_us=bin_us, classes=spec.classes)
+    return Windows(x, np.asarray(labels, dtype=object), g, t, None)
 
 
 def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups: np.ndarray, seed: int) -> Pipeline:
@@ -64,7 +78,7 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
         mlp = MLPRegressor(hidden_layer_sizes=(64, 32), alpha=1e-3, max_iter=400, early_stopping=True,
                            n_iter_no_change=20, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
-    if spec.features == "spectral":
+    if spec.features in ("spectral", "spatial"):
         mlp = MLPClassifier(hidden_layer_sizes=(128,), alpha=1e-3, max_iter=300, early_stopping=True,
                             n_iter_no_change=15, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
@@ -92,9 +106,14 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
                         + (f" and step, with their exponential filters ({', '.join(f'{t:g}' for t in spec.state_taus_ms)} ms) "
                            "carried across steps in 'state'" if spec.state_taus_ms else "")
                         if spec.task == "force" else f"texture from {'+'.join(spec.classes)} counts in {spec.bin_ms:g} ms bins "
-                        f"({spec.features} features), {spec.window_ms:g} ms window anchored at the first PC spike"),
+                        f"({spec.features} features), {spec.window_ms:g} ms window "
+                        + ("with the scanning speed (mm/s) as a second input" if fs.needs_speed else "anchored at the first PC spike")),
         "input": {"name": INPUT_NAME, "shape": [None, fs.n_bins, fs.n_classes], "dtype": "float32",
                   "layout": "(batch = taxels, bins oldest -> newest, classes in 'classes' order)"},
+        "context": {"input": SPEED_INPUT, "shape": [None, 1], "dtype": "float32", "unit": "mm/s",
+                    "rule": "the scanning speed of the surface under the taxels over the window [T - window, T): one row "
+                            "(1, 1) for every taxel or one per taxel (batch, 1); > 0; a window without steady scanning "
+                            "has no texture output (NaN)"} if fs.needs_speed else None,
         "outputs": ([REGRESSION_OUTPUT] + ([STATE_OUTPUT] if fs.state else [])) if spec.task == "force" else ["probabilities", "label"],
         "output_names": [REGRESSION_OUTPUT] if spec.task == "force" else labels,
         "labels": labels,
@@ -109,12 +128,14 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
                     "back as state at the next step, zeros (batch, size) at the first; one row per taxel"},
         "binning": "touchreal_client.features.window_counts: ceil(window/bin) bins counted back from the window end, "
                    "oldest first, the oldest bin truncated; a bin [a, b) counts a <= t < b (sensor clock, us)",
-        "alignment": None if spec.task == "force" else {
+        "alignment": None if spec.task == "force" or fs.needs_speed else {
             "rule": F.ALIGN_RULE, "class": "PC", "silence_ms": TEXTURE_SILENCE_US / 1000,
             "doc": "touchreal_client.features.anchors / anchored_end / StreamBinner: window ends on anchor + k * bin "
                    "<= step, output once end - anchor >= window"},
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
-                     "bands_hz": [list(b) for b in BANDS_HZ], "spectrum_hz": list(SPECTRUM_HZ), "in_graph": True},
+                     "bands_hz": [list(b) for b in BANDS_HZ], "spectrum_hz": list(SPECTRUM_HZ),
+                     "spatial_cycles_per_mm": list(SPATIAL_CYCLES_PER_MM) if fs.needs_speed else None,
+                     "scan_steady": SCAN_STEADY if fs.needs_speed else None, "in_graph": True},
         "estimator": _describe(pipe),
         "params": {"sha256": params_hash(used), "pvdf_window_ms": spec.pvdf_window_ms,
                    "source": str(params.provenance.get("source") or params.provenance.get("dataset") or "unknown"),
@@ -139,9 +160,11 @@ def train_model(
 ) -> tuple[onnx.ModelProto, dict[str, Any], Pipeline, FeatureSpec]:
     """Fit ``spec`` on ``trials`` and export it (metrics still empty)."""
     fs = feature_spec(spec)
-    counts, target, groups, _ = windows(spec, trials)
-    if counts.shape[0] == 0:
-        raise ValueError(f"{spec.name}: the training trials give no decoding window")
-    pipe = fit_pipeline(spec, fs.transform(counts, groups), target, groups, seed)
-    meta = metadata(spec, fs, pipe, params, training | {"windows": int(counts.shape[0]), "trials": len(trials)})
+    w = windows(spec, trials)
+    if w.counts.shape[0] == 0:
+        raise ValueError(f"{spec.name}: the training trials give no decoding window"
+                         + (" (scanning windows need each trial's cmd_x, or params.speed_mm_s with events slide_start_s and "
+                            "slide_end_s)" if fs.needs_speed else ""))
+    pipe = fit_pipeline(spec, fs.transform(w.counts, w.groups, w.speed), w.target, w.groups, seed)
+    meta = metadata(spec, fs, pipe, params, training | {"windows": int(w.counts.shape[0]), "trials": len(trials)})
     return to_onnx(pipe, fs, meta), meta, pipe, fs

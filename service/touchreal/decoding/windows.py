@@ -8,6 +8,11 @@ streaming decoder would see (the rules of :mod:`touchreal_client.features`).
   silence, as online); one window per step whose
   anchored window is filled and ends by the stimulus end (manifest ``stim_end_s``); label = the
   manifest's ``texture`` (else its condition).
+* Scanning texture (``spatial`` features, which read the scanning speed): windows ``[T - window, T)``
+  on the 32 ms grid (no anchor) during which the surface moves at a steady speed: the trial's scan
+  position (its ``cmd_x`` channel, else ``params.speed_mm_s`` between ``events.slide_start_s`` and
+  ``slide_end_s``) advances in each quarter of the window by the mean within :data:`SCAN_STEADY`;
+  the window's speed (mm/s) = distance / window.
 
 Datasets are split by trial with the fitting split (:func:`touchreal.splits.split_repeats`):
 no trial has windows on both sides.
@@ -16,7 +21,7 @@ no trial has windows on both sides.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,6 +37,7 @@ DEFAULT_SPLIT_SEED = 0  #: the fit's default seed, used when the parameters were
 FORCE_PROTOCOL = "ramp"
 TEXTURE_PROTOCOL = "texture"
 TEXTURE_SILENCE_US = 500_000  #: alignment: a PC spike after this much silence starts a texture window
+SCAN_STEADY = 0.05  #: a scanning window's quarters each advance within 5 % of the window's mean
 
 
 def to_us(t_s: np.ndarray) -> np.ndarray:
@@ -48,6 +54,8 @@ class EncodedTrial:
     st_t_us: np.ndarray
     st: np.ndarray
     end_us: int
+    scan_t_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  #: scan position's times (us)
+    scan_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: lateral position of the surface (mm)
 
     @property
     def id(self) -> str:
@@ -60,7 +68,23 @@ class EncodedTrial:
 
 def encode(entry: dict[str, Any], trial: Trial, params: EncoderParams) -> EncodedTrial:
     spikes = encode_trial(trial, params)
-    return EncodedTrial(entry, {c: to_us(t) for c, t in spikes.items()}, to_us(trial.st_t), np.asarray(trial.st, np.float64), int(to_us(trial.duration_s)))
+    return EncodedTrial(entry, {c: to_us(t) for c, t in spikes.items()}, to_us(trial.st_t), np.asarray(trial.st, np.float64),
+                        int(to_us(trial.duration_s)), *scan_track(entry, trial))
+
+
+def scan_track(entry: dict[str, Any], trial: Trial) -> tuple[np.ndarray, np.ndarray]:
+    """(times (us), lateral surface position (mm)) of a trial: its commanded ``cmd_x`` at ``cmd_fs``,
+    else ``params.speed_mm_s`` from ``events.slide_start_s`` to ``slide_end_s`` (still before and
+    after); empty when the recording states neither."""
+    if trial.cmd_x is not None:
+        t = trial.cmd_t0 + np.arange(trial.cmd_x.size) / trial.cmd_fs
+        return to_us(t), np.asarray(trial.cmd_x, np.float64)
+    speed = (entry.get("params") or {}).get("speed_mm_s")
+    ev = entry.get("events") or {}
+    if speed is None or "slide_start_s" not in ev or "slide_end_s" not in ev:
+        return np.zeros(0, np.int64), np.zeros(0)
+    t0, t1 = float(ev["slide_start_s"]), float(ev["slide_end_s"])
+    return to_us(np.array([t0, t1])), np.array([0.0, float(speed) * (t1 - t0)])
 
 
 def encode_entries(
@@ -170,3 +194,34 @@ def texture_windows(
     if not xs:
         return np.zeros((0, nb, len(classes)), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64)
     return np.concatenate(xs), labels, np.concatenate(gs), np.concatenate(ts)
+
+
+def scan_windows(
+    trials: Sequence[EncodedTrial],
+    window_us: int,
+    bin_us: int,
+    classes: Sequence[str],
+    step_us: int = F.STEP_US,
+) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """(counts (n, n_bins, n_classes), label per window, trial index (n,), step (n,) us, scanning
+    speed (n,) mm/s) of the windows ``[T - window, T)`` of ``trials`` during which the surface moves
+    steadily (module docstring)."""
+    xs, labels, gs, ts, vs = [], [], [], [], []
+    for i, tr in enumerate(trials):
+        if tr.scan_t_us.size < 2:
+            continue
+        steps = F.step_times(window_us, tr.end_us, step_us)
+        edges = steps[:, None] - window_us + np.arange(5)[None, :] * (window_us / 4.0)
+        x = np.interp(edges, tr.scan_t_us, tr.scan_mm)
+        quarter = np.diff(x, axis=1)
+        mean = (x[:, -1] - x[:, 0]) / 4.0
+        ok = (mean > 0) & np.all(np.abs(quarter - mean[:, None]) <= SCAN_STEADY * mean[:, None], axis=1)
+        steps = steps[ok]
+        xs.append(F.counts_tensor(tr.spikes_us, classes, steps, window_us, bin_us))
+        labels += [tr.label] * steps.size
+        gs.append(np.full(steps.size, i))
+        ts.append(steps)
+        vs.append(4.0 * mean[ok] / (window_us / 1e6))
+    if not xs:
+        return np.zeros((0, F.n_bins(window_us, bin_us), len(classes)), np.float32), [], np.zeros(0, int), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(xs), labels, np.concatenate(gs), np.concatenate(ts), np.concatenate(vs)
