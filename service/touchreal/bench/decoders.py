@@ -4,7 +4,9 @@ Per model, one update = one ``session.run`` on a batch of (taxels, n_bins, n_cla
 counts (what :class:`~touchreal.decoding.streaming.StreamingDecoder` sends every step, a stateful model's
 state fed back), one intra-op thread; ``push`` adds the decoder's binning of one update's spike events (about 40
 spikes/s per taxel and class) to that. Accuracy columns are the held-out metrics recorded in each
-model's metadata by ``touchreal decoders train`` (R^2 for force, accuracy for texture).
+model's metadata by ``touchreal decoders train`` (R^2 for force, accuracy for texture). A model that
+reads the scanning speed gets one speed row for the batch (:data:`BENCH_SPEED_MM_S`), as a robot
+that slides the whole patch supplies it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+BENCH_SPEED_MM_S = 40.0  #: the scanning speed fed to models that read it (mm/s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,9 +48,10 @@ def _ort_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[floa
     shape = [n_taxels] + model.meta["input"]["shape"][1:]
     x = rng.poisson(0.4, shape).astype(np.float32)
     state = {"s": model.initial_state(n_taxels) if model.stateful else None}
+    speed = np.full((1, 1), BENCH_SPEED_MM_S, np.float32) if model.needs_speed else None
 
     def one() -> None:
-        state["s"] = model.run(sess, x, state["s"])[1]
+        state["s"] = model.run(sess, x, state["s"], speed)[1]
 
     return _times_ms(one, updates)
 
@@ -64,7 +69,7 @@ def _push_ms(model, n_taxels: int, updates: int, threads: int, rng) -> tuple[flo
         t0 = state["t"]
         t = np.sort(rng.integers(t0, t0 + step, per * 3)).astype(np.uint64)
         dec.push(t, rng.integers(0, n_taxels, t.size), np.repeat(np.arange(3), per)[rng.permutation(t.size)],
-                 {c: t0 + step for c in CLASSES})
+                 {c: t0 + step for c in CLASSES}, BENCH_SPEED_MM_S)
         state["t"] = t0 + step
 
     return _times_ms(one, updates)

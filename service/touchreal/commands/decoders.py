@@ -26,6 +26,16 @@ def _names(text: str) -> tuple[str, ...]:
     return names
 
 
+def _windows(text: str) -> tuple[float, ...]:
+    try:
+        ws = tuple(float(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected windows in ms like 100,200,500; got {text!r}") from None
+    if not ws or min(ws) <= 0:
+        raise argparse.ArgumentTypeError("windows must be > 0 ms")
+    return ws
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("decoders", help="train, evaluate and list the spike decoders (force, texture; ONNX)",
                        description="Downstream decoders on TouchReal spikes: force regression from SA1/RA and "
@@ -55,6 +65,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.set_defaults(func=run_evaluate)
+
+    c = cmds.add_parser("ceiling", help="the raw-PVDF ceiling of the scanning texture task: the film's spectrum on the "
+                        "spatial model's windows, same split and classifier")
+    c.add_argument("dataset", help="dataset folder with texture trials (trains on its training split)")
+    c.add_argument("--test", help="test dataset (all its trials; default: the dataset's held-out split)")
+    c.add_argument("--params", help="encoder parameter file (default: the shipped parameters; they only set the split seed)")
+    c.add_argument("--windows", type=_windows, default=(100.0, 200.0, 500.0), help="windows in ms (default 100,200,500)")
+    c.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    c.add_argument("--out", required=True, help="JSON to write (texture.pvdf_ceiling.acc_<w>ms, ...)")
+    c.set_defaults(func=run_ceiling)
 
     ls = cmds.add_parser("list", help="list the installed decoder models")
     ls.add_argument("--user-dir", help="user models folder (default: none, shipped models only)")
@@ -184,6 +204,39 @@ def _summary(metrics: dict[str, Any]) -> None:
             print(f"  {k} = {metrics[k]:.4f}")
         elif k.startswith("texture.") and k.rsplit("_", 1)[-1] == "500ms" and "prewindow" not in k:
             print(f"  {k} = {metrics[k]:.3f}")
+
+
+def run_ceiling(args: argparse.Namespace) -> int:
+    from ..decoding.ceiling import ceiling
+    from ..decoding.plan import SPECTRAL_BIN_MS, SPECTRAL_CLASSES, ModelSpec
+    from ..decoding.windows import TEXTURE_PROTOCOL, encode, require_trials, split_entries
+    from ..recording import Dataset
+
+    ds = Dataset.open(args.dataset)
+    params = _params(args.params)
+    require_trials(ds, TEXTURE_PROTOCOL, "the PVDF ceiling")
+    test_ds = Dataset.open(args.test) if args.test else ds
+    if args.test:
+        require_trials(test_ds, TEXTURE_PROTOCOL, "the PVDF ceiling")
+
+    def load(d, split):
+        entries = split_entries(d, params, TEXTURE_PROTOCOL, split)[0]
+        raw = [d.load(e) for e in entries]
+        return [encode(e, r, params) for e, r in zip(entries, raw)], raw
+
+    train, train_raw = load(ds, "train")
+    test, test_raw = load(test_ds, "all" if args.test else "heldout")
+    out: dict[str, Any] = {}
+    for w in args.windows:
+        spec = ModelSpec(f"pvdf_ceiling_w{w:g}ms", "texture", SPECTRAL_CLASSES, w, "spatial", bin_ms=SPECTRAL_BIN_MS)
+        m = ceiling(spec, train, train_raw, test, test_raw, args.seed)
+        head = f"texture.pvdf_ceiling.acc_{w:g}ms"
+        out.update({head: m["acc"], f"{head}_fold_std": m["acc_fold_std"], f"{head}_windows": m["n_windows"]})
+        print(f"  {head} = {m['acc']:.3f} ± {m['acc_fold_std']:.3f} ({m['n_windows']} windows)")
+    out |= {"info.dataset": str(ds.root), "info.test": str(test_ds.root) if args.test else "heldout", "info.runtime": "scikit-learn"}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=1, sort_keys=True) + "\n")
+    return 0
 
 
 def run_list(args: argparse.Namespace) -> int:

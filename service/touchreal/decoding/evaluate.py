@@ -71,6 +71,10 @@ def evaluate_model(model: DecoderModel, trials: Sequence[EncodedTrial], threads:
     labels = np.asarray(model.meta["labels"], dtype=object)
     pred = labels[np.argmax(out, axis=1)]
     metrics = texture_metrics(target, pred, groups, fold_of_trials([t.label for t in trials], N_FOLDS))
+    if speed is not None:  # a scanning model: accuracy per trial speed (median of its windows', mm/s to 0.1)
+        trial_v = {g: round(float(np.median(speed[groups == g, 0])), 1) for g in np.unique(groups)}
+        v = np.array([trial_v[g] for g in groups])
+        metrics["acc_by_speed_mm_s"] = {f"{s:g}": float(np.mean(target[v == s] == pred[v == s])) for s in np.unique(v)}
     _, n = np.unique(target, return_counts=True)
     return metrics | {"chance": 1.0 / len(labels), "chance_majority": float(n.max() / n.sum()), "n_trials": len(trials),
                       "n_trials_without_window": len(trials) - int(np.unique(groups).size)}

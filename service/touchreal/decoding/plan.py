@@ -81,7 +81,8 @@ class ModelSpec:
         return {head: metrics["acc"], f"{head}_fold_mean": metrics["acc_fold_mean"], f"{head}_fold_std": metrics["acc_fold_std"],
                 f"{head}_folds": metrics["acc_folds"], f"{head}_windows": metrics["n_windows"],
                 f"{head}_trials_without_window": metrics["n_trials_without_window"],
-                f"{head}_chance_majority": metrics["chance_majority"]}
+                f"{head}_chance_majority": metrics["chance_majority"],
+                **({f"{head}_by_speed_mm_s": metrics["acc_by_speed_mm_s"]} if "acc_by_speed_mm_s" in metrics else {})}
 
 
 def _ms(x: float) -> str:
