@@ -78,9 +78,11 @@ PROTOCOL_DESIGN: dict[str, Any] = {
         "spacing_mm": [1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75, 3.0, 3.25],
         "speed_mm_s": [20.0, 30.0, 40.0, 50.0, 60.0],
         "depth_mm": [0.4, 0.6],
-        "build_ratio": {"pvdf_coupling": [0.7, 1.4], "st_gain": [0.85, 1.15], "st_noise": [0.5, 2.0],
-                        "pvdf_noise": [0.5, 2.0], "mains_level": [0.5, 2.0]},
-        "rig_lag_ms": [6.5, 60.0],
+        "build_ratio": {"pvdf_coupling": [0.5, 1.5], "st_gain": [0.85, 1.15], "st_noise": [0.5, 2.0],
+                        "pvdf_noise": [0.5, 2.0], "mains_level": [0.5, 2.0], "harmonic_gain": [0.5, 2.0]},
+        "mains_hz": [50, 60],
+        "mains_harmonics": [5, 9],
+        "extra_rig_lag_ms": [0.0, 55.0],
         "press_speed_mm_s": 10.0,
         "dwell_s": 0.1,
         "slide_s": 2.0,
@@ -88,7 +90,8 @@ PROTOCOL_DESIGN: dict[str, Any] = {
         "labels": ["comb_1mm", "comb_1.25mm", "comb_1.5mm", "comb_1.75mm", "comb_2mm", "comb_2.25mm", "comb_2.5mm",
                    "comb_2.75mm", "comb_3mm", "comb_3.25mm"],
         "note": "uniform draws per trial: depth_mm in its range, each build ratio in its range times the dataset build's "
-        "value, rig_lag_ms in its range (replaces the build's); depth and build are recorded in the trial's 'variation'",
+        "value, mains_hz one of the two, mains_harmonics an integer in its range, rig_lag_ms the build's plus extra_rig_lag_ms; "
+        "depth and build are recorded in the trial's 'variation'",
     },
     "spatial_ramp": {
         "probe": "1 mm probe at offset (r, theta) from the sensor centre",
@@ -185,15 +188,17 @@ def conditions(protocol: str, skin: SkinParams | None = None, speeds_mm_s: Itera
 
 def vary_trial(cond: Condition, rng: np.random.Generator, build: SensorBuild | None = None) -> tuple[Condition, SensorBuild, dict[str, Any]]:
     """A ``texture_hard`` trial's own press depth (mm) and sensor build: uniform draws in the design's
-    ranges (:data:`PROTOCOL_DESIGN` ``texture_hard``), build ratios times ``build``'s values (clipped to
-    the simulator's limits). Returns the condition with that depth, the build and the manifest's
-    ``variation`` record."""
+    ranges (:data:`PROTOCOL_DESIGN` ``texture_hard``): build ratios times ``build``'s values (clipped to
+    the simulator's limits), the mains frequency and harmonics, the build's rig lag plus an extra.
+    Returns the condition with that depth, the build and the manifest's ``variation`` record."""
     t = PROTOCOL_DESIGN["texture_hard"]
     base = build or SensorBuild()
     depth = round(float(rng.uniform(*t["depth_mm"])), 4)
     ratios = {k: float(rng.uniform(*r)) for k, r in t["build_ratio"].items()}
     fields = {k: round(float(np.clip(getattr(base, k) * r, *LIMITS[k])), 4) for k, r in ratios.items()}
-    fields["rig_lag_ms"] = round(float(rng.uniform(*t["rig_lag_ms"])), 2)
+    fields["mains_hz"] = float(rng.choice(t["mains_hz"]))
+    fields["mains_harmonics"] = int(rng.integers(t["mains_harmonics"][0], t["mains_harmonics"][1] + 1))
+    fields["rig_lag_ms"] = round(float(np.clip(base.rig_lag_ms + rng.uniform(*t["extra_rig_lag_ms"]), *LIMITS["rig_lag_ms"])), 2)
     trial_build = dataclasses.replace(base, name=f"{base.name}~trial", **fields)
     stim = dataclasses.replace(cond.stimulus, depth_mm=depth)
     return dataclasses.replace(cond, stimulus=stim), trial_build, {"depth_mm": depth, "build": trial_build.to_json()}
