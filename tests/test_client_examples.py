@@ -51,6 +51,32 @@ def test_spike_rate_modulates_pulse_rate_or_amplitude_per_class():
         pf.StimulationMapper({"XX": pf.ChannelMap()})
 
 
+def test_population_channels_take_the_mean_rate_of_their_afferents():
+    aff = P.Afferents(np.array([0, 0, 0, 1]), np.array([[0.0, 0.0], [1.0, 0.0], [9.0, 0.0], [9.0, 1.0]]),
+                      np.zeros(4, np.int64), {})
+    groups = pf.electrode_groups(aff, 1, 2)
+    assert groups == {0: 0, 1: 0, 2: 1, 3: 1}
+    m = pf.StimulationMapper({"SA1": pf.ChannelMap(mode="amplitude")}, groups, {0: "SA1", 1: "SA1", 2: "SA1", 3: "RA"})
+    m.push(_frame([], [], [], {"SA1": 0, "RA": None, "PC": None}))
+    t = list(range(0, 100_000, 5_000))  # 200 Hz on afferent 0, none on 1: the field's mean is 100 Hz
+    f = _frame(t + [50_000], [0] * 20 + [2], [0] * 21, {"SA1": 100_000, "RA": None, "PC": None})
+    pulses = m.push(f)
+    amp = {p[1]: p[3] for p in pulses}
+    assert amp == {0: 550.0, 1: 145.0}  # field 0: half the amplitude range (100 Hz); field 1: its one SA1 at 10 Hz
+
+
+def test_prosthesis_example_drives_electrode_fields_from_a_population(tmp_path):
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"variants": {"SA1": [1.0], "RA": [1.0], "PC": [1.0]}}))
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=4), population=str(plan)) as (addr, _):
+        run = [sys.executable, EXAMPLES / "prosthesis_feedback.py", "--url", f"http://{addr}", "--seconds", "4",
+               "--out", tmp_path / "pulses.csv", "--map", "RA=rate,PC=rate", "--electrodes", "2x3"]
+        pros = subprocess.run(run, capture_output=True, text=True, timeout=120)
+    assert pros.returncode == 0, pros.stderr
+    rows = list(csv.DictReader((tmp_path / "pulses.csv").open()))
+    assert rows and {r["class"] for r in rows} <= {"RA", "PC"} and {int(r["channel"]) for r in rows} <= set(range(6))
+
+
 def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
     with running_server(tmp_path / "state", RuntimeConfig(taxels=2)) as (addr, _):
         url = f"http://{addr}"
@@ -61,7 +87,7 @@ def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
                               "--out", tmp_path / "ds"], capture_output=True, text=True, timeout=120)
     assert pros.returncode == 0, pros.stderr
     rows = list(csv.DictReader((tmp_path / "pulses.csv").open()))
-    assert rows and {r["class"] for r in rows} <= {"RA", "PC"} and {r["taxel"] for r in rows} <= {"0", "1"}
+    assert rows and {r["class"] for r in rows} <= {"RA", "PC"} and {r["channel"] for r in rows} <= {"0", "1"}
     assert all(float(r["amplitude_uA"]) == 500.0 for r in rows)
 
     assert rec.returncode == 0, rec.stderr

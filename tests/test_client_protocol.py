@@ -83,7 +83,7 @@ def test_bare_subscribe_gets_everything_in_binary():
 @pytest.mark.parametrize(
     "msg, fragment",
     [
-        ({"version": 2}, "not supported"),
+        ({"version": 3}, "not supported"),
         ({"classes": ["SA2"]}, "unknown classes"),
         ({"taxels": [-1]}, "taxel ids"),
         ({"taxels": "all"}, "taxel ids"),

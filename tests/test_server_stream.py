@@ -39,7 +39,7 @@ def test_hello_bare_subscribe_and_time_sync(tmp_path):
         async def go():
             async with connect(addr) as ws:
                 hello, sub = await hello_and_subscribe(ws)
-                assert hello["protocol"] == "touchreal.stream" and hello["version"] == 1
+                assert hello["protocol"] == "touchreal.stream" and hello["version"] == P.VERSION == 2 and hello["addresses"] == "taxels"
                 assert hello["session"] == svc.session and hello["taxels"][0]["id"] == 0
                 assert set(hello["latency_us"]) == {"SA1", "RA", "PC"} and hello["update_us"] == 32000
                 assert sub["taxels"] is None and sub["classes"] == ["SA1", "RA", "PC"] and sub["encoding"] == "binary"

@@ -1,6 +1,10 @@
 """Prosthesis feedback: live afferent spikes -> electrical stimulation pulse trains, written to CSV.
 
-Each (taxel, class) pair drives one stimulation channel. Per class, the spike rate over a sliding
+Over a skin of taxels each (taxel, class) pair drives one stimulation channel. Over an afferent
+population (``serve --population``), channels take groups of afferents, as the electrodes of a
+biomimetic intraneural interface each recruit a fascicle whose afferents innervate one patch of
+skin: ``--electrodes RxC`` lays R x C fields over the population, and each (field, class) is a
+channel driven by its afferents' mean spike rate. Per class, the spike rate over a sliding
 window modulates either the **pulse rate** (``rate``: fixed amplitude, rate between ``min_hz`` and
 ``max_hz``) or the **pulse amplitude** (``amplitude``: fixed rate, amplitude between ``min_ua`` and
 ``max_ua``); a channel whose spike rate is below ``threshold_hz`` is silent. Pulses are scheduled on
@@ -9,7 +13,8 @@ the sensor clock, one update at a time, as each class becomes final (``final_us`
     python prosthesis_feedback.py --url http://127.0.0.1:8765 --seconds 10 --out pulses.csv \
         --map SA1=amplitude,RA=rate,PC=rate
 
-CSV columns: ``t_us`` (sensor clock), ``taxel``, ``class``, ``amplitude_uA``, ``width_us``. Needs
+CSV columns: ``t_us`` (sensor clock), ``channel`` (the taxel, or the field), ``class``,
+``amplitude_uA``, ``width_us``. Needs
 only ``touchreal-client``. The numbers are illustrative defaults, not a clinical protocol.
 """
 
@@ -22,7 +27,11 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
+from collections.abc import Mapping
+
+import numpy as np
 from touchreal_client import CLASSES, Client, SpikesFrame, Subscription
+from touchreal_client import protocol as P
 
 
 @dataclass(frozen=True)
@@ -51,22 +60,45 @@ class ChannelMap:
         return self.fixed_hz, self.min_ua + x * (self.max_ua - self.min_ua)
 
 
-class StimulationMapper:
-    """Sans-I/O: spike frames in, pulses ``(t_us, taxel, class, amplitude_uA, width_us)`` out."""
+def electrode_groups(afferents: P.Afferents, rows: int, cols: int) -> dict[int, int]:
+    """Afferent id -> field (0 .. rows x cols - 1, row-major from the lowest x and y): R x C equal
+    fields over the population's bounding box."""
+    lo, hi = afferents.xy_mm.min(axis=0), afferents.xy_mm.max(axis=0)
+    span = np.maximum(hi - lo, 1e-9)
+    ix = np.minimum(((afferents.xy_mm[:, 0] - lo[0]) / span[0] * cols).astype(int), cols - 1)
+    iy = np.minimum(((afferents.xy_mm[:, 1] - lo[1]) / span[1] * rows).astype(int), rows - 1)
+    return dict(enumerate((iy * cols + ix).tolist()))
 
-    def __init__(self, maps: dict[str, ChannelMap]):
+
+class StimulationMapper:
+    """Sans-I/O: spike frames in, pulses ``(t_us, channel, class, amplitude_uA, width_us)`` out.
+
+    ``groups`` (id -> channel, e.g. :func:`electrode_groups`): a channel's spike rate is the mean rate
+    of its afferents of the class; None: each id (taxel) is its own channel."""
+
+    def __init__(self, maps: dict[str, ChannelMap], groups: Mapping[int, int] | None = None,
+                 classes_of: Mapping[int, str] | None = None):
         bad = set(maps) - set(CLASSES)
         if bad or any(m.mode not in ("rate", "amplitude") for m in maps.values()):
             raise ValueError(f"classes must be in {CLASSES} and modes 'rate' or 'amplitude', got {maps}")
         self.maps = maps
+        self.groups = groups
+        self._members: dict[tuple[int, str], int] = {}  #: per (channel, class): afferents it takes
+        if groups is not None:
+            if classes_of is None:
+                raise ValueError("groups need each afferent's class (classes_of)")
+            for a, g in groups.items():
+                key = (g, classes_of[a])
+                self._members[key] = self._members.get(key, 0) + 1
         self._spikes: dict[tuple[int, str], deque[int]] = {}
         self._next_pulse: dict[tuple[int, str], int] = {}
         self._done_us: dict[str, int] = {}  #: per class: pulses scheduled up to here
 
     def push(self, frame: SpikesFrame) -> list[tuple[int, int, str, float, int]]:
-        for t, taxel, k in zip(frame.t_us.tolist(), frame.taxel.tolist(), frame.cls.tolist()):
+        for t, unit, k in zip(frame.t_us.tolist(), frame.taxel.tolist(), frame.cls.tolist()):
             if CLASSES[k] in self.maps:
-                self._spikes.setdefault((taxel, CLASSES[k]), deque()).append(t)
+                channel = unit if self.groups is None else self.groups[unit]
+                self._spikes.setdefault((channel, CLASSES[k]), deque()).append(t)
         out: list[tuple[int, int, str, float, int]] = []
         for cls, m in self.maps.items():
             final = frame.final_us.get(cls)
@@ -83,7 +115,7 @@ class StimulationMapper:
     def _schedule(self, taxel: int, cls: str, m: ChannelMap, times: deque[int], start: int, end: int):
         while times and times[0] < end - m.window_us:
             times.popleft()
-        rate = sum(1 for t in times if t < end) / (m.window_us / 1e6)
+        rate = sum(1 for t in times if t < end) / (m.window_us / 1e6) / self._members.get((taxel, cls), 1)
         p = m.pulse(rate)
         key = (taxel, cls)
         if p is None:
@@ -116,20 +148,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="pulses.csv")
     ap.add_argument("--taxels", default=None, help="comma list (default all)")
     ap.add_argument("--map", default="SA1=amplitude,RA=rate,PC=rate", help="per class: rate or amplitude")
+    ap.add_argument("--electrodes", default="2x2", help="over a population: R x C fields, one channel per field and "
+                    "class (default 2x2)")
     args = ap.parse_args(argv)
     try:
-        mapper = StimulationMapper(parse_map(args.map))
+        maps = parse_map(args.map)
+        StimulationMapper(maps)
+        rows, _, cols = args.electrodes.partition("x")
+        rows, cols = int(rows), int(cols)
+        if not (1 <= rows <= 64 and 1 <= cols <= 64):
+            raise ValueError("--electrodes: R x C with 1 <= R, C <= 64")
     except ValueError as exc:
         ap.error(str(exc))
     taxels = [int(t) for t in args.taxels.split(",")] if args.taxels else None
-    sub = Subscription(taxels=taxels, classes=[c for c in CLASSES if c in mapper.maps])
+    sub = Subscription(taxels=taxels, classes=[c for c in CLASSES if c in maps])
     n = 0
     with Client(args.url) as tr, open(args.out, "w", newline="") as f:
         tr.wait_ready(60)
         out = csv.writer(f)
-        out.writerow(["t_us", "taxel", "class", "amplitude_uA", "width_us"])
+        out.writerow(["t_us", "channel", "class", "amplitude_uA", "width_us"])
         end = time.monotonic() + args.seconds
         with tr.stream(sub) as s:
+            afferents = P.hello_afferents(s.hello)
+            if afferents is None:
+                mapper = StimulationMapper(maps)
+            else:
+                mapper = StimulationMapper(maps, electrode_groups(afferents, rows, cols),
+                                           {a: CLASSES[k] for a, k in enumerate(afferents.cls.tolist())})
             for frame in s.spikes():
                 pulses = mapper.push(frame)
                 out.writerows(pulses)

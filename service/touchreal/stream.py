@@ -226,7 +226,9 @@ class StreamEncoder:
         bad = sorted(x for x in shown if not 0 <= x < self.n_taxels)
         if bad:
             raise ValueError(f"taxels {bad} out of range 0..{self.n_taxels - 1}")
-        if self.population is not None:  # one block: afferent ids are its columns' ids
+        if self.population is not None:  # one block: afferent ids are its columns' ids; an id of another class is no column
+            cls = self.population.layout.cls
+            want = {c: tuple(x for x in xs if cls[x] == CLASSES.index(c)) for c, xs in want.items()}
             self._wants[0] = ({c: list(xs) for c, xs in want.items()}, bool(shown))
             self._set_block(0)
             self.active = {c: xs for c, xs in want.items() if xs}

@@ -3,4 +3,4 @@
 A target is a module ``touchreal.bench.<name>`` with ``add_arguments(parser)`` and ``run(args)``.
 """
 
-TARGETS = ("encoder", "reference", "simulator", "serve", "decoders", "builds")
+TARGETS = ("encoder", "reference", "simulator", "serve", "decoders", "builds", "population")

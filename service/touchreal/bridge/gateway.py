@@ -163,11 +163,16 @@ class Gateway:
             self._take_clock(hello["clock"])
         try:
             positions = P.hello_positions(hello)
+            afferents = P.hello_afferents(hello)
         except P.ProtocolError as exc:
             log.error("the publisher's hello describes no skin (%s); kept the previous one", exc)
             return
-        self.hub.configure(len(positions), hello.get("classes", list(P.CLASSES)),
-                           {d["name"]: d["classes"] for d in self._decoders()}, positions)
+        if afferents is not None:  # the publisher runs a population: ids are its afferents
+            self.hub.configure(len(afferents.cls), hello.get("classes", list(P.CLASSES)), {}, afferents.xy_mm,
+                               addresses="afferents")
+        else:
+            self.hub.configure(len(positions), hello.get("classes", list(P.CLASSES)),
+                               {d["name"]: d["classes"] for d in self._decoders()}, positions, addresses="taxels")
         # clients connected before (to the placeholder, or to the previous session) learn the new one
         self.hub.broadcast(json.dumps(self.hello(), separators=(",", ":")))
 

@@ -11,8 +11,6 @@ report.md and figures to OUT.
 from __future__ import annotations
 
 import argparse
-import json
-from dataclasses import asdict
 from pathlib import Path
 
 from ..params import EncoderParams, default_params
@@ -40,34 +38,16 @@ def _params(path: Path | None) -> EncoderParams:
     return EncoderParams.load(path) if path else default_params()
 
 
-def resolve_plan(params: EncoderParams, overrides: list[str] = (), path: Path | None = None):
-    """The plan of a file, or the default plan with overrides and variants matched for ``params``."""
-    from ..population.layout import PopulationPlan
-    from ..fitting.variants import match_gains
-
-    if path is not None:
-        return PopulationPlan.from_dict(json.loads(Path(path).read_text()))
-    fields = {}
-    for item in overrides:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--set takes FIELD=JSON, got {item!r}")
-        try:
-            fields[key] = json.loads(value)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"--set {key}: not JSON ({e.msg})") from None
-    if "variants" not in fields:
-        fields["variants"] = match_gains(params)
-    return PopulationPlan.from_dict({**asdict(PopulationPlan()), **fields})
-
-
 def run_plan(args: argparse.Namespace) -> int:
+    from ..fitting.variants import resolve_plan
+
     print(resolve_plan(_params(args.params), args.set).to_json())
     return 0
 
 
 def run_validate(args: argparse.Namespace) -> int:
     from ..analysis.population_report import evaluate_population
+    from ..fitting.variants import resolve_plan
 
     params = _params(args.params)
     pitches = [float(x) for x in args.pitches.split(",") if x]

@@ -18,6 +18,11 @@ frequency tuning beyond its class's.
 
 from __future__ import annotations
 
+import json
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+
 import numpy as np
 
 from ..encoding.encoder import encode_population
@@ -30,6 +35,7 @@ from ..simulator.patch import probe_recording
 from ..simulator.stimuli import RampHold, SineBurst
 from ..stream import class_channels
 from ..population.encoder import variant_params
+from ..population.layout import PopulationPlan
 
 GAIN_GRID = np.geomspace(1 / 16, 16, 65)  #: gains tried (the match interpolates between them)
 
@@ -84,3 +90,21 @@ def _invert(curve: np.ndarray, ratio: float) -> float:
     lo, hi = curve[k - 1], curve[k]
     f = 0.0 if hi == lo else (ratio - lo) / (hi - lo)
     return float(np.exp(np.log(GAIN_GRID[k - 1]) + f * (np.log(GAIN_GRID[k]) - np.log(GAIN_GRID[k - 1]))))
+
+
+def resolve_plan(params: EncoderParams, overrides: Sequence[str] = (), path: Path | None = None) -> PopulationPlan:
+    """The plan of a file, or the default plan with overrides and variants matched for ``params``."""
+    if path is not None:
+        return PopulationPlan.from_dict(json.loads(Path(path).read_text()))
+    fields = {}
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set takes FIELD=JSON, got {item!r}")
+        try:
+            fields[key] = json.loads(value)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"--set {key}: not JSON ({e.msg})") from None
+    if "variants" not in fields:
+        fields["variants"] = match_gains(params)
+    return PopulationPlan.from_dict({**asdict(PopulationPlan()), **fields})

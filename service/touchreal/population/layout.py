@@ -17,6 +17,7 @@ import json
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from ..settings import CLASSES
 
@@ -73,11 +74,14 @@ class PopulationPlan:
         return json.dumps(asdict(self), indent=1)
 
     @classmethod
-    def from_dict(cls, d: dict) -> PopulationPlan:
+    def from_dict(cls, d: object) -> PopulationPlan:
+        """A plan from JSON data; a wrong field, type or value raises ValueError naming it."""
+        if not isinstance(d, dict):
+            raise ValueError("a population plan is a JSON object")
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown population plan fields {sorted(unknown)}")
-        return cls(**d)
+        return TypeAdapter(cls).validate_python(d, strict=False)
 
 
 @dataclass(frozen=True)

@@ -226,7 +226,8 @@ class Hub:
         self._ids = itertools.count(1)
         self.demand = Demand()
         self.on_drop: Callable[[str, int], None] = _uncounted  #: given to every subscriber (metrics)
-        self.n_taxels = 1
+        self.n_taxels = 1  #: ids spikes and subscriptions address: taxels, or a population's afferents
+        self.addresses = "taxels"  #: what the ids are: "taxels" or "afferents" (the hello's ``addresses``)
         self.positions_mm: np.ndarray | None = None  #: (n_taxels, 2) taxel centres (mm), for rectangle regions
         self.allowed_classes: Sequence[str] = P.CLASSES
         self.decoder_classes: Mapping[str, Sequence[str]] = {}
@@ -288,13 +289,20 @@ class Hub:
         if not self.known:
             return s
         problems = []
+        if self.addresses == "afferents":
+            if s.version < 2:
+                raise P.ProtocolError("this server's spikes address afferents, not taxels: subscribe with protocol "
+                                      "version 2 (the hello lists the afferents)", "unsupported_version")
+            if bad := [x for x in s.streams if x != "spikes"]:
+                problems.append(f"streams {bad} are per taxel and not served with a population (its afferents "
+                                "have spikes only)")
         if bad := [c for c in s.classes if c not in self.allowed_classes]:
             problems.append(f"classes {bad} are not served (served: {list(self.allowed_classes)})")
         if bad := [t for t in s.taxels or () if t >= self.n_taxels]:
-            problems.append(f"taxels {bad[:8]}{'...' if len(bad) > 8 else ''} do not exist (ids 0..{self.n_taxels - 1})")
+            problems.append(f"{self.addresses} {bad[:8]}{'...' if len(bad) > 8 else ''} do not exist (ids 0..{self.n_taxels - 1})")
         region = s.region or P.Region()
         if bad := [list(r) for r in region.ranges if r[1] > self.n_taxels]:
-            problems.append(f"region.ranges {bad[:4]} reach past the last taxel (ids 0..{self.n_taxels - 1})")
+            problems.append(f"region.ranges {bad[:4]} reach past the last of the {self.addresses} (ids 0..{self.n_taxels - 1})")
         if region.rects and self.positions_mm is None:
             problems.append("region.rects need the taxel positions, which this server does not know: use region.ranges")
         n = _count(self.picked(s), self.n_taxels)
@@ -308,12 +316,16 @@ class Hub:
         return s
 
     def configure(self, n_taxels: int, allowed_classes: Sequence[str], decoder_classes: Mapping[str, Sequence[str]],
-                  positions_mm: np.ndarray | None = None) -> None:
+                  positions_mm: np.ndarray | None = None, addresses: str | None = None) -> None:
         """What is served: ``n_taxels`` taxels, the classes and the decoders (name -> the classes they
         read). ``positions_mm``: the (n_taxels, 2) taxel centres (mm) rectangle regions select by; None
         keeps the ones configured before if they are of ``n_taxels`` taxels (a change of classes or
-        decoders), else rectangles are refused."""
+        decoders), else rectangles are refused. ``addresses`` "afferents": the ids are a population's
+        afferents (``n_taxels`` of them, ``positions_mm`` theirs), which have spikes only and need
+        protocol version 2; None keeps what was configured."""
         self.known = True
+        if addresses is not None:
+            self.addresses = addresses
         if positions_mm is not None:
             self.positions_mm = np.asarray(positions_mm, float).reshape(n_taxels, 2)
         elif self.positions_mm is not None and len(self.positions_mm) != n_taxels:

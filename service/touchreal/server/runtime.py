@@ -34,6 +34,7 @@ from touchreal_client.protocol import FLAG_PARAMS_CHANGED, FLAG_RESTARTED, FLAG_
 
 from ..encoding.encoder import SpikeEvents
 from ..params import EncoderParams
+from ..population.encoder import Population
 from ..preprocess.activity import ActivityPlan
 from ..preprocess.pipeline import Channels
 from ..sources.live import LiveSource
@@ -140,8 +141,13 @@ class Runtime:
         activity: ActivityPlan | None = None,
         max_lag_s: float = 0.25,
         on_shed: Callable[[float, bool], None] | None = None,
+        population: Population | None = None,
     ):
         self.source = source
+        #: the afferents spikes address (None: one per taxel and class); a population runs on one block
+        self.population = population
+        if population is not None:
+            taxel_block = None
         #: activity-driven compute for the StreamEncoder (None: dense); only a skin of several taxel blocks
         #: uses it: a single block always runs, so its spikes are the offline encoder's bit for bit
         blocks = taxel_block is not None and source.n_taxels > taxel_block
@@ -364,7 +370,7 @@ class Runtime:
         self.enc_rev, self.active, self._enc_stats = rev, None, {}
         self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
                                      update_s=params.preprocess.update_ms / 1000.0, activity=self.activity,
-                                     order=self.order)
+                                     order=self.order, population=self.population)
         self.decoders = {}
         self._cost.restart()
 

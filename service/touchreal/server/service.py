@@ -34,8 +34,11 @@ from typing import Any
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockPoint
 
+from ..population.encoder import Population
+from ..population.layout import PopulationPlan
 from ..decoding.model import ModelStore, params_warning
 from ..dryrun import prove_runnable
+from ..fitting.variants import resolve_plan
 from ..params import EncoderParams, ParamsError
 from ..preprocess.activity import ActivityPlan
 from ..redaction import redact
@@ -94,6 +97,10 @@ class Service:
                        refresh_s=settings.hop_ms / 1000)
         self.hub.on_drop = self.metrics.count_drop
         self.view = ServiceView(self)  #: what this service reports (read-only)
+        #: the population plan spikes follow (None: one afferent per taxel and class), resolved at the first
+        #: source open; the population built from it for the open source's taxels
+        self.population_plan: PopulationPlan | None = None
+        self.population: Population | None = None
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
@@ -174,15 +181,36 @@ class Service:
             log.error("cannot open source %s: %s", redact(self.config.source), redact(str(exc)))
             return self.source_error
         self.source_error, self.ended = None, None
-        self.hub.configure(source.n_taxels, self.view.served_classes(), self.view.decoder_classes(), source.positions_mm)
+        self.population = None
+        if self.settings.population:
+            try:
+                self.population = pop = await asyncio.to_thread(self._build_population, source.positions_mm)
+            except (ValueError, OSError) as exc:
+                source.close()
+                self.source_error = f"population: {exc}"
+                log.error("cannot build the population: %s", redact(str(exc)))
+                return self.source_error
+            self.hub.configure(len(pop), self.view.served_classes(), {}, pop.layout.xy_mm, addresses="afferents")
+        else:
+            self.hub.configure(source.n_taxels, self.view.served_classes(), self.view.decoder_classes(),
+                               source.positions_mm, addresses="taxels")
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._fall_back, self._post_end,
                                self.settings.compute_dtype, None if self.settings.dense else ActivityPlan(),
-                               self.settings.max_lag_ms / 1000.0, self._shed)
+                               self.settings.max_lag_ms / 1000.0, self._shed, self.population)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again
         return None
+
+    def _build_population(self, taxels_xy_mm) -> Population:
+        """The population for the source's taxels; the plan is resolved once (``fingertip``: the default
+        plan with its model variants matched for the active parameters) and logged."""
+        if self.population_plan is None:
+            spec = self.settings.population
+            self.population_plan = resolve_plan(self.store.active, path=None if spec == "fingertip" else Path(spec))
+            log.info("population plan: %s", self.population_plan.to_json().replace("\n", ""))
+        return Population.build(taxels_xy_mm, self.population_plan)
 
     async def restart_source(self, device_present: bool = False) -> str | None:
         """Close and reopen the source; returns why it could not open (None: it did)."""

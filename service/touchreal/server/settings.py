@@ -99,6 +99,11 @@ class ServeSettings(ServerSettings):
     taxels: int = Field(default=1, ge=1, le=MAX_TAXELS, description="taxels of the simulated e-skin / serial device")
     speed: float = Field(default=1.0, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool = Field(default=False, description="replay: start again after the last trial")
+    population: str | None = Field(default=None, max_length=4096, description="spikes of an afferent population "
+                                   "over the taxels instead of one afferent per taxel and class: 'fingertip' (the "
+                                   "default plan, model variants matched at start) or a plan file from `touchreal "
+                                   "population plan`; spikes then address afferents (protocol version 2, "
+                                   "docs/population.md)")
     token: str | None = Field(default=None, description="bearer token required by write endpoints; unset or empty = "
                               "writes open to whoever reaches the port")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")

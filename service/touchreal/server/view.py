@@ -45,7 +45,20 @@ class ServiceView:
 
     @property
     def n_taxels(self) -> int:
+        """Ids spikes address: the taxels, or the population's afferents."""
         return self.service.hub.n_taxels
+
+    def population_view(self) -> dict[str, Any] | None:
+        """The hello's ``population``: the plan and every afferent as columns (ids 0..n-1 in order; the
+        ids of a class are contiguous, given as id ranges); None without a population."""
+        pop = self.service.population
+        if pop is None:
+            return None
+        lay = pop.layout
+        return {"plan": json.loads(pop.plan.to_json()), "n_afferents": len(lay),
+                "classes": {c: P.id_ranges(lay.ids(c)) for c in P.CLASSES if lay.ids(c).size},
+                "x_mm": [round(v, 3) for v in lay.xy_mm[:, 0].tolist()], "y_mm": [round(v, 3) for v in lay.xy_mm[:, 1].tolist()],
+                "model": lay.model.tolist()}
 
     def served_classes(self) -> list[str]:
         """Classes computed for subscribers: those the active parameters define and the config allows."""
@@ -62,6 +75,7 @@ class ServiceView:
         params = self.service.store.active
         positions = self.service.runtime.source.positions_mm if self.service.runtime is not None else []
         skin = P.hello_skin(positions)  # n_taxels, layout, taxels: listed up to P.HELLO_LISTED_TAXELS on a grid
+        population = self.population_view()
         info, clock = self.service.store.info(), self.service.clock
         return {
             "type": "hello",
@@ -79,6 +93,8 @@ class ServiceView:
             "delay_us": {c: int(round(params.classes[c].delay_ms * 1000)) for c in params.classes},
             "classes": self.served_classes(),
             **skin,
+            "addresses": "taxels" if population is None else "afferents",
+            "population": population,
             "streams": {
                 "spikes": {"event_bytes": P.EVENT_DTYPE.itemsize},
                 "channels": {"names": list(P.CHANNELS), "units": list(P.CHANNEL_UNITS), "rate_hz": 5000,
@@ -92,7 +108,10 @@ class ServiceView:
         }
 
     def decoder_classes(self) -> dict[str, list[str]]:
-        """Usable installed decoders (name -> the classes they read), in the hello's order."""
+        """Usable installed decoders (name -> the classes they read), in the hello's order; none with a
+        population (decoders read taxels)."""
+        if self.service.population is not None:
+            return {}
         return {m["name"]: list(m["classes"]) for m in self.service.models.list() if "error" not in m}
 
     def decoders_view(self) -> list[dict[str, Any]]:
@@ -167,7 +186,7 @@ class ServiceView:
         enc = rt.encoder if rt is not None else None
         detector = enc.detector if enc is not None else None
         return {"compute": "dense" if rt is None or rt.activity is None else "sparse",
-                "taxels": self.n_taxels, "awake_taxels": enc.awake_taxels if enc is not None else 0,
+                "taxels": rt.source.n_taxels if rt else 0, "awake_taxels": enc.awake_taxels if enc is not None else 0,
                 "activity": ({**detector.counters, "stuck_taxels": detector.stuck, "plan": detector.plan.describe()}
                              if detector is not None else None),
                 "lag_ms": round(rt.lag_s * 1e3, 3) if rt else 0.0, "max_lag_ms": self.service.settings.max_lag_ms,

@@ -27,8 +27,13 @@ from typing import Any
 import numpy as np
 
 PROTOCOL = "touchreal.stream"
-VERSION = 1
-SUPPORTED_VERSIONS = (1,)
+#: Session protocol (hello and subscribe). Version 2 adds the hello's ``addresses`` ("taxels", or
+#: "afferents": the ids of spikes and subscriptions are a population's afferents, listed in the hello's
+#: ``population``); a server whose spikes address afferents refuses a version-1 subscriber, which
+#: would read them as taxels. Over taxels both versions mean the same.
+VERSION = 2
+SUPPORTED_VERSIONS = (1, 2)
+FRAME_VERSION = 1  #: the binary frame layout (header byte 2), the same in both session versions
 CLASSES = ("SA1", "RA", "PC")
 CHANNELS = ("ST", "dST", "PVDF", "dPVDF")
 CHANNEL_UNITS = ("N", "N/s", "V", "V/s")
@@ -121,7 +126,7 @@ class Header:
     seq: int = 0
     dropped: int = 0
     sent_us: int = 0
-    version: int = VERSION
+    version: int = FRAME_VERSION
     recv_us: int | None = None  #: client side only (not on the wire): this client's wall clock when it received the frame
 
     def flag_names(self) -> list[str]:
@@ -231,7 +236,7 @@ def decode_header(buf: bytes | bytearray | memoryview) -> Header:
     magic, ver, kind, flags, hlen, seq, dropped, update, emit, sent, rev, _ = HEADER.unpack_from(buf, 0)
     if magic != MAGIC:
         raise ProtocolError(f"bad magic {magic!r}")
-    if ver not in SUPPORTED_VERSIONS:
+    if ver != FRAME_VERSION:
         raise ProtocolError(f"unsupported frame version {ver}", "unsupported_version")
     if kind not in KIND_NAMES:
         raise ProtocolError(f"unknown frame kind {kind}")
@@ -388,12 +393,13 @@ class Subscription:
     decimation: int = 25  #: channels: one 5 kHz sample in this many (25 -> 200 Hz)
     decoders: list[str] | None = None  #: decoded: names, None = every installed decoder
     region: Region | None = None  #: a part of the skin by id ranges or rectangles (mm)
+    version: int = VERSION  #: the session protocol version the subscriber speaks
 
     def to_json(self) -> dict[str, Any]:
         """The ``subscribe`` message; ``region`` only when set (a server older than regions refuses the field)."""
         out = {
             "type": "subscribe",
-            "version": VERSION,
+            "version": self.version,
             "taxels": self.taxels,
             "classes": self.classes,
             "streams": self.streams,
@@ -424,7 +430,7 @@ def parse_subscribe(msg: dict[str, Any]) -> Subscription:
     unknown = set(msg) - {"type", "version", "taxels", "region", "classes", "streams", "encoding", "channels", "decoders"}
     if unknown:
         raise ProtocolError(f"unknown subscribe fields {sorted(unknown)}")
-    sub = Subscription()
+    sub = Subscription(version=version)
     taxels = msg.get("taxels")
     if taxels is not None:
         if not isinstance(taxels, list) or not all(_is_int(t) and 0 <= t < MAX_TAXELS for t in taxels):
@@ -657,6 +663,51 @@ def hello_taxels(hello: dict[str, Any]) -> list[dict[str, Any]]:
     """Every taxel of a hello as ``{"id", "x_mm", "y_mm"}`` (mm), listed or from its grid ``layout``
     (:func:`hello_positions`, whose errors it raises)."""
     return [{"id": i, "x_mm": x, "y_mm": y} for i, (x, y) in enumerate(hello_positions(hello).tolist())]
+
+
+@dataclass(frozen=True)
+class Afferents:
+    """A population's afferents as a version-2 hello lists them (row = afferent id): ``cls`` (index
+    into CLASSES), position (mm) and ``model`` (the TouchSim single-unit model within its class)."""
+
+    cls: np.ndarray  # (A,) int64
+    xy_mm: np.ndarray  # (A, 2) float64
+    model: np.ndarray  # (A,) int64
+    plan: dict[str, Any]
+
+    def ids(self, cls: str) -> np.ndarray:
+        return np.flatnonzero(self.cls == CLASSES.index(cls))
+
+
+def hello_afferents(hello: dict[str, Any]) -> Afferents | None:
+    """The afferents of a hello whose ``addresses`` are "afferents" (None for a skin of taxels); raises
+    :class:`ProtocolError` for a ``population`` that is malformed."""
+    if hello.get("addresses", "taxels") == "taxels":
+        return None
+    pop = hello.get("population")
+    if hello.get("addresses") != "afferents" or not isinstance(pop, dict):
+        raise ProtocolError("hello.addresses must be 'taxels' or 'afferents' (with a population object)")
+    n = pop.get("n_afferents")
+    if not (_is_int(n) and 0 < n <= MAX_TAXELS):
+        raise ProtocolError(f"hello.population.n_afferents must be an integer in 1..{MAX_TAXELS}")
+    cols = [pop.get(k) for k in ("x_mm", "y_mm", "model")]
+    if not all(isinstance(c, list) and len(c) == n for c in cols) or not all(_is_mm(v) for v in cols[0] + cols[1]) \
+            or not all(_is_int(v) and 0 <= v < 64 for v in cols[2]):
+        raise ProtocolError("hello.population needs x_mm, y_mm (finite numbers) and model (small integers), one per afferent")
+    cls = np.full(n, -1, np.int64)
+    classes = pop.get("classes")
+    if not isinstance(classes, dict) or not set(classes) <= set(CLASSES):
+        raise ProtocolError(f"hello.population.classes maps classes of {list(CLASSES)} to id ranges")
+    for name, ranges in classes.items():
+        if not isinstance(ranges, list) or not all(isinstance(r, list) and len(r) == 2 and all(_is_int(v) for v in r)
+                                                   and 0 <= r[0] < r[1] <= n for r in ranges):
+            raise ProtocolError(f"hello.population.classes[{name!r}] must be id ranges [[start, stop], ...] within 0..{n}")
+        for a, b in ranges:
+            cls[a:b] = CLASSES.index(name)
+    if (cls < 0).any():
+        raise ProtocolError("hello.population.classes must give every afferent a class")
+    plan = pop.get("plan") if isinstance(pop.get("plan"), dict) else {}
+    return Afferents(cls, np.array([cols[0], cols[1]], float).T.reshape(n, 2), np.array(cols[2], np.int64), plan)
 
 
 def _is_mm(v: Any) -> bool:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -205,7 +205,12 @@ async def record(url: str, out: str | Path, *, seconds: float | None = None,
         s = tr.stream(sub, queue_frames=8192)
         await s.open()
         try:
-            await s.subscribe()  # the same subscription again, waiting for the server's answer: StreamError if refused
+            if P.hello_afferents(s.hello) is not None and set(sub.streams) - {"spikes"}:
+                # a population's afferents have spikes only (channels and decoders are per taxel)
+                if "spikes" not in sub.streams:
+                    raise ValueError(f"{url} serves a population, whose afferents have spikes only: record spikes")
+                sub = replace(sub, streams=["spikes"])
+            await s.subscribe(sub)  # waiting for the server's answer: StreamError if refused
             await s.sync_clock()
             with out.open("wb") as fp:
                 rec = McapRecorder(fp, s.clock)

@@ -116,6 +116,11 @@ class Session:
     sessions: list[str] = field(default_factory=list)  #: server sessions recorded (each restarts the wire clock)
     created_wall_us: int = 0  #: when the recording (or the encoding) was made, Unix epoch us
 
+    @property
+    def afferents(self) -> P.Afferents | None:
+        """The population the spikes' ids address (the recorded hello's), None when they are taxels."""
+        return P.hello_afferents(self.hello) if self.hello else None
+
     def origin_us(self) -> int:
         return self.origin if self.origin is not None else self.first_stamp_us()
 

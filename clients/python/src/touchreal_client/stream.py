@@ -90,6 +90,8 @@ class AsyncStream:
         self.open_timeout_s = open_timeout_s
         self.request_timeout_s = request_timeout_s
         self.hello: dict[str, Any] = {}
+        #: the session protocol version agreed with the server at open (the newest both speak)
+        self.version = self.subscription.version
         self.subscribed: dict[str, Any] | None = None  #: the server's last ``subscribed`` reply
         self.ended: dict[str, Any] | None = None  #: the server's ``ended`` message (its replay has finished)
         self.stats = StreamStats()
@@ -141,9 +143,13 @@ class AsyncStream:
         except (asyncio.TimeoutError, websockets.ConnectionClosed, json.JSONDecodeError, TypeError) as exc:
             await ws.close()
             raise ServiceUnavailable(f"{self.url}: no hello from the server ({exc!r})") from exc
-        if not isinstance(hello, dict) or hello.get("type") != "hello" or P.VERSION not in hello.get("versions", []):
+        spoken = set(hello.get("versions", [])) & set(P.SUPPORTED_VERSIONS) if isinstance(hello, dict) else set()
+        if not isinstance(hello, dict) or hello.get("type") != "hello" or not spoken:
             await ws.close()
-            raise StreamClosed(None, f"{self.url} does not speak {P.PROTOCOL} version {P.VERSION}: {hello!r:.200}")
+            raise StreamClosed(None, f"{self.url} speaks no {P.PROTOCOL} version of {list(P.SUPPORTED_VERSIONS)}: {hello!r:.200}")
+        # the newest version both speak (a version-1 server predates populations: it serves taxels)
+        self.version = max(spoken)
+        self.subscription = replace(self.subscription, version=self.version)
         new_session = hello.get("session") != self.hello.get("session")
         self._ws, self.hello = ws, hello
         self.stats.on_connect(new_session)
@@ -158,6 +164,7 @@ class AsyncStream:
         ``taxels=[0, 1]``, ``classes=["SA1"]``, ``streams=["spikes", "decoded"]``) and wait for the
         server's ``subscribed`` reply. Raises :class:`StreamError` if the server refuses it."""
         new = replace(subscription or self.subscription, **changes)
+        new = replace(new, version=self.version)  # the version agreed at open
         reply = await self._request("subscribe", new.to_json())
         self.subscription = new  # only once accepted: a reconnect sends it again
         return reply

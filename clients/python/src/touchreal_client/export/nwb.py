@@ -85,6 +85,9 @@ def _units(nwb: NWBFile, s: Session, origin: int) -> None:
     if not s.coverage_us:  # no spikes were recorded (e.g. channels only)
         return
     rev = ", ".join(f"rev {p['rev']} sha256 {p['sha256']}" for p in s.params) or "unknown"
+    if s.afferents is not None:
+        _population_units(nwb, s, origin, rev)
+        return
     nwb.units = Units(name="units", resolution=RESOLUTION_S,
                       description=f"afferent spike trains per (taxel, class); parameter set: {rev}")
     nwb.add_unit_column("taxel", "taxel id")
@@ -99,6 +102,28 @@ def _units(nwb: NWBFile, s: Session, origin: int) -> None:
             t = np.sort(s.t_us[(s.taxel == taxel) & (s.cls == k)])
             nwb.add_unit(spike_times=_sec(t, origin), obs_intervals=[[(lo - origin) / 1e6, (hi - origin) / 1e6]],
                          taxel=taxel, afferent_class=c, position_mm=list(pos[taxel]))
+
+
+def _population_units(nwb: NWBFile, s: Session, origin: int, rev: str) -> None:
+    """One unit per afferent of the recorded population, with its class, position and model."""
+    aff = s.afferents
+    nwb.units = Units(name="units", resolution=RESOLUTION_S,
+                      description=f"afferent spike trains, one unit per afferent of a population placed by the plan "
+                      f"{json.dumps(aff.plan, sort_keys=True)}; parameter set: {rev}")
+    nwb.add_unit_column("afferent", "afferent id (the stream's id)")
+    nwb.add_unit_column("afferent_class", "afferent class: SA1, RA or PC")
+    nwb.add_unit_column("position_mm", "afferent position [x, y] (mm)")
+    nwb.add_unit_column("model", "TouchSim single-unit model of the class the afferent runs (its variant)")
+    order = np.argsort(s.taxel, kind="stable")
+    bounds = np.searchsorted(s.taxel[order], np.arange(len(aff.cls) + 1))
+    for a in range(len(aff.cls)):
+        c = P.CLASSES[int(aff.cls[a])]
+        if c not in s.coverage_us:
+            continue
+        lo, hi = s.coverage_us[c]
+        t = np.sort(s.t_us[order[bounds[a]:bounds[a + 1]]])
+        nwb.add_unit(spike_times=_sec(t, origin), obs_intervals=[[(lo - origin) / 1e6, (hi - origin) / 1e6]],
+                     afferent=a, afferent_class=c, position_mm=[float(v) for v in aff.xy_mm[a]], model=int(aff.model[a]))
 
 
 def _series(name: str, t_us: np.ndarray, origin: int, data: np.ndarray, unit: str, description: str) -> TimeSeries:
