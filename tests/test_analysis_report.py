@@ -131,3 +131,17 @@ def test_cli_evaluate(tiny, tmp_path):
     assert main(["evaluate", str(tiny.root), "--out", str(out), "--no-sweep", "--no-spatial", "--quiet", "--latency-trials", "0"]) == 0
     assert (out / "report.md").is_file() and (out / "metrics.json").is_file()
     assert main(["evaluate", str(tiny.root), "--out", str(out), "--ramp-condition", "nope", "--quiet", "--no-sweep", "--no-spatial"]) == 2
+
+
+@pytest.mark.slow  # ~20 s: a report, the population variants and one 4 x 4 patch; .ci/run runs it (pytest -m slow)
+def test_evaluate_adds_the_population_section_beside_the_report(tiny, tmp_path):
+    from touchreal.cli import main
+
+    out = tmp_path / "report"
+    assert main(["evaluate", str(tiny.root), "--out", str(out), "--no-sweep", "--no-spatial", "--latency-trials", "0",
+                 "--population", "3", "--quiet"]) == 0
+    assert "[population/report.md](population/report.md)" in (out / "report.md").read_text()
+    pop = json.loads((out / "population" / "metrics.json").read_text())
+    assert set(pop["pitches"]["3"]["classes"]) == set(CLASSES)
+    assert {len(g) for g in pop["plan"]["variants"].values()} == {4, 9}  # matched per TouchSim model
+    assert all((out / "population" / f).stat().st_size > 10_000 for f in pop["figures"]["3"])

@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--latency-trials", type=int, default=1,
                    help="held-out ramp trials replayed in 1 ms chunks to measure each class's emission - stamp (0: algorithmic only)")
     p.add_argument("--no-spatial", action="store_true", help="skip the spatial analysis (Figs. 10-11)")
+    p.add_argument("--population", default=None, metavar="PITCHES",
+                   help="also the population section: the default population plan against TouchSim over simulated "
+                   "taxel patches of these pitches (mm, e.g. 3,5,10), in REPORT_DIR/population (docs/population.md)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
@@ -50,7 +53,19 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
+    pitches = [float(x) for x in args.population.split(",") if x] if args.population else []
+    if args.population is not None and (not pitches or any(not 0.5 <= p <= 50 for p in pitches)):
+        raise ValueError("--population: comma-separated taxel pitches within 0.5-50 mm")
     m = evaluate(args.dataset, params, args.out, cfg, log=log)
+    if pitches:
+        from ..analysis.population_report import evaluate_population
+        from ..fitting.variants import resolve_plan
+
+        log("population section ...")
+        evaluate_population(params, resolve_plan(params), args.out / "population", pitches)
+        with (args.out / "report.md").open("a") as fp:
+            fp.write("\n## Afferent populations\n\nThe population against TouchSim's own population response, its "
+                     "raster and rate maps: [population/report.md](population/report.md).\n")
     failed = [k for k, v in m["targets"].items() if not v["pass"]]
     print(f"report: {args.out / 'report.md'}  ({len(m['targets']) - len(failed)}/{len(m['targets'])} targets met"
           + (f"; not met: {', '.join(failed)}" if failed else "") + ")")
