@@ -170,4 +170,6 @@ def test_texture_hard_draws_depth_and_build_per_trial_at_the_chosen_speeds(tmp_p
         depths.add(var["depth_mm"]), couplings.add(var["build"]["pvdf_coupling"]), lags.add(var["build"]["rig_lag_ms"])
     assert len(depths) == len(couplings) == len(lags) == 10  # independent draws per trial
     assert cli_main(["simulate", "texture", "--speeds", "30", "--out", str(tmp_path / "x"), "--quiet"]) == 2
-    assert "--speeds applies to texture-hard only" in capsys.readouterr().err
+    assert "apply to texture-hard only" in capsys.readouterr().err
+    same = simulate_dataset("texture-hard", tmp_path / "same", trials=3, seed=2, reference=False, vary_build=False)
+    assert [e["variation"]["build"] for e in same.entries("texture")] == [same.manifest["simulator"]["build"]] * 3

@@ -27,6 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--speeds", type=_speeds, default=None, metavar="V,...",
                    help="texture-hard: its scanning speeds in mm/s (default 20,30,40,50,60), e.g. to hold a speed out")
+    p.add_argument("--same-build", action="store_true",
+                   help="texture-hard: every trial on the dataset's build (default: a build drawn per trial around it)")
     p.add_argument("--no-reference", action="store_true", help="skip the TouchSim reference spike trains")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     g = p.add_argument_group("sensor build (docs/simulator.md; ratios to the nominal rig-v1 build)")
@@ -98,13 +100,13 @@ def run(args: argparse.Namespace) -> int:
         if unknown:
             raise ValueError(f"--trials names protocols not being simulated: {sorted(unknown)}")
     protocols = [g for g in PROTOCOL_GROUPS if not g.startswith("texture-")] if "all" in args.protocols else args.protocols
-    if args.speeds is not None and "texture-hard" not in protocols:
-        raise ValueError("--speeds applies to texture-hard only")
+    if (args.speeds is not None or args.same_build) and "texture-hard" not in protocols:
+        raise ValueError("--speeds and --same-build apply to texture-hard only")
     t0 = time.perf_counter()
     progress = None if args.quiet else (lambda tid: print(f"  {tid}", file=sys.stderr))
     build = build_from_args(args)
     ds = simulate_dataset(protocols, args.out, args.trials, args.seed, reference=not args.no_reference, build=build,
-                          speeds_mm_s=args.speeds, progress=progress)
+                          speeds_mm_s=args.speeds, vary_build=not args.same_build, progress=progress)
     counts = ", ".join(f"{k} {v}" for k, v in ds.manifest["counts"].items())
     print(f"wrote {len(ds.trials)} trials ({counts}) to {ds.root} in {time.perf_counter() - t0:.1f} s")
     return 0

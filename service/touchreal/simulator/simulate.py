@@ -186,11 +186,13 @@ def conditions(protocol: str, skin: SkinParams | None = None, speeds_mm_s: Itera
     raise ValueError(f"unknown protocol {protocol!r}")
 
 
-def vary_trial(cond: Condition, rng: np.random.Generator, build: SensorBuild | None = None) -> tuple[Condition, SensorBuild, dict[str, Any]]:
+def vary_trial(cond: Condition, rng: np.random.Generator, build: SensorBuild | None = None,
+               vary_build: bool = True) -> tuple[Condition, SensorBuild, dict[str, Any]]:
     """A ``texture_hard`` trial's own press depth (mm) and sensor build: uniform draws in the design's
     ranges (:data:`PROTOCOL_DESIGN` ``texture_hard``): build ratios times ``build``'s values (clipped to
     the simulator's limits), the mains frequency and harmonics, the build's rig lag plus an extra.
-    Returns the condition with that depth, the build and the manifest's ``variation`` record."""
+    ``vary_build`` False: ``build`` itself (the depth still varies). Returns the condition with that
+    depth, the build and the manifest's ``variation`` record."""
     t = PROTOCOL_DESIGN["texture_hard"]
     base = build or SensorBuild()
     depth = round(float(rng.uniform(*t["depth_mm"])), 4)
@@ -199,7 +201,7 @@ def vary_trial(cond: Condition, rng: np.random.Generator, build: SensorBuild | N
     fields["mains_hz"] = float(rng.choice(t["mains_hz"]))
     fields["mains_harmonics"] = int(rng.integers(t["mains_harmonics"][0], t["mains_harmonics"][1] + 1))
     fields["rig_lag_ms"] = round(float(np.clip(base.rig_lag_ms + rng.uniform(*t["extra_rig_lag_ms"]), *LIMITS["rig_lag_ms"])), 2)
-    trial_build = dataclasses.replace(base, name=f"{base.name}~trial", **fields)
+    trial_build = dataclasses.replace(base, name=f"{base.name}~trial", **fields) if vary_build else base
     stim = dataclasses.replace(cond.stimulus, depth_mm=depth)
     return dataclasses.replace(cond, stimulus=stim), trial_build, {"depth_mm": depth, "build": trial_build.to_json()}
 
@@ -296,6 +298,7 @@ def simulate_dataset(
     robot: RobotParams | None = None,
     build: SensorBuild | None = None,
     speeds_mm_s: Iterable[float] | None = None,
+    vary_build: bool = True,
     progress=None,
 ) -> Dataset:
     """Write a dataset of ``trials`` trials per recording protocol to the folder ``out``.
@@ -308,7 +311,8 @@ def simulate_dataset(
 
     ``build``: a sensor build (:mod:`.build`) applied to ``skin`` and ``robot`` (default: nominal);
     the manifest records it under ``simulator.build``. ``texture_hard`` trials each draw their own
-    press depth and a build around it (:func:`vary_trial`); ``speeds_mm_s`` replaces its scanning speeds.
+    press depth and a build around it (:func:`vary_trial`; ``vary_build`` False: ``build`` for every trial);
+    ``speeds_mm_s`` replaces its scanning speeds.
     """
     base_skin, base_robot = skin, robot
     if build is not None:
@@ -333,7 +337,7 @@ def simulate_dataset(
             tid = f"{proto}_{len(entries):04d}"
             if proto == "texture_hard":
                 vary_ss, tss = tss.spawn(2)
-                cond, trial_build, variation = vary_trial(cond, np.random.default_rng(vary_ss), build)
+                cond, trial_build, variation = vary_trial(cond, np.random.default_rng(vary_ss), build, vary_build)
                 entry, trial = simulate_trial(cond, rep, tid, tss, reference=reference, skin=trial_build.skin(base_skin),
                                               robot=trial_build.robot(base_robot))
                 entry["variation"] = variation
@@ -355,7 +359,8 @@ def simulate_dataset(
         "counts": counts,
         "simulator": {"module": "touchreal.simulator", "seed": seed, "trials_per_protocol": trials,
                       "build": (build or SensorBuild()).to_json(),
-                      **({"speeds_mm_s": [float(v) for v in speeds_mm_s]} if speeds_mm_s is not None else {})},
+                      **({"speeds_mm_s": [float(v) for v in speeds_mm_s]} if speeds_mm_s is not None else {}),
+                      **({} if vary_build else {"vary_build": False})},
         "trials": entries,
     }
     return write_dataset(out, manifest, recorded)
