@@ -1,13 +1,14 @@
 """How an afferent's input is built from the taxels around it.
 
 **SingleTact channels** (ST, dST: a taxel's load and its rate). A taxel reports the load on its
-cell (a square of side ``cell_mm`` centred on it), not where on the cell it sits. The rule spreads
-each taxel's load uniformly over its cell and propagates it to the afferent as the static
-component of TouchSim's reference model (:mod:`touchreal.reference.mechanics`): the vertical
-stress at the afferent's receptor depth (Sneddon's flat-punch field of a probe of the plan's
-``probe_radius_mm``, averaged over the cell). Loads on several taxels superpose (the mechanics is
-linear in the load). Depth is what separates the classes: a deep receptor (RA 1.6 mm, PC 2.0 mm)
-sees a smoother, wider stress field than a shallow one (SA1 0.3 mm).
+cell (a square of side ``cell_mm`` around its centre), not where on the cell it sits. The rule
+places it at the cell's centre, the position estimate of least expected error when nothing says
+otherwise, and propagates it to the afferent as the static component of TouchSim's reference
+model does for a probe there (:mod:`touchreal.reference.mechanics`): the vertical stress at the
+afferent's receptor depth, Sneddon's flat-punch field of a probe of the plan's
+``probe_radius_mm``, relative to its value under the probe. Loads of several taxels superpose
+(the mechanics is linear in the load). Depth separates the classes: a deep receptor (RA 1.6 mm,
+PC 2.0 mm) sees a smoother, wider field than a shallow one (SA1 0.3 mm).
 
 **PVDF channels** (PVDF, dPVDF: skin vibration). A film does not report a load on its cell but
 samples the vibration field around it (a film picks up a contact several millimetres away), so
@@ -15,23 +16,22 @@ its readings are not superposed, which would count one vibration once per film. 
 interpolates them at the afferent (bilinear weights of the taxel grid, a partition of unity
 inside the grid that falls to 0 within one cell outside it).
 
-Each static weight is normalised by its value at the cell's centre and each dynamic weight is 1
-on a taxel's centre, so an afferent on a taxel's centre with no load elsewhere gets exactly that
-taxel's channels: the class parameters keep the meaning they were fitted with (one afferent
-under the probe, read by one taxel).
+Both weights are 1 for an afferent on a taxel's centre, so such an afferent with no load
+elsewhere gets exactly that taxel's channels: the class parameters keep the meaning they were
+fitted with (one afferent under the probe, read by one taxel).
 
 Where it breaks down:
 
-* Within a cell the rule cannot place the load (a taxel does not know where on its cell the
-  contact is), so a static receptive field is at least a cell wide whatever the class's depth:
-  with a pitch coarser than a class's field (SA1's is about a millimetre) the population's maps
-  are the taxels' cells rather than the afferents' fields, and every afferent on the cell responds
-  as if it sat under the probe (more spikes than TouchSim's few afferents under it).
-* The vibration an afferent gets is what the films nearby measured, which decays with distance
-  as the film's sensitivity does, not as TouchSim's surface wave ``arcsin(a / d) / (pi a)``
-  from a contact the rule cannot place; the wave's delay (at most 1.3 ms over 10 mm) is left out.
-* An afferent outside every cell gets only what the static kernel carries past the cell edge
-  (little for SA1) and the films' values within a cell of the grid's edge.
+* A load off a cell's centre is reported around the centre: an afferent under an off-centre
+  contact gets less than TouchSim's would, one near the centre more, by up to half a cell. With a
+  pitch coarser than a class's receptive field (SA1's is about a millimetre) the population's maps
+  are centred on the taxels rather than on the contacts.
+* The vibration an afferent gets is what the films nearby measured, which decays with distance as
+  the films' sensitivity does, not as TouchSim's surface wave ``arcsin(a / d) / (pi a)`` from a
+  contact the rule cannot place; a class driven by the film (the fitted RA) responds over the
+  films' reach. The wave's delay (at most 1.3 ms over 10 mm) is left out.
+* An afferent outside every cell gets only the static field's tail and the films' values within a
+  cell of the grid's edge.
 * Skin stretch, tangential load and the skin's curvature are not modelled (as in TouchSim's
   single-probe model).
 """
@@ -44,29 +44,17 @@ from scipy.spatial import cKDTree
 
 from ..reference.mechanics import stress_gain
 
-CELL_SAMPLES = 9  #: points per side of the square quadrature over a taxel's cell
 _MAX_REACH_MM = 30.0  #: farthest taxel an afferent may take input from
 
 
-def _cell_points(cell_mm: float) -> np.ndarray:
-    """(CELL_SAMPLES^2, 2) offsets (mm) of the midpoint quadrature over a cell."""
-    u = (np.arange(CELL_SAMPLES) + 0.5) / CELL_SAMPLES - 0.5
-    return np.stack(np.meshgrid(u, u), axis=-1).reshape(-1, 2) * cell_mm
-
-
 def cell_kernels(offsets_mm: np.ndarray, depth_mm: float, cell_mm: float, probe_radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Static weight (the stress of a cell's uniform load) and dynamic weight (the film's bilinear
-    interpolation weight), each (N,) and 1 at offset 0, at afferents ``offsets_mm`` (N, 2) from the
-    cell's centre, at receptor depth ``depth_mm``."""
-    q = _cell_points(cell_mm)
-    off = np.asarray(offsets_mm, np.float64)
-    d = np.hypot(*(off[:, None, :] - q[None, :, :]).transpose(2, 0, 1))  # (N, Q)
-    d0 = np.hypot(q[:, 0], q[:, 1])
-    st = stress_gain(d, depth_mm, probe_radius_mm).mean(axis=1) / stress_gain(d0, depth_mm, probe_radius_mm).mean()
-    # vibration: bilinear interpolation of the films' readings (a partition of unity inside the grid)
+    """Static weight (TouchSim's stress field of a probe on the taxel's centre, relative to its value
+    under the probe) and dynamic weight (the film's bilinear interpolation weight), each (N,) and 1 at
+    offset 0, at afferents ``offsets_mm`` (N, 2) from the taxel's centre, at receptor depth ``depth_mm``."""
+    off = np.asarray(offsets_mm, np.float64).reshape(-1, 2)
+    st = stress_gain(np.hypot(off[:, 0], off[:, 1]), depth_mm, probe_radius_mm) / stress_gain(0.0, depth_mm, probe_radius_mm)
     tent = np.clip(1.0 - np.abs(off) / cell_mm, 0.0, None)
-    dy = tent[:, 0] * tent[:, 1]
-    return st, dy
+    return st, tent[:, 0] * tent[:, 1]
 
 
 def reach_mm(depth_mm: float, cell_mm: float, probe_radius_mm: float, min_weight: float) -> float:
