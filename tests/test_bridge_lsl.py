@@ -118,3 +118,43 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
     labels = [(c.findtext("label"), c.findtext("unit")) for c in c_root.find("desc/channels")]
     assert labels[:4] == [("0.ST", "N"), ("0.dST", "N/s"), ("0.PVDF", "V"), ("0.dPVDF", "V/s")]
     assert len(labels) == 4 * n_taxels
+
+
+def test_a_population_reaches_lsl_as_afferent_spikes_described_in_the_stream_info(tmp_path):
+    import json
+
+    from touchreal.server.settings import RuntimeConfig
+
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"variants": {"SA1": [1.0], "RA": [1.0], "PC": [1.0]}}))
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=4), population=str(plan)) as (addr, svc):
+
+        async def go():
+            bridge = LslBridge(f"ws://{addr}/v1/stream", name=f"TouchReal-test-{uuid.uuid4().hex[:8]}")
+            task = asyncio.create_task(bridge.run())
+            try:
+                await asyncio.wait_for(bridge.ready.wait(), 30)
+                inlet, info = await _inlet(bridge.source_ids["spikes"])
+                samples: list = []
+
+                def enough() -> bool:
+                    _pull(inlet, samples, [])
+                    return len(samples) >= 30
+
+                await until(enough, 60, "30 afferent spikes at the inlet")
+                return set(bridge.source_ids), info.as_xml(), samples
+            finally:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+
+        ids, xml, samples = run(go())
+        pop = svc.population
+    assert ids == {"spikes"}  # a population has no channels stream
+    listed = ET.fromstring(xml).find("desc/afferents")
+    assert listed is not None and len(listed) == len(pop) == 940
+    first = listed[0]
+    assert first.findtext("id") == "0" and first.findtext("class") == "SA1"
+    assert float(first.findtext("x_mm")) == pytest.approx(pop.layout.xy_mm[0, 0], abs=1e-3)  # the hello rounds to um
+    assert ET.fromstring(xml).find("desc/channels")[0].findtext("label") == "afferent"
+    ids_cls = np.array(samples, np.int64)
+    assert (ids_cls[:, 0] < len(pop)).all() and np.array_equal(pop.layout.cls[ids_cls[:, 0]], ids_cls[:, 1])

@@ -121,3 +121,16 @@ def test_a_population_recording_exports_one_nwb_unit_per_afferent(tmp_path, plan
         want = np.sort(s.t_us[s.taxel == a])
         assert np.array_equal(np.round(np.asarray(r.spike_times) * 1e6).astype(np.int64) + origin, want)
     assert sum(len(r.spike_times) for r in df.itertuples()) == s.t_us.size
+
+
+def test_bridges_ask_a_population_for_spikes_only():
+    """A Foxglove or ROS 2 viewer of a channel topic must not get the spike topics refused along with it."""
+    from touchreal_client.topics import CHANNELS_TOPIC, spikes_topic, wanted_subscription
+
+    hello = {"addresses": "afferents", "population": {"n_afferents": 2, "classes": {"SA1": [[0, 1]], "RA": [[1, 2]]},
+                                                      "x_mm": [0.0, 1.0], "y_mm": [0.0, 0.0], "model": [0, 0], "plan": {}}}
+    topics = [spikes_topic("SA1"), CHANNELS_TOPIC]
+    assert wanted_subscription(topics).streams == ["spikes", "channels"]
+    sub = wanted_subscription(topics, hello=hello)
+    assert sub.streams == ["spikes"] and sub.classes == ["SA1"]
+    assert wanted_subscription([CHANNELS_TOPIC], hello=hello).streams == []

@@ -81,9 +81,13 @@ def json_lists(a: np.ndarray) -> list[Any]:
     return np.where(np.isfinite(v), v, None).tolist()
 
 
-def wanted_subscription(topics: Iterable[str], decimation: int = 25) -> P.Subscription:
-    """The upstream subscription that feeds exactly ``topics`` (nothing at all for none)."""
+def wanted_subscription(topics: Iterable[str], decimation: int = 25, hello: dict | None = None) -> P.Subscription:
+    """The upstream subscription that feeds exactly ``topics`` (nothing at all for none). From a
+    ``hello`` whose ids are a population's afferents, only the spike topics are fed (a population has
+    no channels or decoders), so a channel topic never gets the spikes refused along with it."""
     topics = set(topics)
+    if hello is not None and P.hello_afferents(hello) is not None:
+        topics = {t for t in topics if t.startswith(SPIKES_PREFIX)}
     classes = [c for c in P.CLASSES if spikes_topic(c) in topics]
     decoders = sorted(t[len(DECODED_PREFIX):] for t in topics if t.startswith(DECODED_PREFIX))
     streams = [s for s, on in (("spikes", bool(classes)), ("channels", bool(topics & {CHANNELS_TOPIC, FORCE_TOPIC})),

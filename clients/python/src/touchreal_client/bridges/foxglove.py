@@ -157,7 +157,7 @@ class FoxgloveBridge:
                     session = hello.get("session")
                     server.clear_session(str(session))
                 self._advertise(hello)
-            want = wanted_subscription(self._listener.topics(), self.decimation)
+            want = wanted_subscription(self._listener.topics(), self.decimation, stream.hello)
             refused = await resubscribe(stream, want, refused)
 
     # -- publishing -----------------------------------------------------------------------------

@@ -14,6 +14,10 @@ wall clock, then this machine's by the ``time`` offset, then LSL's ``local_clock
 time of arrival: a spike at the acquisition time of the sample stamped like it, a channel sample at
 its own. The StreamInfo XML (``desc``) carries the channel labels and units, the class names, the
 taxel layout (id, x_mm, y_mm), the service session and parameter revision.
+
+From a service running an afferent population (``addresses: "afferents"``) there is the spikes outlet
+only, one sample per spike ``[afferent, class]``, and its ``desc`` lists the afferents (id, class, x_mm,
+y_mm, model) beside the taxels (a population has no channels stream).
 """
 
 from __future__ import annotations
@@ -56,10 +60,17 @@ def _describe(info: Any, hello: dict[str, Any], labels: list[str], units: list[s
         cls.append_child_value("index", str(i))
         cls.append_child_value("name", c)
     layout = desc.append_child("taxels")
-    for t in hello.get("taxels", []):
+    for t in hello.get("taxels") or []:
         tx = layout.append_child("taxel")
         for key in ("id", "x_mm", "y_mm"):
             tx.append_child_value(key, str(t.get(key)))
+    afferents = P.hello_afferents(hello)
+    if afferents is not None:
+        pop = desc.append_child("afferents")
+        for i, (k, (x, y), m) in enumerate(zip(afferents.cls.tolist(), afferents.xy_mm.tolist(), afferents.model.tolist())):
+            a = pop.append_child("afferent")
+            for key, value in (("id", i), ("class", P.CLASSES[k]), ("x_mm", x), ("y_mm", y), ("model", m)):
+                a.append_child_value(key, str(value))
     acq = desc.append_child("acquisition")
     acq.append_child_value("manufacturer", "TouchReal")
     acq.append_child_value("server", str(hello.get("server", "")))
@@ -83,9 +94,10 @@ class LslBridge:
 
     async def run(self) -> None:
         """Push until cancelled or until the stream ends for good (then raises StreamClosed)."""
-        sub = P.Subscription(streams=["spikes", "channels"], decimation=self.decimation)
-        async with AsyncStream(self.url, sub) as stream:
+        async with AsyncStream(self.url, P.Subscription(streams=["spikes"])) as stream:
             self.stream = stream
+            if P.hello_afferents(stream.hello) is None:  # a population's afferents have spikes only
+                await stream.subscribe(streams=["spikes", "channels"], decimation=self.decimation)
             await stream.sync_clock(FIRST_SYNC_SAMPLES)
             spikes, channels = self._outlets(stream.hello)
             sync = asyncio.create_task(keep_clock_synced(stream))
@@ -94,22 +106,27 @@ class LslBridge:
                 async for frame in stream.frames():
                     if isinstance(frame, P.SpikesFrame):
                         self._push_spikes(spikes, frame)
-                    elif isinstance(frame, P.ChannelsFrame):
+                    elif isinstance(frame, P.ChannelsFrame) and channels is not None:
                         self._push_channels(channels, frame)
             finally:
                 sync.cancel()
                 await asyncio.gather(sync, return_exceptions=True)
 
     def _outlets(self, hello: dict[str, Any]) -> tuple[Any, Any]:
+        """The spikes outlet, and the channels outlet (None for a population)."""
         import pylsl
 
         session = str(hello.get("session", "unknown"))
-        taxels = [int(t["id"]) for t in hello.get("taxels", [])]
+        taxels = [int(t["id"]) for t in hello.get("taxels") or []]
         self._column = {t: i for i, t in enumerate(taxels)}
-        self.source_ids = {k: f"touchreal-{session}-{k}" for k in ("spikes", "channels")}
+        population = P.hello_afferents(hello) is not None
+        self.source_ids = {k: f"touchreal-{session}-{k}" for k in (("spikes",) if population else ("spikes", "channels"))}
         s_info = pylsl.StreamInfo(f"{self.name}-spikes", "Spikes", 2, pylsl.IRREGULAR_RATE, pylsl.cf_int32,
                                   self.source_ids["spikes"])
-        _describe(s_info, hello, ["taxel", "class"], ["id", "index into classes"])
+        _describe(s_info, hello, ["afferent" if population else "taxel", "class"], ["id", "index into classes"])
+        if population:
+            self.outlet_names = [s_info.name()]
+            return pylsl.StreamOutlet(s_info), None
         rate = 5000.0 / self.decimation
         c_info = pylsl.StreamInfo(f"{self.name}-channels", "Force", len(taxels) * len(P.CHANNELS), rate,
                                   pylsl.cf_float32, self.source_ids["channels"])

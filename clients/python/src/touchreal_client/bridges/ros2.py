@@ -347,7 +347,7 @@ class Ros2Bridge:
                 except DDSException as exc:  # the topics already made go on
                     log.warning("cannot advertise the new hello's topics: %r", exc)
             self._live = self._matched()
-            want = wanted_subscription(self._live, self.decimation)
+            want = wanted_subscription(self._live, self.decimation, stream.hello)
             refused = await resubscribe(stream, want, refused)
 
     # -- publishing -----------------------------------------------------------------------------
