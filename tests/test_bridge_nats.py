@@ -483,3 +483,34 @@ def test_frames_over_the_brokers_max_payload_cross_in_parts_and_equal_the_servic
         else:
             assert np.array_equal(f.t_us, d.t_us) and np.array_equal(f.taxel, d.taxel) and np.array_equal(f.cls, d.cls)
     assert _consecutive(fv) and fv[-1].header.dropped == 0
+
+
+def test_a_population_crosses_nats_and_gateway_demand_is_per_afferent(tmp_path, nats_url):
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"variants": {"SA1": [1.0], "RA": [1.0], "PC": [1.0]}}))
+    with publishing(tmp_path / "state", nats_url, RuntimeConfig(taxels=4), population=str(plan)) as (addr, svc, pub), \
+            gateway(nats_url) as (ga, gw):
+        pop = svc.population
+        ra = pop.layout.ids("RA")[:200]
+
+        async def go():
+            async with connect(ga) as via, connect(addr) as direct:
+                hello, _ = await hello_and_subscribe(via, version=2, taxels=ra.tolist(), classes=["RA"])
+                await hello_and_subscribe(direct, version=2, taxels=ra.tolist(), classes=["RA"])
+                await until(lambda: set(svc.hub.demand.columns.get("RA", ())) >= set(ra.tolist()), 10,
+                            "the gateway's afferent demand reached the service")
+                fv, fd = [], []
+                enough = lambda _: sum(f.t_us.size for f in _spikes(fv)) >= 30 and _shared(fv, fd, P.SpikesFrame) > 20  # noqa: E731
+                await asyncio.gather(collect(via, 60.0, enough, into=fv, what="30 afferent spikes through the gateway"),
+                                     collect(direct, 60.0, enough, into=fd, what="the direct stream alongside"))
+                return hello, fv, fd
+
+        hello, fv, fd = run(go())
+    assert hello["addresses"] == "afferents" and P.hello_afferents(hello).cls.size == len(pop)
+    direct = {f.header.update: f for f in _spikes(fd)}
+    shared = [f for f in _spikes(fv) if f.header.update in direct]
+    assert shared and sum(f.t_us.size for f in shared) > 0
+    for f in shared:  # the same afferents' spikes whichever way they travelled
+        d = direct[f.header.update]
+        assert np.array_equal(f.t_us, d.t_us) and np.array_equal(f.taxel, d.taxel)
+        assert set(f.taxel.tolist()) <= set(ra.tolist()) and set(f.cls.tolist()) <= {1}
