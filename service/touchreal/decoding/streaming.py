@@ -78,10 +78,12 @@ class StreamingDecoder:
         return out
 
     def _speed(self, speed_mm_s: float | np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
-        """(speed fed to the model (n_taxels, 1) float32 or None, rows scanning (n_taxels,) bool)."""
+        """(speed fed to the model or None, rows scanning (n_taxels,) bool). One speed for every row
+        goes in as ``(1, 1)``: the graph then computes its phases once, not once per taxel."""
         n = self.taxels.size
         if not self.model.needs_speed:
             return None, np.ones(n, bool)
         v = np.full(n, np.nan) if speed_mm_s is None else np.broadcast_to(np.asarray(speed_mm_s, np.float64).reshape(-1), (n,))
         scanning = np.isfinite(v) & (v > 0)
-        return np.where(scanning, v, 1.0).astype(np.float32).reshape(n, 1), scanning
+        rows = np.where(scanning, v, v[scanning][0] if scanning.any() else 1.0).astype(np.float32).reshape(n, 1)
+        return (rows[:1] if np.all(rows == rows[0]) else rows), scanning
