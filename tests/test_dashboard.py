@@ -143,3 +143,18 @@ def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser,
     assert shot.stat().st_size > 10_000
     if os.environ.get("TOUCHREAL_DASHBOARD_SCREENSHOT"):
         shutil.copyfile(shot, os.environ["TOUCHREAL_DASHBOARD_SCREENSHOT"])
+
+
+def test_dashboard_draws_a_populations_afferent_spikes(browser, tmp_path):
+    plan = tmp_path / "plan.json"
+    plan.write_text('{"variants": {"SA1": [1.0], "RA": [1.0], "PC": [1.0]}}')
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=4), population=str(plan)) as (addr, svc):
+        browser.get(f"http://{addr}/")
+        in_page(browser, "return window.touchreal && window.touchreal.connected")
+        # subscribed with protocol version 2 to spikes only (a population has no channels), and spikes drawn
+        in_page(browser, "const s = window.touchreal.subscribed; return s && s.streams.join() === 'spikes'")
+        in_page(browser, "return window.touchreal.drawnSpikes > 20")
+        conn = browser.execute_script("return document.getElementById('conn').textContent")
+        entries = browser.get_log("browser")
+    assert "940 afferents over 4 taxel(s)" in conn
+    assert [e for e in entries if e["level"] == "SEVERE"] == []

@@ -41,8 +41,14 @@
     const picked = (name) => [...document.querySelectorAll(`input[name=${name}]:checked`)].map((e) => e.value);
     // the decoded panel shows one force and one texture model (each decoder costs the service an inference per step)
     const names = state.decodedNames.map((d) => d.name), decoders = ["force", "texture"].filter((n) => names.includes(n));
-    return { type: "subscribe", version: 1, taxels, classes: picked("cls"), streams: picked("stream"),
-             encoding: "binary", channels: { decimation: 50 }, decoders };
+    // over a population (hello.addresses "afferents", protocol version 2) the ids are afferents, which have spikes only
+    const population = isPopulation(), streams = picked("stream").filter((x) => !population || x === "spikes");
+    return { type: "subscribe", version: state.hello && (state.hello.versions || []).includes(2) ? 2 : 1, taxels,
+             classes: picked("cls"), streams, encoding: "binary", channels: { decimation: 50 }, decoders };
+  }
+
+  function isPopulation() {
+    return !!(state.hello && state.hello.addresses === "afferents" && state.hello.population);
   }
 
   function sendSubscription() {
@@ -72,7 +78,9 @@
       const fresh = !state.hello || state.hello.session !== m.session;
       state.hello = m; state.connected = true; state.retryMs = 500;
       state.decodedNames = (m.streams.decoded && m.streams.decoded.decoders) || [];
-      $("conn").textContent = `${m.server} · ${m.taxels.length} taxel(s) · session ${m.session.slice(0, 8)}`;
+      const units = m.addresses === "afferents" && m.population
+        ? `${m.population.n_afferents} afferents over ${m.n_taxels} taxel(s)` : `${m.n_taxels} taxel(s)`;
+      $("conn").textContent = `${m.server} · ${units} · session ${m.session.slice(0, 8)}`;
       $("conn").className = "pill on";
       if (fresh) { state.spikes = []; state.force.clear(); state.decodedForce.clear(); state.finalUs = 0; state.clocks = []; }
       if (m.clock) onClock(m.clock);
@@ -181,28 +189,43 @@
   function taxelList() {
     const sub = state.subscribed;
     if (sub && sub.taxels !== null) return sub.taxels;
-    return state.hello ? state.hello.taxels.map((t) => t.id) : [0];
+    if (!state.hello) return [0];
+    return state.hello.taxels ? state.hello.taxels.map((t) => t.id) : [...Array(Math.min(state.hello.n_taxels, 32)).keys()];
+  }
+
+  // per class, the ids of its raster rows (at most 32): every taxel has every class; an afferent has one
+  function rowIds() {
+    if (!isPopulation()) { const ids = taxelList().slice(0, 32); return CLASSES.map(() => ids); }
+    const sub = state.subscribed, wanted = sub && sub.taxels !== null ? new Set(sub.taxels) : null;
+    return CLASSES.map((c) => {
+      const ids = [];
+      for (const [a, b] of state.hello.population.classes[c] || []) {
+        for (let i = a; i < b && ids.length < 32; i++) if (!wanted || wanted.has(i)) ids.push(i);
+      }
+      return ids;
+    });
   }
 
   function drawRaster() {
     const cv = $("raster"), g = cv.getContext("2d"), W = cv.width, H = cv.height;
     g.clearRect(0, 0, W, H);
-    const taxels = taxelList().slice(0, 32), rows = CLASSES.length * taxels.length, rowH = (H - 20) / rows;
+    const ids = rowIds(), first = [], rows = ids.reduce((n, r) => (first.push(n), n + r.length), 0);
+    const rowH = (H - 20) / Math.max(rows, 1);
     const x0 = 60, t0 = state.finalUs - SPAN_US, sx = (W - x0 - 10) / SPAN_US;
     g.font = "11px sans-serif";
     CLASSES.forEach((c, ci) => {
       g.fillStyle = COLORS[c];
-      g.fillText(c, 4, (ci * taxels.length + taxels.length / 2) * rowH + 4);
+      g.fillText(c, 4, (first[ci] + ids[ci].length / 2) * rowH + 4);
       g.fillStyle = "#1c2630";
-      g.fillRect(x0, ci * taxels.length * rowH, W - x0 - 10, 1);
+      g.fillRect(x0, first[ci] * rowH, W - x0 - 10, 1);
     });
-    const rowOf = new Map(taxels.map((t, i) => [t, i]));
+    const rowOf = ids.map((r) => new Map(r.map((t, i) => [t, i])));
     let drawn = 0;
     for (const s of state.spikes) {
-      const r = rowOf.get(s.taxel);
+      const r = rowOf[s.cls].get(s.taxel);
       if (r === undefined || s.t < t0) continue;
       g.fillStyle = COLORS[CLASSES[s.cls]];
-      g.fillRect(x0 + (s.t - t0) * sx, (s.cls * taxels.length + r) * rowH + 1, 1.5, Math.max(rowH - 2, 1));
+      g.fillRect(x0 + (s.t - t0) * sx, (first[s.cls] + r) * rowH + 1, 1.5, Math.max(rowH - 2, 1));
       drawn++;
     }
     state.drawnSpikes = drawn;
