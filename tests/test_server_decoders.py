@@ -89,3 +89,53 @@ def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_s
     pos = {id(f): i for i, f in enumerate(frames)}
     pairs = [(spikes_of[f.header.update], (pos[id(f)], f.header.emit_us)) for f in force if f.header.update in spikes_of]
     assert len(pairs) > 100 and all(s[0] < d[0] and s[1] < d[1] for s, d in pairs)
+
+
+def test_a_speed_reading_decoder_follows_the_scanning_speed_a_robot_puts(tmp_path):
+    """PUT /v1/context gives texture_spatial its scanning speed: NaN before (no speed, no texture),
+    probabilities from the next update on, NaN again once the robot says it stopped sliding."""
+    from touchreal.decoding.export import to_onnx
+    from touchreal.decoding.model import write_model
+    from touchreal.decoding.plan import ModelSpec
+    from touchreal.decoding.train import feature_spec, fit_pipeline, metadata, windows
+    from touchreal.decoding.windows import encode
+    from touchreal.params import default_params
+    from touchreal.server.settings import RuntimeConfig
+    from touchreal.simulator.simulate import simulate_dataset
+
+    ds = simulate_dataset("texture-hard", tmp_path / "hard", trials=6, seed=8, reference=False, speeds_mm_s=(20.0, 50.0))
+    trials = [encode(e, ds.load(e), default_params()) for e in ds.trials]
+    spec = ModelSpec("texture_spatial", "texture", ("SA1", "RA", "PC"), 100.0, "spatial", bin_ms=1.0)
+    fs = feature_spec(spec)
+    w = windows(spec, trials)
+    pipe = fit_pipeline(spec, fs.transform(w.counts, w.groups, w.speed), w.target, w.groups, seed=0)
+    meta = metadata(spec, fs, pipe, default_params(), {"dataset": "t", "split": "train"})
+    write_model(tmp_path / "state" / "models", to_onnx(pipe, fs, meta), meta)
+    with running_server(tmp_path / "state", RuntimeConfig(taxels=1), token="tok") as (addr, svc):
+        base, auth = f"http://{addr}", {"Authorization": "Bearer tok"}
+        assert httpx.put(f"{base}/v1/context", json={"speed_mm_s": 30.0}, timeout=10).status_code == 401
+        assert httpx.put(f"{base}/v1/context", json={"speed_mm_s": -1}, headers=auth, timeout=10).status_code == 422
+        assert httpx.put(f"{base}/v1/context", json={"speed": 30}, headers=auth, timeout=10).status_code == 422
+
+        def values(frames):
+            return [f.values[k, 0] for f in frames if isinstance(f, P.DecodedFrame) for k in range(f.values.shape[0])]
+
+        async def go():
+            async with connect(addr) as ws:
+                await hello_and_subscribe(ws, streams=["decoded"], decoders=["texture_spatial"])
+                before = await collect(ws, 30, lambda f: len(values(f)) >= 5, what="5 decoded steps")
+                r = await asyncio.to_thread(httpx.put, f"{base}/v1/context", json={"speed_mm_s": 30.0}, headers=auth, timeout=10)
+                assert r.status_code == 200 and r.json() == {"speed_mm_s": 30.0}
+                during = await collect(ws, 30, lambda f: sum(np.isfinite(v).all() for v in values(f)) >= 5,
+                                       what="5 decoded steps with the speed")
+                await asyncio.to_thread(httpx.put, f"{base}/v1/context", json={"speed_mm_s": None}, headers=auth, timeout=10)
+                after = await collect(ws, 30, lambda f: sum(np.isnan(v).all() for v in values(f)) >= 3,
+                                      what="3 NaN steps once the speed is withdrawn")
+                return values(before), values(during), values(after)
+
+        before, during, after = asyncio.run(asyncio.wait_for(go(), 90))
+        assert httpx.get(f"{base}/v1/context", timeout=10).json() == {"speed_mm_s": None}
+    assert all(np.isnan(v).all() for v in before)
+    finite = [v for v in during if np.isfinite(v).all()]
+    assert len(finite) >= 5 and all(abs(float(v.sum()) - 1.0) < 1e-3 for v in finite)  # one probability per comb
+    assert np.isnan(after[-1]).all()

@@ -1,6 +1,6 @@
 """The ``/v1`` REST surface: thin handlers over the :class:`~.service.Service` (OpenAPI at /openapi.json).
 
-Reads are open; writes (PATCH /v1/config, PUT /v1/params, POST /v1/params/rollback) need
+Reads are open; writes (PATCH /v1/config, PUT /v1/params, POST /v1/params/rollback, PUT /v1/context) need
 ``Authorization: Bearer <token>`` when the service has a token (``--token`` / ``TOUCHREAL_TOKEN``),
 checked before the body is read, and bodies are bounded before they are parsed
 (:class:`~.security.BodyGuard`); 422s name the field and never echo the input.
@@ -69,6 +69,16 @@ class Rollback(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     rev: int = Field(ge=1, le=2**31, strict=True, description="an earlier revision from GET /v1/params/history")
+
+
+class ScanContext(BaseModel):
+    """What a robot knows of the scene that the decoders may read."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    speed_mm_s: float | None = Field(default=None, gt=0.0, le=1000.0, strict=True,
+                                     description="scanning speed of the skin across the surface (mm/s) while it slides; "
+                                     "null: not scanning (decoders that read a speed output NaN)")
 
 
 @router.get("/v1/health", response_model=Health, tags=["health"], responses={503: {"model": Health}})
@@ -164,6 +174,20 @@ async def rollback(body: Rollback, request: Request) -> ParamsInfo:
     except ParamsError as exc:
         raise HTTPException(422, str(exc)) from exc
     return ParamsInfo(rev=rev, sha256=svc.store.info(rev).sha256)
+
+
+@router.get("/v1/context", response_model=ScanContext, tags=["decoders"])
+def get_context(request: Request) -> ScanContext:
+    return ScanContext(speed_mm_s=service_of(request).scan_speed_mm_s)
+
+
+@router.put("/v1/context", response_model=ScanContext, tags=["decoders"], dependencies=[Depends(require_token)],
+            responses={401: {"description": "token missing or wrong"}, 422: {"description": "invalid value"}})
+def put_context(body: ScanContext, request: Request) -> ScanContext:
+    """The scanning speed decoders that read one (``texture_spatial``, docs/decoders.md) use from the next
+    update on, until changed; null while the skin does not slide."""
+    service_of(request).scan_speed_mm_s = body.speed_mm_s
+    return body
 
 
 @router.get("/v1/decoders", tags=["decoders"])

@@ -142,8 +142,11 @@ class Runtime:
         max_lag_s: float = 0.25,
         on_shed: Callable[[float, bool], None] | None = None,
         population: Population | None = None,
+        scan_speed: Callable[[], float | None] = lambda: None,
     ):
         self.source = source
+        #: the scanning speed (mm/s) decoders that read one get with every update (None: not scanning)
+        self._scan_speed = scan_speed
         #: the afferents spikes address (None: one per taxel and class); a population runs on one block
         self.population = population
         if population is not None:
@@ -461,7 +464,7 @@ class Runtime:
         """Decoded outputs completed by this update: (name, taxels, step times (n,), values (n, taxels, outputs))."""
         out = []
         for name, dec in self.decoders.items():
-            steps = dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us)
+            steps = dec.push(upd.t_us, upd.taxel, upd.cls, upd.final_us, self._scan_speed())
             if steps:
                 t_us = np.array([t for t, _ in steps], np.uint64)
                 out.append((name, tuple(int(t) for t in dec.taxels), t_us,

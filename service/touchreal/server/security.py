@@ -43,7 +43,8 @@ MAX_NUMBER_CHARS = 1000  #: characters of one number literal in a request body (
 SCAN_SLICE_BYTES = 64 * 1024  #: a body is checked this many bytes at a time, yielding to the event loop between
 #: Bodies of the small write endpoints are bounded below the service's ``max_body_bytes`` (bytes).
 ROUTE_BODY_LIMITS: Mapping[tuple[str, str], int] = {("POST", "/v1/params/rollback"): 1024,
-                                                     ("PATCH", "/v1/config"): 16 * 1024}
+                                                     ("PATCH", "/v1/config"): 16 * 1024,
+                                                     ("PUT", "/v1/context"): 1024}
 
 _BODYLESS = {"GET", "HEAD", "OPTIONS"}
 #: byte classes of :class:`JsonShape`: 1 backslash, 2 quote, 3 opening bracket, 4 closing bracket, 5 number character

@@ -101,6 +101,8 @@ class Service:
         #: source open; the population built from it for the open source's taxels
         self.population_plan: PopulationPlan | None = None
         self.population: Population | None = None
+        #: the scanning speed (mm/s) a robot reports (``PUT /v1/context``) for decoders that read one; None: unknown
+        self.scan_speed_mm_s: float | None = None
         self.runtime: Runtime | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.clock: ClockPoint | None = None  #: the source's clock model, as last told to the clients
@@ -197,7 +199,8 @@ class Service:
         self.runtime = Runtime(source, lambda: self.hub.demand, lambda: self.store.current, self._post, self._make_decoder,
                                self.settings.taxel_block or None, self._fall_back, self._post_end,
                                self.settings.compute_dtype, None if self.settings.dense else ActivityPlan(),
-                               self.settings.max_lag_ms / 1000.0, self._shed, self.population)
+                               self.settings.max_lag_ms / 1000.0, self._shed, self.population,
+                               lambda: self.scan_speed_mm_s)
         self.clock = None
         self.runtime.start()
         self.announce_hello()  # the address map may have changed: say it again
