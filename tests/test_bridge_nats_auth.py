@@ -273,6 +273,7 @@ def test_issued_credentials_admit_a_new_gateway_under_its_id(tmp_path, capsys):
     assert f"--gateway-id gateway-3 --nats-nkey {seed}" in printed
 
 
+@pytest.mark.slow  # ~21 s of announcement floods; .ci/run runs it (pytest -m slow)
 def test_demand_announcements_are_bounded_dropped_and_counted(tmp_path, nats_url):  # noqa: F811
     """On a broker that lets anyone announce under any id (plain nats-server, no config): 100k fake
     gateway ids, each on its own subject, plus oversized, malformed, out-of-range and mismatched

@@ -214,6 +214,7 @@ def test_importing_the_client_imports_no_tonic():
     assert run.returncode == 0, run.stderr
 
 
+@pytest.mark.slow  # ~12 s: simulate, encode and train the example end to end; .ci/run runs it (pytest -m slow)
 def test_the_texture_example_classifies_above_chance(tmp_path):
     pytest.importorskip("sklearn", reason="scikit-learn is not installed")
     run = subprocess.run([sys.executable, EXAMPLE, "--trials", "30", "--work", tmp_path], capture_output=True,
