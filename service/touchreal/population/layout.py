@@ -7,8 +7,8 @@ class are placed uniformly at random over that area (a binomial point process: t
 runs one of its class's model variants, drawn uniformly, as TouchSim draws one of its fitted
 single-unit models per afferent.
 
-Default densities are those of the human fingertip (Johansson & Vallbo 1979, the figures
-TouchSim uses for the distal phalanx): 70 SA1, 140 RA and 25 PC afferents per cm^2.
+Default densities are those of the human fingertip, after Johansson & Vallbo (1979): 70 SA1,
+140 RA and 25 PC afferents per cm^2 (TouchSim's own per-region figures differ in detail).
 """
 
 from __future__ import annotations
