@@ -221,6 +221,7 @@ def _recipe(tmp_path, name: str, recipe: dict) -> str:
 
 
 @pytest.mark.shared
+@pytest.mark.slow  # ~14 s: two small fits through the CLI; .ci/run runs it (pytest -m slow)
 def test_tiny_fit_on_rig_trials_and_cli(rig, tmp_path, capsys):
     ds = tiny_rig_subset(rig, tmp_path / "tiny")
     cfg = FitConfig(recipe={"popsize": 6, "generations": 2}, workers=2, progress=False, seed=1)

@@ -465,6 +465,7 @@ def test_each_class_goes_out_as_soon_as_it_is_final(tmp_path):
     assert min(lead) > 60000
 
 
+@pytest.mark.slow  # ~16 s of a reader that stops reading; .ci/run runs it (pytest -m slow)
 def test_a_slow_reader_gets_no_backlog_and_is_closed_as_slow(tmp_path):
     """A client that reads 10 frames/s of a stream of hundreds: frames older than max_frame_age_ms are
     dropped in the server's queue (counted as stale), so no frame it receives waited there longer;
