@@ -105,9 +105,12 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
         _, taxels, data = chans[k]
         got = np.asarray(values, np.float32).reshape(n_taxels, len(P.CHANNELS))[taxels.astype(int)]
         np.testing.assert_array_equal(got, data)
-    # 200 Hz, none missing: a lost sample is a 10 ms step; steps of a tenth of a millisecond are the
-    # bridge re-estimating its clock offset, which the per-sample tolerance above already bounds
-    assert np.allclose(np.diff([ts for ts, _ in seen]), 0.005, atol=1e-3)
+    # 200 Hz, none missing or repeated: a lost sample is a 10 ms step, a repeated one a 0 ms step; steps
+    # off 5 ms by up to the mapping tolerance are the bridge re-estimating its clock offset under load,
+    # which the per-sample check above already bounds
+    steps = np.diff([ts for ts, _ in seen])
+    odd = steps[np.abs(steps - 0.005) >= 0.0025]
+    assert odd.size == 0, f"steps of 7.5 ms or more (a lost sample) or 2.5 ms or less (a repeat): {odd}"
 
     # metadata in the StreamInfo XML
     s_root, c_root = ET.fromstring(s_xml), ET.fromstring(c_xml)
