@@ -157,6 +157,10 @@ class PreprocessParams(_Strict):
     pvdf_lowpass_hz: Num = Field(default=800.0, ge=10.0, lt=1000.0, description="PVDF Butterworth low-pass cutoff "
                                  "(Hz, 10 .. below the 1 kHz Nyquist)")
     mains_hz: Num = Field(default=50.0, ge=40.0, le=70.0, description="mains frequency (Hz, 40..70)")
+    mains_candidates_hz: list[Annotated[Num, Field(ge=40.0, le=70.0)]] = Field(
+        default_factory=lambda: [50.0, 60.0], max_length=4,
+        description="mains frequencies a source may run on: each stream's is resolved among them from its first "
+                    "0.1 s of PVDF, mains_hz unless another one's hum stands out 10x (empty: always mains_hz)")
     notch_harmonics: list[Annotated[Int, Field(ge=1, le=40)]] = Field(
         default_factory=lambda: [1, 3, 5, 7], max_length=40,
         description="mains harmonics to notch (1..40; those at or above the PVDF Nyquist are skipped)")

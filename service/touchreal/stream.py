@@ -168,7 +168,7 @@ class StreamEncoder:
         for c in self.classes:
             groups.setdefault(self.source[c], []).append(c)
         windows = [s for s in groups if s is not None]
-        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms))
+        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess)
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
         size = n_taxels if taxel_block is None else taxel_block
@@ -420,6 +420,12 @@ class StreamEncoder:
     def stats(self) -> dict[str, dict[str, int]]:
         """Input-policy counters per sensor, over all taxels (see docs/architecture.md)."""
         return self.acq.stats
+
+    @property
+    def mains_hz(self) -> float | None:
+        """The stream's mains frequency (Hz) its PVDF notches follow, resolved from its first 0.1 s
+        of PVDF (:mod:`touchreal.preprocess.mains`); None before."""
+        return self.acq.mains.hz
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """All state: preprocessing stages and buffers, class input filters and membrane potentials."""

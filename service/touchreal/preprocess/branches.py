@@ -20,8 +20,9 @@ import numpy as np
 
 from ..params import PreprocessParams
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
-from .filters import HUM_PRIME_S, AlphaBeta, butter_lowpass, mains_frequencies, prime_with_hum
+from .filters import HUM_PRIME_S, AlphaBeta, SosFilter, butter_lowpass, mains_frequencies, prime_with_hum
 from .gate import gate_thresholds, pvdf_filter
+from .mains import MainsResolver
 from .resample import CausalPchip
 from .stft_gate import StftGate, frame_length
 
@@ -129,16 +130,18 @@ class SingleTactBranch:
 
 class PvdfFilter:
     """PVDF low-pass + mains notches (one cascade), started at grid slot ``slot``: its first
-    :data:`HUM_PRIME_S` are held and the filter is primed with the hum fitted to them (no notch
-    ringing at the start), then everything flows through. The cascade runs in float64 whatever
-    ``dtype`` (the output's): in float32 its notches' poles near the unit circle put errors of ~1e-3
-    of the range into the PVDF channels, in float64 ~2e-7, at the same cost (~1.2 ms per update at
-    4096 taxels)."""
+    :data:`HUM_PRIME_S` are held, then the cascade is built with notches at the stream's mains
+    (``mains``, resolved once per stream from its first samples: :mod:`.mains`) and primed with the
+    hum fitted to them (no notch ringing at the start), and everything flows through. The cascade
+    runs in float64 whatever ``dtype`` (the output's): in float32 its notches' poles near the unit
+    circle put errors of ~1e-3 of the range into the PVDF channels, in float64 ~2e-7, at the same
+    cost (~1.2 ms per update at 4096 taxels)."""
 
-    def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot: int):
-        self.filt = pvdf_filter(params, PVDF_FS_HZ, n_taxels, np.float64)
+    def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot: int, mains: MainsResolver):
+        self.params = params
+        self.mains = mains
+        self.filt: SosFilter | None = None  #: built once the start is held (:meth:`process`)
         self.dtype = np.dtype(dtype)
-        self.hum_hz = mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ)
         self.held: list[np.ndarray] | None = []
         self.slot = slot  # slot of the next output sample
         self.n_taxels = n_taxels
@@ -154,14 +157,17 @@ class PvdfFilter:
             self.held = None
             if held.shape[0] == 0:
                 return self.slot, held
-            prime_with_hum(self.filt, held[:n_prime], PVDF_FS_HZ, self.hum_hz)
+            params = self.params.model_copy(update={"mains_hz": self.mains.resolve()})
+            self.filt = pvdf_filter(params, PVDF_FS_HZ, self.n_taxels, np.float64)
+            prime_with_hum(self.filt, held[:n_prime], PVDF_FS_HZ,
+                           mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ))
             x = held
         first = self.slot
         self.slot += x.shape[0]
         return first, self.filt.process(x).astype(self.dtype, copy=False)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        out = {} if self.filt.zi is None else {"pv_filter": self.filt.zi}
+        out = {} if self.filt is None or self.filt.zi is None else {"pv_filter": self.filt.zi}
         if self.held:
             out["pv_held"] = np.concatenate(self.held)
         return out

@@ -34,6 +34,7 @@ from ..recording import Trial
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RANGE_N
 from .branches import History, PvdfFilter, PvdfWindowBranch, SingleTactBranch
 from .filters import HUM_PRIME_S
+from .mains import MainsResolver
 from .resample import first_grid_index
 from .sanitize import Sanitizer
 from .stft_gate import frame_length
@@ -92,11 +93,13 @@ def check_raw(st_t, st, pvdf_t, pvdf, n_taxels: int) -> None:
 class Acquisition:
     """What always runs, for all N taxels: the sanitizers of both sensors (input policy, counters)
     and the raw history rings that a (re)starting branch is rebuilt from (the last
-    :data:`ST_HISTORY_S` of SingleTact; the hum estimate plus two frames of ``max_window_ms`` of PVDF).
-    Several :class:`Preprocessor` s (taxel blocks) can share one."""
+    :data:`ST_HISTORY_S` of SingleTact; the hum estimate plus two frames of ``max_window_ms`` of PVDF),
+    and the stream's mains frequency, resolved from its first PVDF samples (:attr:`mains`, for
+    ``params``). Several :class:`Preprocessor` s (taxel blocks) can share one."""
 
-    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0):
+    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0, params: PreprocessParams | None = None):
         self.n_taxels = n_taxels
+        self.mains = MainsResolver(params or PreprocessParams(), PVDF_FS_HZ)
         self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
         self.n_pv = int(round(HUM_PRIME_S * PVDF_FS_HZ)) + 2 * frame_length(max_window_ms, PVDF_FS_HZ) + 16
@@ -113,6 +116,8 @@ class Acquisition:
                 first, clean = san.push(t, x)
                 hist.push(first, clean)
                 out[j] = (first, clean)
+        if out[1] is not None:
+            self.mains.push(out[1][1])
         return tuple(out)
 
     def restart_index(self) -> int | None:
@@ -166,7 +171,7 @@ class Preprocessor:
             max_window_ms = max((s for s in sources if s is not None), default=params.window_ms)
         self._owns_acquisition = acquisition is None
         if acquisition is None:
-            acquisition, taxels = Acquisition(n_taxels, max_window_ms), range(n_taxels)
+            acquisition, taxels = Acquisition(n_taxels, max_window_ms, params), range(n_taxels)
         elif taxels is None or taxels.step != 1 or not 0 <= taxels.start < taxels.stop <= acquisition.n_taxels:
             raise ValueError("a preprocessor on a shared acquisition needs a contiguous block of its taxels")
         self.acq = acquisition
@@ -213,7 +218,8 @@ class Preprocessor:
             self.pv_filtered.clear()
         elif self.pv_filter is None:
             first = acq.pv_hist.first
-            self.pv_filter = PvdfFilter(self.params, self.n_taxels, self.dtype, acq.pv_in.next_slot if first is None else first)
+            self.pv_filter = PvdfFilter(self.params, self.n_taxels, self.dtype, acq.pv_in.next_slot if first is None else first,
+                                        acq.mains)
             self.pv_filtered.clear()
             if first is not None:
                 self.pv_filtered.push(*self.pv_filter.process(acq.pv_hist.since(first)[1][:, cols]))

@@ -148,6 +148,7 @@ class ServiceView:
                        for k, v in {"spec": self.service.config.source, **src}.items()},
             "pipeline": {"state": rt.state if rt else "stopped", "error": error and redact(error),
                          "updates": rt.update_no if rt else 0,
+                         "mains_hz": rt.encoder.mains_hz if rt and rt.encoder is not None else None,
                          "active": {c: P.id_ranges(t) for c, t in rt.active.items()} if rt and rt.active is not None else None},
             "demand": {"columns": {c: P.id_ranges(t) for c, t in self.service.hub.demand.columns.items()},
                        "channel_taxels": P.id_ranges(self.service.hub.demand.channel_taxels),
