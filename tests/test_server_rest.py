@@ -30,6 +30,8 @@ def test_health_ready_status_and_metrics(tmp_path):
             assert r.json()["ready"] is True
             st = http.get("/v1/status").json()
             assert st["source"]["state"] == "streaming" and st["pipeline"]["state"] in ("idle", "starting")
+            # the simulated skin's build runs on 50 Hz mains: its stream resolves that from its first 0.1 s
+            wait_until(lambda: http.get("/v1/status").json()["pipeline"]["mains_hz"] == 50.0, 20, "mains resolved")
             text = http.get("/metrics").text
     for name in ("touchreal_update_compute_seconds", "touchreal_latency_seconds", "touchreal_events_total",
                  "touchreal_clients_connected", "touchreal_input_faults", "touchreal_ready"):
