@@ -26,6 +26,12 @@ SCHEMA_NAME = "touchreal.params"
 #: ``ClassParams.highpass_hz``) as no class high-pass.
 SCHEMA_VERSION = 4
 
+# Bounds (low, high; inclusive) of fields below that other modules search within or check too (the fit's
+# search space and plan, the server's config patch).
+TAU_RANGE_MS = (0.2, 2000.0)  #: membrane time constants (ms) a class may have
+DELAY_RANGE_MS = (0.0, 500.0)  #: physiological output delays (ms) a class may have (>= 0)
+LEAD_RANGE_MS = (0.0, 100.0)  #: leads (ms) of a class's negative-part inputs over its positive parts
+WINDOW_RANGE_MS = (4.0, 512.0)  #: causal PVDF STFT windows (ms) the preprocessing and a class may run at
 HIGHPASS_RANGE_HZ = (0.1, 100.0)  #: cutoffs (Hz) a class's input high-pass may have
 
 #: Order of the eight input weights: (positive, negative) part of ST, dST, PVDF, dPVDF.
@@ -74,11 +80,11 @@ class ClassParams(_Strict):
         min_length=8, max_length=8, description="w1..w8 on (max(x,0), max(-x,0)) of ST [N], dST [N/s], PVDF [V], dPVDF [V/s]"
     )
     i_sat: Num = Field(ge=0.0, le=1e6, description="saturation current; 0 disables saturation")
-    tau_ms: Num = Field(ge=0.2, le=2000.0, description="membrane time constant (ms)")
+    tau_ms: Num = Field(ge=TAU_RANGE_MS[0], le=TAU_RANGE_MS[1], description="membrane time constant (ms)")
     ih: list[Num] = Field(min_length=2, max_length=2, description="weights of the two post-spike basis functions")
     delay_ms: Num = Field(
-        ge=0.0,
-        le=500.0,
+        ge=DELAY_RANGE_MS[0],
+        le=DELAY_RANGE_MS[1],
         description="physiological output delay added to spike times (ms, >= 0: a spike's stamp never precedes "
         "the sensor sample that caused it); a rig's lag behind its reference is in EncoderParams.alignment",
     )
@@ -99,16 +105,16 @@ class ClassParams(_Strict):
     )
     negative_lead_ms: Num = Field(
         default=0.0,
-        ge=0.0,
-        le=100.0,
+        ge=LEAD_RANGE_MS[0],
+        le=LEAD_RANGE_MS[1],
         description="lead (ms) of the negative-part inputs max(-x, 0) over the positive parts: the positive "
         "parts are delayed by it before summation (compensates a sensor whose unloading lags its loading)",
     )
 
     window_ms: Num | None = Field(
         default=None,
-        ge=4.0,
-        le=512.0,
+        ge=WINDOW_RANGE_MS[0],
+        le=WINDOW_RANGE_MS[1],
         description="the class's own causal PVDF STFT window (ms); None = preprocess.window_ms. Classes with "
         "equal windows share one PVDF branch; a class's latency follows its window",
     )
@@ -147,7 +153,8 @@ class GateCalibration(_Strict):
 class PreprocessParams(_Strict):
     """Causal preprocessing: raw SingleTact/PVDF -> ST, dST, PVDF, dPVDF at 5 kHz."""
 
-    window_ms: Num = Field(default=DEFAULT_WINDOW_MS, ge=4.0, le=512.0, description="causal PVDF STFT window (ms)")
+    window_ms: Num = Field(default=DEFAULT_WINDOW_MS, ge=WINDOW_RANGE_MS[0], le=WINDOW_RANGE_MS[1],
+                           description="causal PVDF STFT window (ms)")
     update_ms: Num = Field(default=DEFAULT_UPDATE_MS, ge=1.0, le=1000.0, description="online update interval (ms)")
     st_lowpass_hz: Num = Field(default=20.0, ge=0.5, lt=50.0, description="SingleTact Butterworth low-pass cutoff (Hz, "
                                "0.5 .. below the 50 Hz Nyquist)")

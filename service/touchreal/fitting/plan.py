@@ -17,13 +17,12 @@ from typing import Annotated, Any, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError, field_validator
 
-from ..params import HIGHPASS_RANGE_HZ, GateCalibration
+from ..params import HIGHPASS_RANGE_HZ, WINDOW_RANGE_MS, GateCalibration
 from ..settings import CLASSES
 from .objective import ObjectiveConfig
 from .space import LOG_ISAT_RANGE
 
 MAX_RESTARTS = 8  #: IPOP restarts a class may have (each doubles the population)
-WINDOW_RANGE_MS = (4.0, 512.0)  #: causal PVDF windows a class may be fitted at
 REFINE_SUFFIX = ":refine"  #: a refinement's key beside its class's in a fit's state (``"PC:refine"``)
 
 

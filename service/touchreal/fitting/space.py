@@ -35,7 +35,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..params import ClassParams
+from ..params import DELAY_RANGE_MS, LEAD_RANGE_MS, TAU_RANGE_MS, ClassParams
 from ..settings import CLASSES, OUT_FS_HZ, PACKAGE_DATA
 
 
@@ -65,14 +65,12 @@ WEIGHTS = slice(Coord.W1, Coord.W8 + 1)  #: the eight input weights w1..w8
 IH = slice(Coord.IH1, Coord.IH2 + 1)  #: the two post-spike weights
 LOWPASS_RANGE_HZ = (20.0, 2000.0)  #: cutoffs the fit may choose
 LEAD_UNIT_MS = 10.0
-LEAD_MAX_MS = 100.0
 DELAY_UNIT_MS = 20.0
 LOG_ISAT_RANGE = (-8.0, 8.0)  #: bounds of log i_sat (LIF units; threshold = 1)
 PVDF_WEIGHTS = (Coord.W5, Coord.W6, Coord.W7, Coord.W8)  #: the PVDF and dPVDF weights
 #: the film's weights, its positive and negative part: the PVDF's AC-coupled strain follows the
 #: skin's rate of change below its high-pass, so its two polarities are pressing and releasing
 FILM_WEIGHTS = (Coord.W5, Coord.W6)
-DELAY_RANGE_MS = (0.0, 500.0)  #: the schema's delay range (physiological: >= 0)
 _SAMPLES_PER_MS = OUT_FS_HZ / 1000.0
 
 #: Starting directions of the eight weights per class (normalised units), from the functional roles
@@ -143,7 +141,7 @@ class ParamSpace:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.full(self.n_dim, -30.0)
         hi = np.full(self.n_dim, 30.0)
-        lo[Coord.LOG_TAU], hi[Coord.LOG_TAU] = np.log(0.2 / self.tau0_ms), np.log(2000.0 / self.tau0_ms)
+        lo[Coord.LOG_TAU], hi[Coord.LOG_TAU] = np.log(TAU_RANGE_MS[0] / self.tau0_ms), np.log(TAU_RANGE_MS[1] / self.tau0_ms)
         lo[IH], hi[IH] = -20.0, 2.0
         lo[Coord.DELAY], hi[Coord.DELAY] = DELAY_RANGE_MS[0] / DELAY_UNIT_MS, DELAY_RANGE_MS[1] / DELAY_UNIT_MS
         lo[Coord.LOG_ISAT], hi[Coord.LOG_ISAT] = LOG_ISAT_RANGE
@@ -151,7 +149,7 @@ class ParamSpace:
             lo[list(FILM_WEIGHTS)] = 0.0
         if self.lp0_hz is not None:
             lo[Coord.LOG_LOWPASS], hi[Coord.LOG_LOWPASS] = (np.log(f / self.lp0_hz) for f in LOWPASS_RANGE_HZ)
-            lo[Coord.LEAD], hi[Coord.LEAD] = 0.0, LEAD_MAX_MS / LEAD_UNIT_MS
+            lo[Coord.LEAD], hi[Coord.LEAD] = LEAD_RANGE_MS[0] / LEAD_UNIT_MS, LEAD_RANGE_MS[1] / LEAD_UNIT_MS
         return lo, hi
 
     def fixed(self) -> dict[int, float]:
@@ -181,12 +179,12 @@ class ParamSpace:
         x = self.clip(x)
         return ClassParams(
             weights=[float(v) for v in x[WEIGHTS] * self._wscale()],
-            tau_ms=float(np.clip(self.tau0_ms * np.exp(x[Coord.LOG_TAU]), 0.2, 2000.0)),
+            tau_ms=float(np.clip(self.tau0_ms * np.exp(x[Coord.LOG_TAU]), *TAU_RANGE_MS)),
             ih=[float(x[Coord.IH1] * self.ih_scale[0]), float(x[Coord.IH2] * self.ih_scale[1])],
             delay_ms=float(np.clip(x[Coord.DELAY] * DELAY_UNIT_MS, *DELAY_RANGE_MS)),
             i_sat=float(np.clip(np.exp(x[Coord.LOG_ISAT]), 0.0, 1e6)),
             lowpass_hz=None if self.lp0_hz is None else float(np.clip(self.lp0_hz * np.exp(x[Coord.LOG_LOWPASS]), *LOWPASS_RANGE_HZ)),
-            negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[Coord.LEAD] * LEAD_UNIT_MS, 0.0, LEAD_MAX_MS)),
+            negative_lead_ms=0.0 if self.lp0_hz is None else float(np.clip(x[Coord.LEAD] * LEAD_UNIT_MS, *LEAD_RANGE_MS)),
             highpass_hz=self.hp_hz,
         )
 

@@ -20,6 +20,7 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from touchreal_client.protocol import MAX_TAXELS
 
+from ..params import WINDOW_RANGE_MS
 from ..settings import CLASSES
 
 log = logging.getLogger("touchreal.server")
@@ -194,5 +195,5 @@ class ConfigPatch(BaseModel):
     speed: float | None = Field(default=None, ge=SPEED_RANGE[0], le=SPEED_RANGE[1], description="replay speed (x real time)")
     loop: bool | None = None
     update_ms: float | None = Field(default=None, ge=1.0, le=1000.0)
-    window_ms: float | None = Field(default=None, ge=4.0, le=512.0)
+    window_ms: float | None = Field(default=None, ge=WINDOW_RANGE_MS[0], le=WINDOW_RANGE_MS[1])
     classes: list[str] | None = Field(default=None, max_length=len(CLASSES))
