@@ -26,16 +26,14 @@ from typing import Any
 import numpy as np
 
 from .. import protocol as P
-from ..events import wait_set
 from ..stream import AsyncStream
 from ..topics import (CHANNELS_SCHEMA, CHANNELS_TOPIC, DECODED_SCHEMA, FORCE_SCHEMA, FORCE_TOPIC,
                       SPIKE_SCHEMA, decoded_topic, json_lists, spikes_topic, wanted_subscription)
-from . import FIRST_SYNC_SAMPLES, keep_clock_synced, resubscribe
+from . import FIRST_SYNC_SAMPLES, follow_demand, forward, publish_by_kind
 
 log = logging.getLogger("touchreal_client.bridges.foxglove")
 
 DEFAULT_PORT = 8767  #: serve uses 8765, the gateway 8766
-FOLLOW_PERIOD_S = 0.5  #: how often the upstream session and a failed subscription are looked at again (s)
 
 
 class DemandListener:
@@ -97,15 +95,9 @@ class FoxgloveBridge:
             except RuntimeError as exc:  # the SDK reports bind errors as RuntimeError
                 raise OSError(f"cannot serve Foxglove on {self.host}:{self.port}: {exc}") from exc
             self.port = server.port
-            helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_upstream(server))]
-            self.ready.set()
             try:
-                async for frame in stream.frames():
-                    self._publish(frame)
+                await forward(stream, self._publish, self.ready, self._follow_upstream(server))
             finally:
-                for t in helpers:
-                    t.cancel()
-                await asyncio.gather(*helpers, return_exceptions=True)
                 server.stop()
 
     # -- channels -------------------------------------------------------------------------------
@@ -146,19 +138,16 @@ class FoxgloveBridge:
         A new hello's decoders get their channels."""
         stream = self.stream
         assert stream is not None
-        hello, session = stream.hello, stream.hello.get("session")
-        refused: P.Subscription | None = None
-        while True:
-            await wait_set(self._changed, FOLLOW_PERIOD_S)
-            self._changed.clear()
-            if stream.hello is not hello:
-                hello = stream.hello
-                if hello.get("session") != session:
-                    session = hello.get("session")
-                    server.clear_session(str(session))
-                self._advertise(hello)
-            want = wanted_subscription(self._listener.topics(), self.decimation, stream.hello)
-            refused = await resubscribe(stream, want, refused)
+        session = stream.hello.get("session")
+
+        def new_hello(hello: dict[str, Any]) -> None:
+            nonlocal session
+            if hello.get("session") != session:
+                session = hello.get("session")
+                server.clear_session(str(session))
+            self._advertise(hello)
+
+        await follow_demand(stream, self._changed, self._listener.topics, self.decimation, new_hello)
 
     # -- publishing -----------------------------------------------------------------------------
     def _log_times_ns(self, t_us: np.ndarray) -> list[int | None]:
@@ -172,12 +161,7 @@ class FoxgloveBridge:
         return np.rint(local * 1000.0).astype(np.int64).tolist()
 
     def _publish(self, frame: P.Frame) -> None:
-        if isinstance(frame, P.SpikesFrame):
-            self._publish_spikes(frame)
-        elif isinstance(frame, P.ChannelsFrame):
-            self._publish_channels(frame)
-        else:
-            self._publish_decoded(frame)
+        publish_by_kind(frame, self._publish_spikes, self._publish_channels, self._publish_decoded)
 
     def _publish_spikes(self, f: P.SpikesFrame) -> None:
         times = self._log_times_ns(f.t_us)

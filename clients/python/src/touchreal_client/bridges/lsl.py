@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import protocol as P
 from ..stream import AsyncStream
-from . import FIRST_SYNC_SAMPLES, keep_clock_synced
+from . import FIRST_SYNC_SAMPLES, forward
 
 log = logging.getLogger("touchreal_client.bridges.lsl")
 
@@ -100,17 +100,14 @@ class LslBridge:
                 await stream.subscribe(streams=["spikes", "channels"], decimation=self.decimation)
             await stream.sync_clock(FIRST_SYNC_SAMPLES)
             spikes, channels = self._outlets(stream.hello)
-            sync = asyncio.create_task(keep_clock_synced(stream))
-            self.ready.set()
-            try:
-                async for frame in stream.frames():
-                    if isinstance(frame, P.SpikesFrame):
-                        self._push_spikes(spikes, frame)
-                    elif isinstance(frame, P.ChannelsFrame) and channels is not None:
-                        self._push_channels(channels, frame)
-            finally:
-                sync.cancel()
-                await asyncio.gather(sync, return_exceptions=True)
+
+            def push(frame: P.Frame) -> None:
+                if isinstance(frame, P.SpikesFrame):
+                    self._push_spikes(spikes, frame)
+                elif isinstance(frame, P.ChannelsFrame) and channels is not None:
+                    self._push_channels(channels, frame)
+
+            await forward(stream, push, self.ready)
 
     def _outlets(self, hello: dict[str, Any]) -> tuple[Any, Any]:
         """The spikes outlet, and the channels outlet (None for a population)."""

@@ -62,12 +62,11 @@ import numpy as np
 
 from .. import protocol as P
 from ..errors import TouchRealError
-from ..events import wait_set
 from ..ros2 import messages as M
 from ..ros2.types import typestore
 from ..stream import AsyncStream
 from ..topics import wanted_subscription
-from . import FIRST_SYNC_SAMPLES, keep_clock_synced, resubscribe
+from . import FIRST_SYNC_SAMPLES, follow_demand, forward, publish_by_kind
 
 log = logging.getLogger("touchreal_client.bridges.ros2")
 
@@ -81,7 +80,6 @@ MAX_DOMAIN_ID = 232
 MAX_BLOCKING_S = 0.1
 #: The first instant ``builtin_interfaces/Time`` (``int32 sec``) cannot hold, in us since the epoch.
 MAX_STAMP_US = 2**31 * 1_000_000
-FOLLOW_PERIOD_S = 0.5  #: how often the demand, the upstream session and a failed subscription are looked at again (s)
 #: A ROS 2 name token: letters, digits and underscores, not starting with a digit, no repeated underscore.
 _TOKEN = re.compile(r"(?!.*__)[A-Za-z_][A-Za-z0-9_]*")
 #: ROS 2 primitive types -> cyclonedds IDL types (the ROS 2 IDL mapping: char is uint8, byte is octet).
@@ -257,15 +255,7 @@ class Ros2Bridge:
             self._join()
             try:
                 self._advertise()
-                helpers = [asyncio.create_task(keep_clock_synced(stream)), asyncio.create_task(self._follow_upstream())]
-                self.ready.set()
-                try:
-                    async for frame in stream.frames():
-                        self._publish(frame)
-                finally:
-                    for t in helpers:
-                        t.cancel()
-                    await asyncio.gather(*helpers, return_exceptions=True)
+                await forward(stream, self._publish, self.ready, self._follow_upstream())
             finally:
                 self._leave()
 
@@ -323,32 +313,28 @@ class Ros2Bridge:
             with contextlib.suppress(RuntimeError):  # the loop closed in between
                 loop.call_soon_threadsafe(self._changed.set)
 
-    def _matched(self) -> set[str]:
-        """The data topics at least one DDS reader is matched to."""
-        return {t for t, w in self._writers.items()
-                if t != M.DESCRIPTION_TOPIC and w.get_publication_matched_status().current_count > 0}
+    def _refresh_live(self) -> set[str]:
+        """The data topics at least one DDS reader is matched to now, kept as :attr:`_live` (the topics
+        :meth:`_publish` writes on)."""
+        self._live = {t for t, w in self._writers.items()
+                      if t != M.DESCRIPTION_TOPIC and w.get_publication_matched_status().current_count > 0}
+        return self._live
+
+    def _readvertise(self, _hello: dict[str, Any]) -> None:
+        """A new hello's topics (new decoders, the description again); the topics already made go on if
+        DDS refuses one."""
+        from cyclonedds.core import DDSException
+
+        try:
+            self._advertise()
+        except DDSException as exc:
+            log.warning("cannot advertise the new hello's topics: %r", exc)
 
     async def _follow_upstream(self) -> None:
         """Keep the upstream subscription equal to the topics DDS readers are matched to (retried while
         the stream reconnects); a new hello is advertised (new decoders, the description again)."""
-        from cyclonedds.core import DDSException
-
-        stream = self.stream
-        assert stream is not None
-        hello = stream.hello
-        refused: P.Subscription | None = None
-        while True:
-            await wait_set(self._changed, FOLLOW_PERIOD_S)
-            self._changed.clear()
-            if stream.hello is not hello:
-                hello = stream.hello
-                try:
-                    self._advertise()
-                except DDSException as exc:  # the topics already made go on
-                    log.warning("cannot advertise the new hello's topics: %r", exc)
-            self._live = self._matched()
-            want = wanted_subscription(self._live, self.decimation, stream.hello)
-            refused = await resubscribe(stream, want, refused)
+        assert self.stream is not None
+        await follow_demand(self.stream, self._changed, self._refresh_live, self.decimation, self._readvertise)
 
     # -- publishing -----------------------------------------------------------------------------
     def _local_ns(self, t_us: np.ndarray) -> np.ndarray:
@@ -385,12 +371,7 @@ class Ros2Bridge:
             log.warning("dropping a %s that came before the stream's first clock point", type(frame).__name__)
             return
         try:
-            if isinstance(frame, P.SpikesFrame):
-                self._publish_spikes(frame)
-            elif isinstance(frame, P.ChannelsFrame):
-                self._publish_channels(frame)
-            else:
-                self._publish_decoded(frame)
+            publish_by_kind(frame, self._publish_spikes, self._publish_channels, self._publish_decoded)
         except (ValueError, OverflowError, TypeError, struct.error, DDSException) as exc:
             log.warning("dropping a %s (update %s): %r", type(frame).__name__, frame.header.update, exc)
 
