@@ -6,19 +6,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..bridge.auth import NatsAuth
-
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from .flags import add_model_flags
+    from .flags import add_server_parser
     from ..bridge.settings import GatewaySettings
 
-    p = sub.add_parser("gateway", help="serve /v1/stream to many clients from a sensor published on NATS",
-                       description="Every flag also reads from the environment variable TOUCHREAL_GATEWAY_<FLAG>, "
-                                   "the --nats-* flags from TOUCHREAL_NATS_<FLAG> (docs/scale-out.md, Settings).")
-    add_model_flags(p, GatewaySettings)
-    add_model_flags(p, NatsAuth, prefix="nats-")
-    p.set_defaults(func=run)
+    p = add_server_parser(sub, "gateway", GatewaySettings, run,
+                          help="serve /v1/stream to many clients from a sensor published on NATS",
+                          description="Every flag also reads from the environment variable TOUCHREAL_GATEWAY_<FLAG>, "
+                                      "the --nats-* flags from TOUCHREAL_NATS_<FLAG> (docs/scale-out.md, Settings).")
     tools = p.add_subparsers(dest="gateway_command", metavar="{credentials}")
     c = tools.add_parser("credentials", help="issue a gateway's broker credentials: an nkey seed file, and the "
                          "broker's user entry allowing it demand under its id only")
@@ -30,13 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .flags import model_from_args
+    from .flags import model_from_args, nats_auth_from_args
     from ..server.app import uvicorn_config
     from ..bridge.gateway import Gateway, create_gateway_app
     from ..bridge.settings import GatewaySettings
 
     settings = model_from_args(GatewaySettings, args)
-    gateway = Gateway(settings, model_from_args(NatsAuth, args, prefix="nats-"))
+    gateway = Gateway(settings, nats_auth_from_args(args))
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal gateway {settings.gateway_id} for sensor {settings.sensor_id!r} from {gateway.where} "
           f"({gateway.auth.describe(gateway.servers)}): stream ws://{base}/v1/stream · status http://{base}/v1/status",

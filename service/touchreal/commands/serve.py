@@ -9,18 +9,15 @@ from __future__ import annotations
 
 import argparse
 
-from ..bridge.auth import NatsAuth
 from ..server.settings import ServeSettings
-from .flags import add_model_flags, model_from_args
+from .flags import add_server_parser, model_from_args, nats_auth_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="stream spikes over WebSockets (REST config, parameter uploads)",
-                       description="Every flag also reads from the environment variable TOUCHREAL_<FLAG> "
-                                   "(docs/service.md, Settings).")
-    add_model_flags(p, ServeSettings)
-    add_model_flags(p, NatsAuth, prefix="nats-")
-    p.set_defaults(func=run)
+    add_server_parser(sub, "serve", ServeSettings, run,
+                      help="stream spikes over WebSockets (REST config, parameter uploads)",
+                      description="Every flag also reads from the environment variable TOUCHREAL_<FLAG> "
+                                  "(docs/service.md, Settings).")
 
 
 def settings_from(args: argparse.Namespace) -> ServeSettings:
@@ -46,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--publish needs --sensor-id (the NATS subjects are touchreal.<ID>.*)")
         companions.append(NatsPublisher(service, settings.publish, settings.sensor_id,
                                         publish_all=settings.publish_all, retain_s=settings.retain_s,
-                                        auth=model_from_args(NatsAuth, args, prefix="nats-")))
+                                        auth=nats_auth_from_args(args)))
     app = create_app(service, companions)
     base = f"{settings.host}:{settings.port}"
     print(f"TouchReal {redact(config.source)} ({config.taxels} taxel(s)): dashboard http://{base}/ · "

@@ -16,12 +16,12 @@ from ..bridge.auth import NatsAuth
 from ..bridge.settings import GatewaySettings
 from ..server.settings import ServeSettings
 from ..settings import ProcessSettings
-from .flags import env_name, flag_name
+from .flags import NATS_PREFIX, env_name, flag_name
 
 #: doc (relative to the repository) -> the models tabled in it, each with its flag prefix (None: no flags)
 TABLES: dict[str, tuple[tuple[type[BaseSettings], str | None], ...]] = {
     "docs/service.md": ((ServeSettings, ""), (ProcessSettings, None)),
-    "docs/scale-out.md": ((GatewaySettings, ""), (NatsAuth, "nats-")),
+    "docs/scale-out.md": ((GatewaySettings, ""), (NatsAuth, NATS_PREFIX)),
 }
 END = "<!-- end of table -->"
 
