@@ -1,4 +1,4 @@
-"""Shared pytest fixtures: the ``../shared`` data folder and the rig-v1 dataset.
+"""Shared pytest fixtures: the ``../shared`` data folder and the rig-v1 dataset, and a module's real server.
 
 Tests needing them are marked ``@pytest.mark.shared`` and skip with a clear reason when the folder
 is missing.
@@ -69,6 +69,16 @@ def corner_build(tmp_path: Path) -> Path:
     path = tmp_path / f"{CORNER_BUILD['name']}.json"
     path.write_text(json.dumps(CORNER_BUILD))
     return path
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """(``host:port``, the service) of one real server (:func:`server_harness.running_server`) that the
+    tests of a module share."""
+    from server_harness import running_server
+
+    with running_server(tmp_path_factory.mktemp("state")) as (addr, svc):
+        yield addr, svc
 
 
 # -- leaving the test process ------------------------------------------------------------------------

@@ -1,13 +1,17 @@
-"""A real uvicorn server on 127.0.0.1 (a free port, its own thread) and small WebSocket helpers."""
+"""A real uvicorn server on 127.0.0.1 (a free port, its own thread), small WebSocket helpers, and a
+bridge (:mod:`touchreal_client.bridges`) running on its stream, in this event loop or as a command."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import signal
 import socket
+import subprocess
+import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -185,3 +189,40 @@ def no_demand(status: dict) -> bool:
     """Whether the service's /v1/status shows no demand at all (no spikes, channels or decoders)."""
     d = status["demand"]
     return not d["columns"] and not d["channel_taxels"] and not d["decoders"]
+
+
+async def cancelled(task: asyncio.Task) -> None:
+    """Cancel ``task`` and wait until it has ended (whatever it raised)."""
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+
+
+@asynccontextmanager
+async def bridge_running(bridge: Any) -> AsyncIterator[asyncio.Task]:
+    """``bridge.run()`` as a task of this loop, entered once the bridge is ready (30 s at most) and
+    cancelled on the way out; yields the task."""
+    task = asyncio.create_task(bridge.run())
+    try:
+        await asyncio.wait_for(bridge.ready.wait(), 30)
+        yield task
+    finally:
+        await cancelled(task)
+
+
+@contextmanager
+def bridge_command(*args: str, says: tuple[str, ...]) -> Iterator[subprocess.Popen]:
+    """``touchreal bridge ARGS`` in another process, entered once it printed its first line (it prints one
+    when it serves) and that line holds every text in ``says``; on the way out it must exit with 0 on
+    SIGINT within 30 s (it is killed if it is still running after a failure)."""
+    proc = subprocess.Popen([sys.executable, "-m", "touchreal", "bridge", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # EOF if the command died
+        assert all(s in line for s in says), (line, proc.stderr.read() if proc.poll() is not None else "")
+        yield proc
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)

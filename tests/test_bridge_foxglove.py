@@ -7,19 +7,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import signal
 import struct
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import jsonschema
 import numpy as np
 import pytest
 import websockets
-from server_harness import free_port, no_demand, running_server, status_when, until
+from server_harness import (bridge_command, bridge_running, cancelled, free_port, no_demand, running_server, status_when,
+                            until)
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 
@@ -88,31 +86,13 @@ def foxglove_connect(port: int):
                               compression=None, open_timeout=10)
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory) -> Iterator[tuple[str, Any]]:
-    with running_server(tmp_path_factory.mktemp("state")) as (addr, svc):
-        yield addr, svc
-
-
-async def _bridge(addr: str) -> tuple[FoxgloveBridge, asyncio.Task]:
-    bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
-    task = asyncio.create_task(bridge.run())
-    await asyncio.wait_for(bridge.ready.wait(), 30)
-    return bridge, task
-
-
-async def _stop(task: asyncio.Task) -> None:
-    task.cancel()
-    await asyncio.gather(task, return_exceptions=True)
-
-
 def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_then_is_anything_demanded(server):
     addr, svc = server
     n_taxels = svc.view.n_taxels
 
     async def go():
-        bridge, task = await _bridge(addr)
-        try:
+        bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
+        async with bridge_running(bridge):
             async with foxglove_connect(bridge.port) as ws:
                 fox = FoxgloveClient(ws)
                 assert ws.subprotocol == "foxglove.sdk.v1"
@@ -151,8 +131,6 @@ def test_a_foxglove_client_gets_the_spikes_of_the_stream_on_its_clock_and_only_t
                 await fox.unsubscribe("/touchreal/spikes/SA1")
                 await status_when(addr, no_demand, "nothing demanded")
                 return fox.payloads(sub_id), frames, mapped, sync_error_us
-        finally:
-            await _stop(task)
 
     fox_msgs, frames, mapped, sync_error_us = run(go())
     direct = sorted((int(t), int(x)) for f in frames for t, x, c in zip(f.t_us, f.taxel, f.cls) if c == 0)
@@ -177,8 +155,8 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
     name = decoders[0]
 
     async def go():
-        bridge, task = await _bridge(addr)
-        try:
+        bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
+        async with bridge_running(bridge):
             async with foxglove_connect(bridge.port) as ws:
                 fox = FoxgloveClient(ws)
                 topics = ["/touchreal/force", "/touchreal/channels", f"/touchreal/decoded/{name}"]
@@ -193,8 +171,6 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
                 await status_when(addr, no_demand, "nothing demanded")
                 schemas = {t: json.loads(fox.channels[t]["schema"]) for t in topics}
                 return {t: fox.payloads(i) for t, i in ids.items()}, schemas
-        finally:
-            await _stop(task)
 
     msgs, schemas = run(go())
     for topic, got in msgs.items():
@@ -215,25 +191,16 @@ def test_force_channels_and_decoded_topics_follow_their_schemas_and_the_stream(s
 def test_the_command_serves_until_sigint_and_fails_clearly_without_a_stream(server, capsys):
     addr, _ = server
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "touchreal", "bridge", "foxglove", "--from", f"ws://{addr}/v1/stream",
-                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = proc.stdout.readline()  # printed once the server listens (or EOF if the command died)
-        assert f"ws://127.0.0.1:{port}" in line, (line, proc.stderr.read() if proc.poll() is not None else "")
 
-        async def advertised():
-            async with foxglove_connect(port) as ws:
-                fox = FoxgloveClient(ws)
-                await fox.read_until(lambda: "/touchreal/spikes/SA1" in fox.channels, 10)
-                return fox.server_info
+    async def advertised():
+        async with foxglove_connect(port) as ws:
+            fox = FoxgloveClient(ws)
+            await fox.read_until(lambda: "/touchreal/spikes/SA1" in fox.channels, 10)
+            return fox.server_info
 
+    with bridge_command("foxglove", "--from", f"ws://{addr}/v1/stream", "--port", str(port),
+                        says=(f"ws://127.0.0.1:{port}",)):
         assert run(advertised())["name"] == "TouchReal"
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
 
     assert main(["bridge", "foxglove", "--from", f"ws://127.0.0.1:{free_port()}/v1/stream", "--port", "0"]) == 2
     assert "cannot open" in capsys.readouterr().err
@@ -248,9 +215,7 @@ def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path)
     with natsd.local_nats_server() as url, publishing(tmp_path, url) as (_, svc, _pub), gateway(url) as (gw_addr, _gw):
         async def go():
             bridge = FoxgloveBridge(f"ws://{gw_addr}/v1/stream", port=0)
-            task = asyncio.create_task(bridge.run())
-            try:
-                await asyncio.wait_for(bridge.ready.wait(), 30)
+            async with bridge_running(bridge):
                 await until(lambda: bridge.stream.subscribed is not None, 20, "the bridge subscribed upstream")
                 assert not svc.hub.demand.columns  # connected through the gateway, nothing subscribed
                 async with foxglove_connect(bridge.port) as ws:
@@ -264,8 +229,6 @@ def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path)
                     await until(lambda: not svc.hub.demand.columns, 20, "nothing demanded of the service")
                     mapped = [(ns / 1000.0, bridge.stream.clock.to_server_wall_us(m["t_us"])) for ns, m in fox.payloads(sub_id)]
                     return fox.payloads(sub_id), mapped, bridge.stream.clock.offset_error_us
-            finally:
-                await _stop(task)
 
         msgs, mapped, sync_error_us = run(go())
     assert all(m["class"] == "PC" for _, m in msgs)
@@ -298,7 +261,7 @@ def test_after_the_service_restarts_foxglove_clients_get_the_new_session_and_dat
             loop.run_until_complete(fox.read_until(lambda: len(fox.payloads(sub_id)) >= n + 5, 60))
     finally:
         loop.run_until_complete(ws.close())
-        loop.run_until_complete(_stop(task))
+        loop.run_until_complete(cancelled(task))
         loop.close()
 
 
@@ -306,8 +269,8 @@ def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_client
     addr, _ = server
 
     async def go():
-        bridge, task = await _bridge(addr)
-        try:
+        bridge = FoxgloveBridge(f"ws://{addr}/v1/stream", port=0)
+        async with bridge_running(bridge) as task:
             async with foxglove_connect(bridge.port) as bad:
                 for junk in ("not json", "{}", json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 99999}]}),
                              json.dumps({"op": "subscribe", "subscriptions": "all"}), json.dumps({"op": "unsubscribe", "subscriptionIds": [42]}),
@@ -321,7 +284,5 @@ def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_client
                     await good.read_until(lambda: len(good.payloads(sub_id)) >= 3, 30)
             assert not task.done()
             await status_when(addr, no_demand, "nothing demanded")  # both gone
-        finally:
-            await _stop(task)
 
     run(go())

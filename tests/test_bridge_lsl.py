@@ -10,7 +10,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from server_harness import running_server, until
+from server_harness import bridge_running, running_server, until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 
@@ -46,9 +46,7 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
 
         async def go():
             bridge = LslBridge(url, name=f"TouchReal-test-{uuid.uuid4().hex[:8]}")
-            task = asyncio.create_task(bridge.run())
-            try:
-                await asyncio.wait_for(bridge.ready.wait(), 30)
+            async with bridge_running(bridge):
                 async with AsyncStream(url, Subscription(streams=["spikes", "channels"])) as direct:
                     s_inlet, s_info = await _inlet(bridge.source_ids["spikes"])
                     c_inlet, c_info = await _inlet(bridge.source_ids["channels"])
@@ -78,9 +76,6 @@ def test_every_spike_and_channel_sample_reaches_an_lsl_inlet_at_its_mapped_time(
                     await until(pushed, 30, "the inlet got the direct client's last spike")
                     return (spikes, chans, lsl_spikes, lsl_spike_ts, lsl_chans, lsl_chan_ts,
                             s_info.as_xml(), c_info.as_xml(), svc.view.n_taxels, tolerance)
-            finally:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
 
         spikes, chans, lsl_spikes, lsl_ts, lsl_chans, lsl_chan_ts, s_xml, c_xml, n_taxels, tolerance = run(go())
 
@@ -134,9 +129,7 @@ def test_a_population_reaches_lsl_as_afferent_spikes_described_in_the_stream_inf
 
         async def go():
             bridge = LslBridge(f"ws://{addr}/v1/stream", name=f"TouchReal-test-{uuid.uuid4().hex[:8]}")
-            task = asyncio.create_task(bridge.run())
-            try:
-                await asyncio.wait_for(bridge.ready.wait(), 30)
+            async with bridge_running(bridge):
                 inlet, info = await _inlet(bridge.source_ids["spikes"])
                 samples: list = []
 
@@ -146,9 +139,6 @@ def test_a_population_reaches_lsl_as_afferent_spikes_described_in_the_stream_inf
 
                 await until(enough, 60, "30 afferent spikes at the inlet")
                 return set(bridge.source_ids), info.as_xml(), samples
-            finally:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
 
         ids, xml, samples = run(go())
         pop = svc.population

@@ -13,15 +13,12 @@ from __future__ import annotations
 import asyncio
 import json
 import random
-import signal
-import subprocess
-import sys
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
-from server_harness import free_port, no_demand, running_server, status_when, until, wait_until
+from server_harness import bridge_command, bridge_running, free_port, no_demand, status_when, until, wait_until
 from touchreal_client import AsyncStream, Subscription
 from touchreal_client import protocol as P
 from touchreal_client.ros2.messages import MSG_PACKAGE
@@ -74,12 +71,6 @@ def domain() -> Iterator[int]:
         yield random.randint(100, 200)
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory) -> Iterator[tuple[str, Any]]:
-    with running_server(tmp_path_factory.mktemp("state")) as (addr, svc):
-        yield addr, svc
-
-
 def typestore() -> Any:
     """rosbags' ROS 2 types plus touchreal_msgs read from the .msg files here."""
     store = get_typestore(Stores.ROS2_HUMBLE)
@@ -130,18 +121,6 @@ class RosSide:
         return out
 
 
-async def _bridge(addr: str, domain_id: int) -> tuple[Ros2Bridge, asyncio.Task]:
-    bridge = Ros2Bridge(f"ws://{addr}/v1/stream", domain_id=domain_id)
-    task = asyncio.create_task(bridge.run())
-    await asyncio.wait_for(bridge.ready.wait(), 30)
-    return bridge, task
-
-
-async def _stop(task: asyncio.Task) -> None:
-    task.cancel()
-    await asyncio.gather(task, return_exceptions=True)
-
-
 def _ns(t: Any) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 
@@ -158,9 +137,9 @@ def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anythi
     spike_topics = [f"rt/touchreal/spikes/{c}" for c in P.CLASSES]
 
     async def go():
-        bridge, task = await _bridge(addr, domain)
-        ros = RosSide(domain)
-        try:
+        bridge = Ros2Bridge(f"ws://{addr}/v1/stream", domain_id=domain)
+        async with bridge_running(bridge):
+            ros = RosSide(domain)
             await until(lambda: {"rt" + t for t in bridge.topics} <= set(ros.discover()), 20,
                         lambda: f"the bridge's publications discovered (seen: {sorted(ros.publications)})")
             # the writers exist, no reader: nothing demanded upstream, channels least of all
@@ -197,8 +176,6 @@ def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anythi
                 ros.unsubscribe(t)
             await status_when(addr, no_demand, "nothing demanded once the readers left")
             return ros.publications, description, svc.view.hello(), frames, got, direct.clock, sync_error_us, ros.store
-        finally:
-            await _stop(task)
 
     pubs, description, hello, frames, got, clock, sync_error_us, store = run(go())
 
@@ -255,9 +232,9 @@ def test_force_channels_and_decoded_messages_are_the_streams(server, domain):
     topics = ["rt/touchreal/force", "rt/touchreal/channels", f"rt/touchreal/decoded/{name}"]
 
     async def go():
-        bridge, task = await _bridge(addr, domain)
-        ros = RosSide(domain)
-        try:
+        bridge = Ros2Bridge(f"ws://{addr}/v1/stream", domain_id=domain)
+        async with bridge_running(bridge):
+            ros = RosSide(domain)
             await until(lambda: set(topics) <= set(ros.discover()), 20, "the bridge's publications discovered")
             for t in topics:
                 ros.subscribe(t)
@@ -285,8 +262,6 @@ def test_force_channels_and_decoded_messages_are_the_streams(server, domain):
                 ros.unsubscribe(t)
             await status_when(addr, no_demand, "nothing demanded once the readers left")
             return frames, got, direct.clock, sync_error_us
-        finally:
-            await _stop(task)
 
     frames, got, clock, sync_error_us = run(go())
     direct = {int(f.t0_us + k * f.period_us): (f.taxels, f.data[k]) for f in frames for k in range(f.data.shape[0])}
@@ -348,24 +323,14 @@ def test_a_hostile_hello_or_a_frame_that_cannot_be_stamped_is_left_out_and_the_b
 
 def test_the_command_publishes_to_another_process_until_sigint_and_fails_clearly_without_a_stream(server, domain, capsys):
     addr, svc = server
-    proc = subprocess.Popen([sys.executable, "-m", "touchreal", "bridge", "ros2", "--from", f"ws://{addr}/v1/stream",
-                             "--domain-id", str(domain)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = proc.stdout.readline()  # printed once the writers exist (or EOF if the command died)
-        assert f"DDS domain {domain}" in line and "/touchreal/spikes/SA1" in line, (
-            line, proc.stderr.read() if proc.poll() is not None else "")
+    with bridge_command("ros2", "--from", f"ws://{addr}/v1/stream", "--domain-id", str(domain),
+                        says=(f"DDS domain {domain}", "/touchreal/spikes/SA1")):  # printed once the writers exist
         ros = RosSide(domain)  # another process: the samples cross the loopback network
         topic = "rt/touchreal/description"
         wait_until(lambda: topic in ros.discover(), 20, "the command's description publication discovered")
         ros.subscribe(topic, latched=True)
         description = wait_until(lambda: ros.take(topic), 20, "the command's latched description")
         assert json.loads(description[0].data)["session"] == svc.view.hello()["session"]
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(30) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
 
     assert main(["bridge", "ros2", "--from", f"ws://127.0.0.1:{free_port()}/v1/stream", "--domain-id", str(domain)]) == 2
     assert "cannot open" in capsys.readouterr().err

@@ -7,7 +7,6 @@ import asyncio
 import copy
 import json
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -28,12 +27,6 @@ def validator(name: str) -> jsonschema.Draft7Validator:
 
 def errors(name: str, msg: Any) -> list[str]:
     return [e.message for e in validator(name).iter_errors(msg)]
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory) -> Iterator[tuple[str, Any]]:
-    with running_server(tmp_path_factory.mktemp("state")) as (addr, svc):
-        yield addr, svc
 
 
 def test_the_service_serves_the_asyncapi_document_and_its_schemas_are_valid(server):
