@@ -16,9 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import waiting
 import websockets
 from touchreal_client import protocol as P
+from touchreal_client.features import StreamBinner
 
 from touchreal.server.app import serving
 from touchreal.server.service import Service
@@ -189,6 +191,42 @@ def no_demand(status: dict) -> bool:
     """Whether the service's /v1/status shows no demand at all (no spikes, channels or decoders)."""
     d = status["demand"]
     return not d["columns"] and not d["channel_taxels"] and not d["decoders"]
+
+
+def decoded_stream(state_dir: Path, decoders: list[str], seconds: float, enough: Callable[[list[str], list], bool],
+                   what: str) -> tuple[bytes, dict, list[str], list]:
+    """A real server's decoder ``decoders[0]`` as a client gets it over REST (ONNX bytes, metadata), and
+    what the stream sends a client of SA1's and RA's spikes and ``decoders``' outputs until it covers
+    ``seconds`` and ``enough(names, frames)`` holds (``names``: the hello's decoders, by the index a
+    decoded frame gives; ``what`` names the wait). Returns (ONNX bytes, metadata, names, frames)."""
+    with running_server(state_dir) as (addr, _svc):
+        blob = httpx.get(f"http://{addr}/v1/decoders/{decoders[0]}/model.onnx").content
+        meta = httpx.get(f"http://{addr}/v1/decoders/{decoders[0]}").json()
+        cover = covers(seconds)
+
+        async def go() -> tuple[list[str], list]:
+            async with connect(addr) as ws:
+                hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
+                                                     decoders=decoders)
+                names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
+                return names, await collect(ws, 60.0, lambda fs: cover(fs) and enough(names, fs), what=what)
+
+        names, frames = asyncio.run(asyncio.wait_for(go(), 90))
+    return blob, meta, names, frames
+
+
+def client_decoded(frames: list, meta: dict, start_us: int, step: Callable[[np.ndarray], float]) -> dict[int, float]:
+    """A client's own decoding of the spikes frames among ``frames``: per decoding step (its time, us),
+    ``step(counts)`` on taxel 0's counts from a :class:`StreamBinner` of the decoder's metadata ``meta``
+    started at ``start_us``."""
+    binner = StreamBinner.from_metadata(meta, [0], start_us=start_us)
+    out = {}
+    for f in frames:
+        if isinstance(f, P.SpikesFrame):
+            final = {c: v for c, v in f.final_us.items() if v is not None}
+            for t, counts, _ in binner.push(f.t_us, f.taxel, f.cls, final):
+                out[t] = step(counts)
+    return out
 
 
 async def cancelled(task: asyncio.Task) -> None:

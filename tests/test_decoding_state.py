@@ -3,16 +3,13 @@ ONNX file run by a plain onnxruntime session (what a client does), and in the st
 
 from __future__ import annotations
 
-import asyncio
-
-import httpx
 import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from server_harness import collect, connect, covers, hello_and_subscribe, running_server
+from server_harness import client_decoded, decoded_stream
 from touchreal_client import protocol as P
-from touchreal_client.features import CLASSES, StreamBinner
+from touchreal_client.features import CLASSES
 
 from touchreal.decoding.export import set_metadata, to_onnx
 from touchreal.decoding.metrics import force_metrics
@@ -128,37 +125,24 @@ def test_stateful_metadata_is_validated(stateful, tmp_path):
 def test_served_stateful_decoder_equals_a_client_running_the_downloaded_file(tmp_path):
     """The service streams force_fast; a client with the downloaded ONNX, the numpy binner and its own
     state (zeros at the first decoded step) gets the same numbers from the spikes it received."""
-    with running_server(tmp_path) as (addr, _svc):
-        blob = httpx.get(f"http://{addr}/v1/decoders/force_fast/model.onnx").content
-        meta = httpx.get(f"http://{addr}/v1/decoders/force_fast").json()
-
-        cover = covers(5.0)
-
-        async def go():
-            async with connect(addr) as ws:
-                hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
-                                                     decoders=["force_fast"])  # its only decoder: every output is it
-                return hello, await collect(ws, 60.0, lambda fs: cover(fs) and sum(
-                    isinstance(f, P.DecodedFrame) for f in fs) > 80, what="5 s of the stream, over 80 outputs")
-
-        hello, frames = asyncio.run(asyncio.wait_for(go(), 90))
-    names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
+    blob, meta, names, frames = decoded_stream(  # force_fast is the only decoder subscribed: every output is it
+        tmp_path, ["force_fast"], 5.0, lambda _names, fs: sum(isinstance(f, P.DecodedFrame) for f in fs) > 80,
+        "5 s of the stream, over 80 outputs")
     fast = [f for f in frames if isinstance(f, P.DecodedFrame) and names[f.decoder] == "force_fast"]
     assert len(fast) > 80
     steps = np.concatenate([f.t_us for f in fast]).astype(np.int64)
     assert np.all(np.diff(steps) == 32_000)
     values = np.concatenate([f.values for f in fast])[:, 0, 0]
     assert np.isfinite(values).all() and values.max() > 0.5  # the scene presses to several newtons
-    binner = StreamBinner.from_metadata(meta, [0], start_us=int(steps[0]))
     sess = ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
     state = np.zeros((1, meta["state"]["size"]), np.float32)
-    mine = {}
-    for f in frames:
-        if isinstance(f, P.SpikesFrame):
-            final = {c: v for c, v in f.final_us.items() if v is not None}
-            for t, counts, _ in binner.push(f.t_us, f.taxel, f.cls, final):
-                out, state = sess.run(["force_N", "state_out"], {"counts": counts, "state": state})
-                mine[t] = out[0, 0]
+
+    def step(counts: np.ndarray) -> float:
+        nonlocal state
+        out, state = sess.run(["force_N", "state_out"], {"counts": counts, "state": state})
+        return out[0, 0]
+
+    mine = client_decoded(frames, meta, int(steps[0]), step)
     common = [i for i, t in enumerate(steps) if t in mine]
     assert len(common) > 80
     assert np.allclose([mine[steps[i]] for i in common], values[common], rtol=1e-5, atol=1e-5)

@@ -10,9 +10,8 @@ import httpx
 import numpy as np
 import onnx
 import onnxruntime as ort
-from server_harness import collect, connect, covers, hello_and_subscribe, running_server
+from server_harness import client_decoded, collect, connect, decoded_stream, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
-from touchreal_client.features import StreamBinner
 
 
 def test_decoder_endpoints_list_describe_and_serve_onnx(tmp_path):
@@ -40,27 +39,12 @@ def test_decoder_endpoints_list_describe_and_serve_onnx(tmp_path):
 
 
 def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_spikes(tmp_path):
-    with running_server(tmp_path) as (addr, svc):
-        blob = httpx.get(f"http://{addr}/v1/decoders/force/model.onnx").content
-        meta = httpx.get(f"http://{addr}/v1/decoders/force").json()
+    def enough(names: list[str], fs: list) -> bool:  # over 100 force outputs and a texture one
+        decoded = [names[f.decoder] for f in fs if isinstance(f, P.DecodedFrame)]
+        return decoded.count("force") > 100 and "texture" in decoded
 
-        cover = covers(6.0)
-
-        async def go():
-            async with connect(addr) as ws:
-                hello, _ = await hello_and_subscribe(ws, streams=["spikes", "decoded"], classes=["SA1", "RA"],
-                                                     decoders=["force", "texture"])
-                names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
-
-                def enough(fs) -> bool:  # 6 s of the stream, over 100 force outputs and a texture one
-                    decoded = [names[f.decoder] for f in fs if isinstance(f, P.DecodedFrame)]
-                    return decoded.count("force") > 100 and "texture" in decoded
-
-                return hello, await collect(ws, 60.0, lambda fs: cover(fs) and enough(fs),
-                                            what="6 s of the stream, over 100 force outputs and a texture one")
-
-        hello, frames = asyncio.run(asyncio.wait_for(go(), 90))
-    names = [d["name"] for d in hello["streams"]["decoded"]["decoders"]]
+    blob, meta, names, frames = decoded_stream(tmp_path, ["force", "texture"], 6.0, enough,
+                                               "6 s of the stream, over 100 force outputs and a texture one")
     decoded = [f for f in frames if isinstance(f, P.DecodedFrame)]
     force = [f for f in decoded if names[f.decoder] == "force"]
     texture = [f for f in decoded if names[f.decoder] == "texture"]
@@ -73,14 +57,9 @@ def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_s
     ok = ~np.isnan(probs).any(axis=1)
     assert np.allclose(probs[ok].sum(axis=1), 1.0, atol=1e-4)
     # the client side of the contract: its own binner + the downloaded ONNX on the spikes it received
-    binner = StreamBinner.from_metadata(meta, [0], start_us=int(steps[0]))
     sess = ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
-    mine = {}
-    for f in frames:
-        if isinstance(f, P.SpikesFrame):
-            final = {c: v for c, v in f.final_us.items() if v is not None}
-            for t, counts, _ in binner.push(f.t_us, f.taxel, f.cls, final):
-                mine[t] = sess.run(None, {sess.get_inputs()[0].name: counts})[0].reshape(-1)[0]
+    mine = client_decoded(frames, meta, int(steps[0]),
+                          lambda counts: sess.run(None, {sess.get_inputs()[0].name: counts})[0].reshape(-1)[0])
     common = [i for i, t in enumerate(steps) if t in mine]
     assert len(common) > 100
     assert np.allclose([mine[steps[i]] for i in common], values[common], rtol=1e-5, atol=1e-6)
