@@ -16,51 +16,78 @@ _LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.125, 0.15, 0.17
 _COMPUTE_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 
 
+#: Every metric of a service: attribute of :class:`Metrics` -> (type, name, help, label names). Counters
+#: are exported with ``_total`` after the name; histograms take their buckets from :data:`_BUCKETS`.
+METRICS: dict[str, tuple[type, str, str, tuple[str, ...]]] = {
+    "compute": (Histogram, "touchreal_update_compute_seconds", "encoder compute time per update", ()),
+    "latency": (Histogram, "touchreal_latency_seconds", "end-to-end latency per spike: acquisition of the sample "
+                "that caused it to its update leaving the encoder", ("cls",)),
+    "events": (Counter, "touchreal_events", "spike events encoded", ("cls",)),
+    "updates": (Counter, "touchreal_updates", "updates published", ()),
+    "overload": (Counter, "touchreal_updates_dropped_overload", "updates dropped because the event loop fell "
+                 "behind the acquisition thread", ()),
+    "shed_seconds": (Counter, "touchreal_shed_seconds", "seconds of signal acquired but not encoded because "
+                     "compute fell more than max_lag_ms behind acquisition", ()),
+    "sheds": (Counter, "touchreal_sheds", "sheds (each a seq gap for every subscriber and a restart of the "
+              "pipeline from rest)", ()),
+    "lag": (Gauge, "touchreal_acquisition_lag_seconds", "age of the latest chunk's oldest sample when its "
+            "compute started (clock model)", ()),
+    "real_time_factor": (Gauge, "touchreal_real_time_factor", "wall time spent per second of signal encoded, "
+                         "about 1 s average (< 1 keeps up)", ()),
+    "awake": (Gauge, "touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; all of them when "
+              "dense)", ()),
+    "clients": (Gauge, "touchreal_clients_connected", "connected stream clients", ()),
+    "client_drops": (Gauge, "touchreal_client_dropped_frames", "frames dropped for a connected client", ("client",)),
+    "drops": (Counter, "touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "
+              "the client's queue was full; stale: it waited longer than max_frame_age_ms; upstream_loss: lost on a "
+              "gateway's broker hop or shed by an overloaded pipeline)", ("reason",)),
+    "kicked": (Counter, "touchreal_clients_closed_slow", "clients closed as slow consumers (4008)", ()),
+    "flooding": (Counter, "touchreal_clients_closed_flooding", "clients closed for sending requests faster than "
+                 "they read the replies (4029)", ()),
+    "faults": (Gauge, "touchreal_input_faults", "cumulative input faults (sanitizer: NaN/Inf, gaps, ...; "
+               "serial: CRC errors, gaps, resyncs, reconnects)", ("kind",)),
+    "auth": (Counter, "touchreal_auth_refused", "write requests refused at authentication (failure: a wrong "
+             "or missing token; throttled: 429 to a peer in back-off after repeated failures)", ("outcome",)),
+    "source_state": (Gauge, "touchreal_source_state", "1 for the source's current state", ("state",)),
+    "ready": (Gauge, "touchreal_ready", "1 when the source delivers and the pipeline is warm", ()),
+}
+#: Buckets (s) of the histograms.
+_BUCKETS = {"compute": _COMPUTE_BUCKETS, "latency": _LATENCY_BUCKETS}
+#: Label values a metric exports from the start (at 0), before any of them occurs.
+_KNOWN_LABELS = {"events": CLASSES, "drops": DROP_REASONS, "auth": AUTH_OUTCOMES}
+
+
 class Metrics:
+    """The metrics of :data:`METRICS`, each the attribute of its key, in a registry of their own."""
+
+    compute: Histogram
+    latency: Histogram
+    events: Counter
+    updates: Counter
+    overload: Counter
+    shed_seconds: Counter
+    sheds: Counter
+    lag: Gauge
+    real_time_factor: Gauge
+    awake: Gauge
+    clients: Gauge
+    client_drops: Gauge
+    drops: Counter
+    kicked: Counter
+    flooding: Counter
+    faults: Gauge
+    auth: Counter
+    source_state: Gauge
+    ready: Gauge
+
     def __init__(self) -> None:
-        r = self.registry = CollectorRegistry()
-        self.compute = Histogram("touchreal_update_compute_seconds", "encoder compute time per update", registry=r,
-                                 buckets=_COMPUTE_BUCKETS)
-        self.latency = Histogram("touchreal_latency_seconds", "end-to-end latency per spike: acquisition of the sample "
-                                 "that caused it to its update leaving the encoder", ["cls"], registry=r,
-                                 buckets=_LATENCY_BUCKETS)
-        self.events = Counter("touchreal_events", "spike events encoded", ["cls"], registry=r)
-        self.updates = Counter("touchreal_updates", "updates published", registry=r)
-        self.overload = Counter("touchreal_updates_dropped_overload", "updates dropped because the event loop fell "
-                                "behind the acquisition thread", registry=r)
-        self.shed_seconds = Counter("touchreal_shed_seconds", "seconds of signal acquired but not encoded because "
-                                    "compute fell more than max_lag_ms behind acquisition", registry=r)
-        self.sheds = Counter("touchreal_sheds", "sheds (each a seq gap for every subscriber and a restart of the "
-                             "pipeline from rest)", registry=r)
-        self.lag = Gauge("touchreal_acquisition_lag_seconds", "age of the latest chunk's oldest sample when its "
-                         "compute started (clock model)", registry=r)
-        self.real_time_factor = Gauge("touchreal_real_time_factor", "wall time spent per second of signal encoded, "
-                                      "about 1 s average (< 1 keeps up)", registry=r)
-        self.awake = Gauge("touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; all of them when "
-                           "dense)", registry=r)
-        self.clients = Gauge("touchreal_clients_connected", "connected stream clients", registry=r)
-        self.client_drops = Gauge("touchreal_client_dropped_frames", "frames dropped for a connected client", ["client"],
-                                  registry=r)
-        self.drops = Counter("touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "
-                             "the client's queue was full; stale: it waited longer than max_frame_age_ms; upstream_loss: lost on a "
-                             "gateway's broker hop or shed by an overloaded pipeline)", ["reason"],
-                             registry=r)
-        self.kicked = Counter("touchreal_clients_closed_slow", "clients closed as slow consumers (4008)", registry=r)
-        self.flooding = Counter("touchreal_clients_closed_flooding", "clients closed for sending requests faster than "
-                                "they read the replies (4029)", registry=r)
-        self.faults = Gauge("touchreal_input_faults", "cumulative input faults (sanitizer: NaN/Inf, gaps, ...; "
-                            "serial: CRC errors, gaps, resyncs, reconnects)", ["kind"], registry=r)
-        self.auth = Counter("touchreal_auth_refused", "write requests refused at authentication (failure: a wrong "
-                            "or missing token; throttled: 429 to a peer in back-off after repeated failures)",
-                            ["outcome"], registry=r)
-        self.source_state = Gauge("touchreal_source_state", "1 for the source's current state", ["state"], registry=r)
-        self.ready = Gauge("touchreal_ready", "1 when the source delivers and the pipeline is warm", registry=r)
-        for c in CLASSES:
-            self.events.labels(c)
-        for reason in DROP_REASONS:
-            self.drops.labels(reason)
-        for outcome in AUTH_OUTCOMES:
-            self.auth.labels(outcome)
+        self.registry = CollectorRegistry()
+        for attr, (kind, name, doc, labels) in METRICS.items():
+            buckets = {"buckets": _BUCKETS[attr]} if attr in _BUCKETS else {}
+            setattr(self, attr, kind(name, doc, labels, registry=self.registry, **buckets))
+        for attr, values in _KNOWN_LABELS.items():
+            for value in values:
+                getattr(self, attr).labels(value)
 
     def follow(self, runtime: Callable[[], Any]) -> None:
         """Read the acquisition lag, the real-time factor and the taxels awake from ``runtime()`` (the current
