@@ -67,6 +67,7 @@ def test_population_hello_subscriptions_by_class_and_region_and_refusals(tmp_pat
     assert out["channels"]["code"] == "not_served" and "per taxel" in out["channels"]["message"]
     hello = out["hello"]
     assert hello["version"] == 2 and hello["addresses"] == "afferents" and hello["n_taxels"] == 4
+    assert hello["streams"]["decoded"]["decoders"] == []  # decoders read taxels: none offered to a population
     aff = P.hello_afferents(hello)
     # the plan from the file, placed over the 4 taxels' cells (10 mm pitch: 4 cm^2) at the fingertip densities
     expected = Population.build(np.asarray([[t["x_mm"], t["y_mm"]] for t in hello["taxels"]]), PopulationPlan.from_dict(PLAN))

@@ -123,7 +123,10 @@ class ServiceView:
                 for m in self.service.models.list()]
 
     def decoder_list(self) -> list[dict[str, Any]]:
-        """The hello's decoders: what a client needs to read decoded frames (index = position here)."""
+        """The hello's decoders: what a client needs to read decoded frames (index = position here);
+        none with a population (:meth:`decoder_classes`)."""
+        if self.service.population is not None:
+            return []
         params = self.service.store.active
         out = []
         for m in self.service.models.list():

@@ -11,7 +11,8 @@ time (ns) of that stamp by the stream's clock model (``clock`` messages plus the
 not the time it arrived. Demand-driven: the bridge subscribes upstream to exactly what Foxglove
 clients are subscribed to (the SDK's subscribe/unsubscribe callbacks), and to nothing while no
 client subscribes, so an idle bridge costs the service nothing. A gateway speaks the same protocol,
-so ``--from`` may be a gateway.
+so ``--from`` may be a gateway. From a service running an afferent population only the spike
+topics are served, their ``taxel`` an afferent id.
 """
 
 from __future__ import annotations
@@ -113,10 +114,16 @@ class FoxgloveBridge:
         return ch
 
     def _advertise(self, hello: dict[str, Any]) -> None:
-        """Channels for what the service offers (from a hello; those already advertised stay)."""
-        rate = {"rate_hz": str(5000 / self.decimation)}
+        """Channels for what the service offers (from a hello; those already advertised stay). A
+        population's service offers the spikes of its afferents only: ``taxel`` is then an afferent
+        id (channel metadata ``addresses``; their positions and models are in the hello)."""
+        population = P.hello_afferents(hello) is not None
+        addresses = {"addresses": "afferents" if population else "taxels"}
         for c in (c for c in hello.get("classes", P.CLASSES) if c in P.CLASSES):
-            self._channel(spikes_topic(c), SPIKE_SCHEMA, {"class": c})
+            self._channel(spikes_topic(c), SPIKE_SCHEMA, {"class": c, **addresses})
+        if population:
+            return
+        rate = {"rate_hz": str(5000 / self.decimation)}
         self._channel(CHANNELS_TOPIC, CHANNELS_SCHEMA, rate)
         self._channel(FORCE_TOPIC, FORCE_SCHEMA, rate)
         for d in hello.get("streams", {}).get("decoded", {}).get("decoders", []):

@@ -291,15 +291,18 @@ class Ros2Bridge:
         return w
 
     def _advertise(self) -> None:
-        """Writers for what the stream's hello offers (those already made stay), and the hello as the description."""
+        """Writers for what the stream's hello offers (those already made stay), and the hello as the
+        description. A population's service offers its afferents' spikes only (``taxel`` then holds
+        afferent ids; the description lists the afferents)."""
         assert self.stream is not None
         hello = self.stream.hello
         classes = hello.get("classes", list(P.CLASSES))
         for c in P.CLASSES:
             if isinstance(classes, list) and c in classes:
                 self._writer(M.spikes_topic(c), M.SPIKES_TYPE)
-        self._writer(M.CHANNELS_TOPIC, M.CHANNELS_TYPE)
-        self._writer(M.FORCE_TOPIC, M.FORCE_TYPE)
+        if P.hello_afferents(hello) is None:
+            self._writer(M.CHANNELS_TOPIC, M.CHANNELS_TYPE)
+            self._writer(M.FORCE_TOPIC, M.FORCE_TYPE)
         for name, _ in self._decoder_table().values():
             self._writer(M.decoded_topic(name), M.DECODED_TYPE)
         self._writer(M.DESCRIPTION_TOPIC, M.DESCRIPTION_TYPE, latched=True)
