@@ -103,6 +103,9 @@ def test_metadata_records_params_and_warns_on_other_params(force_model):
     # a class high-pass changes it (a version 4 field; absent, the hash is that of the file before it)
     pc = p.classes["PC"].model_copy(update={"highpass_hz": 5.0})
     assert params_hash(p.model_copy(update={"classes": {**p.classes, "PC": pc}, "version": 4})) != params_hash(p.model_copy(update={"version": 4}))
+    # the mains candidates change it unless they are the default (a set hashes as before the field)
+    fixed = p.model_copy(update={"preprocess": p.preprocess.model_copy(update={"mains_candidates_hz": []})})
+    assert params_hash(fixed) != params_hash(p)
 
 
 def test_not_onnx_is_a_clear_error(tmp_path):

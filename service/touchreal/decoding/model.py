@@ -19,7 +19,7 @@ import numpy as np
 import onnx
 from touchreal_client import features as F
 
-from ..params import EncoderParams
+from ..params import EncoderParams, PreprocessParams
 from ..settings import PACKAGE_DATA
 from .export import META_KEY
 from .features import SPEED_INPUT
@@ -39,11 +39,14 @@ class DecoderModelError(ValueError):
 
 def params_hash(params: EncoderParams) -> str:
     """sha256 of the parameter values (provenance excluded: it describes, it does not change spikes;
-    so is a class's absent high-pass, a field of version 4, so a set hashes as it did before it)."""
+    so is a class's absent high-pass, a field of version 4, and the default mains candidates, a later
+    field, so that a set hashes as it did before them)."""
     data = params.model_dump(mode="json", by_alias=True, exclude={"provenance"})
     for c in data["classes"].values():
         if c.get("highpass_hz") is None:
             c.pop("highpass_hz", None)
+    if data["preprocess"].get("mains_candidates_hz") == PreprocessParams().mains_candidates_hz:
+        data["preprocess"].pop("mains_candidates_hz")
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
