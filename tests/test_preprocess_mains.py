@@ -40,8 +40,8 @@ def test_the_hum_decides_whatever_frequency_the_parameters_name(configured, actu
 
 
 def test_noise_and_contact_keep_the_configured_frequency():
-    """Without hum (noise alone, or noise under a press transient and a 40 Hz or 55 Hz vibration) the
-    choice stays with the parameters in 200 of 200 draws."""
+    """Without hum (noise alone, or noise under a press transient and a 40, 55 or 300 Hz vibration,
+    300 Hz being a harmonic of 60 Hz) the choice stays with the parameters in 200 of 200 draws."""
     params = PreprocessParams(mains_hz=50.0)
     t = 0.0001 + np.arange(200) / FS
     for seed in range(200):
@@ -49,7 +49,7 @@ def test_noise_and_contact_keep_the_configured_frequency():
         _, x = _pvdf(0.1, 3, None, seed=seed)
         if seed % 2:
             x += 0.05 * np.exp(-((t - 0.04) / 0.01) ** 2)[:, None]  # the film's press transient
-            x += 0.02 * np.sin(2 * np.pi * rng.choice([40.0, 55.0]) * t + rng.uniform(0, 6))[:, None]
+            x += rng.choice([0.02, 1.6]) * np.sin(2 * np.pi * rng.choice([40.0, 55.0, 300.0]) * t + rng.uniform(0, 6))[:, None]
         assert resolve_mains(x, params, FS) == 50.0
 
 

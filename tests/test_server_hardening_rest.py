@@ -65,9 +65,10 @@ def test_a_pipeline_failure_falls_back_to_the_last_good_revision_and_keeps_strea
     with running_server(tmp_path) as (addr, svc), httpx.Client(base_url=f"http://{addr}") as http:
         good = http.put("/v1/params", json=params_json(st_alpha=0.4)).json()["rev"]
         assert spikes_frames(addr)  # revision 2 has run
-        # what a set the dry run missed does: the old schema let mains_hz=1e-300 through (LinAlgError)
+        # what a set the dry run missed does: the old schema let mains_hz=1e-300 through (LinAlgError; held
+        # fixed, as the stream would otherwise resolve the skin's 50 Hz mains and never build that notch)
         bad = svc.store.active.model_copy(update={"preprocess": svc.store.active.preprocess.model_copy(
-            update={"mains_hz": 1e-300})})
+            update={"mains_hz": 1e-300, "mains_candidates_hz": []})})
         svc.store.put(bad, "upload")
 
         async def stream_through_the_failure():

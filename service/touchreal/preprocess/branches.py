@@ -140,7 +140,9 @@ class PvdfFilter:
     def __init__(self, params: PreprocessParams, n_taxels: int, dtype: np.dtype, slot: int, mains: MainsResolver):
         self.params = params
         self.mains = mains
-        self.filt: SosFilter | None = None  #: built once the start is held (:meth:`process`)
+        #: built at once with the configured mains (a set whose notches cannot be made fails here), again
+        #: with the stream's own mains if that differs once the start is held (:meth:`process`)
+        self.filt: SosFilter = pvdf_filter(params, PVDF_FS_HZ, n_taxels, np.float64)
         self.dtype = np.dtype(dtype)
         self.held: list[np.ndarray] | None = []
         self.slot = slot  # slot of the next output sample
@@ -157,8 +159,10 @@ class PvdfFilter:
             self.held = None
             if held.shape[0] == 0:
                 return self.slot, held
-            params = self.params.model_copy(update={"mains_hz": self.mains.resolve()})
-            self.filt = pvdf_filter(params, PVDF_FS_HZ, self.n_taxels, np.float64)
+            params = self.params
+            if self.mains.resolve() != params.mains_hz:
+                params = params.model_copy(update={"mains_hz": self.mains.resolve()})
+                self.filt = pvdf_filter(params, PVDF_FS_HZ, self.n_taxels, np.float64)
             prime_with_hum(self.filt, held[:n_prime], PVDF_FS_HZ,
                            mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ))
             x = held
@@ -167,7 +171,7 @@ class PvdfFilter:
         return first, self.filt.process(x).astype(self.dtype, copy=False)
 
     def state_arrays(self) -> dict[str, np.ndarray]:
-        out = {} if self.filt is None or self.filt.zi is None else {"pv_filter": self.filt.zi}
+        out = {} if self.filt.zi is None else {"pv_filter": self.filt.zi}
         if self.held:
             out["pv_held"] = np.concatenate(self.held)
         return out

@@ -12,9 +12,11 @@ passes them to RA and PC. :class:`MainsResolver` looks at the stream's first :da
   beyond the constant (V^2, summed over taxels). 0.1 s at 2 kHz holds whole periods of every
   multiple of 10 Hz, so the 50 and 60 Hz sets are orthogonal;
 * another candidate wins when its line energy exceeds the configured one's by :data:`LINE_RATIO` and
-  its lines stand :data:`LINE_RATIO` above the residual noise per degree of freedom (the same 10 dB
-  the calibration asks of a harmonic before it notches it). Noise alone, or a contact, does not
-  move the choice; a hum of either frequency does, from its first tenth of a second.
+  at least :data:`MIN_LINES` of its lines stand :data:`LINE_RATIO` above the residual noise per
+  degree of freedom (the same 10 dB the calibration asks of a harmonic before it notches it): hum
+  is a comb of harmonics, a contact's vibration at one of them is one line. Noise alone, or a
+  contact, does not move the choice; a hum of either frequency does, from its first tenth of a
+  second.
 
 The choice is made once per stream (every taxel block and every branch restart uses it), so the
 output does not depend on how the samples are chunked.
@@ -30,19 +32,22 @@ from ..params import PreprocessParams
 from .filters import HUM_PRIME_S, mains_frequencies
 
 LINE_RATIO = 10.0  #: how far (energy ratio) a candidate's lines must stand out to move the choice
+MIN_LINES = 2  #: hum is a comb: one line alone (a vibration at one harmonic of the other frequency) is not hum
 
 
-def line_energy(x: np.ndarray, fs_hz: float, freqs_hz: Sequence[float]) -> tuple[float, float, int]:
-    """(line energy, residual energy, residual degrees of freedom) of samples ``x`` (n, N) fitted with
-    a constant plus sinusoids at ``freqs_hz`` per column (V^2, summed over columns)."""
+def line_energies(x: np.ndarray, fs_hz: float, freqs_hz: Sequence[float]) -> tuple[np.ndarray, float]:
+    """(energy of each line (len(freqs_hz),), residual energy per degree of freedom) of samples ``x``
+    (n, N) fitted with a constant plus sinusoids at ``freqs_hz`` per column (V^2, summed over columns).
+    A line's energy is its fitted sinusoids' (cos and sin), exact when the lines are orthogonal over
+    the window (whole periods)."""
     n, m = x.shape
     tt = np.arange(n) / fs_hz
     basis = np.column_stack([np.ones(n)] + [g(2 * np.pi * f * tt) for f in freqs_hz for g in (np.cos, np.sin)])
     coef, *_ = np.linalg.lstsq(basis, x, rcond=None)
     resid = x - basis @ coef
-    centred = x - x.mean(axis=0)
-    residual = float(np.sum(resid**2))
-    return float(np.sum(centred**2)) - residual, residual, max(1, (n - basis.shape[1]) * m)
+    lines = np.array([np.sum((basis[:, 1 + 2 * i : 3 + 2 * i] @ coef[1 + 2 * i : 3 + 2 * i]) ** 2)
+                      for i in range(len(freqs_hz))])
+    return lines, float(np.sum(resid**2)) / max(1, (n - basis.shape[1]) * m)
 
 
 def resolve_mains(start: np.ndarray, params: PreprocessParams, fs_hz: float) -> float:
@@ -57,12 +62,13 @@ def resolve_mains(start: np.ndarray, params: PreprocessParams, fs_hz: float) -> 
     for f in dict.fromkeys([chosen, *map(float, params.mains_candidates_hz)]):
         lines = mains_frequencies(f, params.notch_harmonics, fs_hz)
         if lines and x.shape[0] > 2 * len(lines) + 1:
-            fits[f] = (line_energy(x, fs_hz, lines), 2 * len(lines) * x.shape[1])
+            fits[f] = line_energies(x, fs_hz, lines)
     if chosen not in fits:
         return chosen
-    best = max(fits, key=lambda f: fits[f][0][0])
-    (energy, residual, dof), line_dof = fits[best]
-    if best != chosen and energy > LINE_RATIO * fits[chosen][0][0] and energy / line_dof > LINE_RATIO * residual / dof:
+    best = max(fits, key=lambda f: fits[f][0].sum())
+    energies, floor = fits[best]
+    standing = int(np.sum(energies / (2 * x.shape[1]) > LINE_RATIO * floor))  # lines 10x above the noise per dof
+    if best != chosen and energies.sum() > LINE_RATIO * fits[chosen][0].sum() and standing >= MIN_LINES:
         return best
     return chosen
 
