@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 distributed = pytest.importorskip("distributed")
+pytestmark = pytest.mark.slow  # a 2-process LocalCluster and three small fits: about 45 s (pytest -m slow; .ci/run runs it)
 
 from touchreal.fitting import fit as F  # noqa: E402
 from touchreal.params import EncoderParams  # noqa: E402

@@ -8,6 +8,7 @@ import json
 
 import httpx
 import numpy as np
+import pytest
 from server_harness import collect, connect, hello_and_subscribe, running_server, until
 from touchreal_client import protocol as P
 
@@ -18,6 +19,7 @@ from touchreal.server.settings import RuntimeConfig
 TAXELS = 1024  # 32 x 32
 
 
+@pytest.mark.slow  # the region's channels of ~500 taxels: 15-40 s here (pytest -m slow; .ci/run runs it)
 def test_a_large_skin_says_hello_in_a_few_hundred_bytes_and_serves_a_region(tmp_path, monkeypatch):
     monkeypatch.setattr(P, "HELLO_LISTED_TAXELS", 256)  # what a skin over 4,096 taxels gets
     with running_server(tmp_path, RuntimeConfig(taxels=TAXELS)) as (addr, svc):
