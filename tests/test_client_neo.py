@@ -43,7 +43,9 @@ def test_spike_frames_and_a_recording_become_neo_spiketrains(tmp_path):
         k, tx = P.CLASSES.index(st.annotations["afferent_class"]), st.annotations["taxel"]
         want = np.sort(t[(cls == k) & (taxel == tx)])
         assert np.array_equal(np.round(st.times.rescale(pq.us).magnitude).astype(np.int64), want)
-        assert round(float(st.t_stop.rescale(pq.us).magnitude)) == spikes[-1].final_us[st.annotations["afferent_class"]]
+        # t_stop: the latest finality of the class (a pipeline that shed load and restarted reports less for a while)
+        c = st.annotations["afferent_class"]
+        assert round(float(st.t_stop.rescale(pq.us).magnitude)) == max(v for f in spikes if (v := f.final_us.get(c)) is not None)
         assert st.annotations["x_mm"] == hello["taxels"][tx]["x_mm"]
         duration = (st.t_stop - st.t_start).rescale(pq.s).magnitude
         assert 1.5 < duration < 10
