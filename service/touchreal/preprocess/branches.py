@@ -130,9 +130,9 @@ class SingleTactBranch:
 
 class PvdfFilter:
     """PVDF low-pass + mains notches (one cascade), started at grid slot ``slot``: its first
-    :data:`HUM_PRIME_S` are held, then the cascade is built with notches at the stream's mains
-    (``mains``, resolved once per stream from its first samples: :mod:`.mains`) and primed with the
-    hum fitted to them (no notch ringing at the start), and everything flows through. The cascade
+    :data:`HUM_PRIME_S` are held, then the cascade's notches follow the stream's mains (``mains``,
+    resolved once per stream from its first samples: :mod:`.mains`), it is primed with the hum
+    fitted to them (no notch ringing at the start), and everything flows through. The cascade
     runs in float64 whatever ``dtype`` (the output's): in float32 its notches' poles near the unit
     circle put errors of ~1e-3 of the range into the PVDF channels, in float64 ~2e-7, at the same
     cost (~1.2 ms per update at 4096 taxels)."""

@@ -33,6 +33,7 @@ from .filters import HUM_PRIME_S, mains_frequencies
 
 LINE_RATIO = 10.0  #: how far (energy ratio) a candidate's lines must stand out to move the choice
 MIN_LINES = 2  #: hum is a comb: one line alone (a vibration at one harmonic of the other frequency) is not hum
+MAX_TAXELS = 256  #: taxels the fit reads at most (a 65,536-taxel skin's start: ~0.4 GB and 0.3 s at once otherwise)
 
 
 def line_energies(x: np.ndarray, fs_hz: float, freqs_hz: Sequence[float]) -> tuple[np.ndarray, float]:
@@ -50,6 +51,11 @@ def line_energies(x: np.ndarray, fs_hz: float, freqs_hz: Sequence[float]) -> tup
     return lines, float(np.sum(resid**2)) / max(1, (n - basis.shape[1]) * m)
 
 
+def _stride(n_taxels: int) -> int:
+    """Every how many taxels one is read, so that at most :data:`MAX_TAXELS` are."""
+    return max(1, -(-n_taxels // MAX_TAXELS))
+
+
 def resolve_mains(start: np.ndarray, params: PreprocessParams, fs_hz: float) -> float:
     """The mains frequency (Hz) of a stream whose first PVDF samples are ``start`` (n, N; V): the
     configured ``params.mains_hz`` unless another of ``params.mains_candidates_hz`` carries the hum
@@ -58,6 +64,7 @@ def resolve_mains(start: np.ndarray, params: PreprocessParams, fs_hz: float) -> 
     chosen = float(params.mains_hz)
     if x.ndim != 2 or x.shape[0] < 2 or not params.notch_harmonics:
         return chosen
+    x = x[:, :: _stride(x.shape[1])]  # one mains for the whole source: evenly spaced taxels suffice
     fits = {}
     for f in dict.fromkeys([chosen, *map(float, params.mains_candidates_hz)]):
         lines = mains_frequencies(f, params.notch_harmonics, fs_hz)
@@ -89,7 +96,7 @@ class MainsResolver:
         """The stream's next sanitized PVDF samples (n, N); resolves once :data:`HUM_PRIME_S` arrived."""
         if self.hz is not None or x.shape[0] == 0:
             return
-        self._start.append(x[: self.n_start - self._held])
+        self._start.append(x[: self.n_start - self._held, :: _stride(x.shape[1])])
         self._held += self._start[-1].shape[0]
         if self._held >= self.n_start:
             self.resolve()
