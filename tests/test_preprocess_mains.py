@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from touchreal.params import PreprocessParams
+from touchreal.params import PreprocessParams, default_params
 from touchreal.preprocess.mains import resolve_mains
 from touchreal.preprocess.pipeline import Channels, Preprocessor
 from touchreal.raw import RawChunk
 from touchreal.stream import StreamEncoder
-from touchreal.params import default_params
 
 FS = 2000.0
 
@@ -71,8 +70,9 @@ def _hum_left(params: PreprocessParams, seconds: float = 1.0, chunk: int | None 
     step = chunk or t.size
     parts = []
     for a in range(0, t.size, step):
-        sel = (st_t >= (t[a] if a else 0.0)) & (st_t < (t[min(a + step, t.size) - 1] if a + step < t.size else 1e9))
-        pre.feed(st_t[sel], st[sel], t[a : a + step], x[a : a + step])
+        b = min(a + step, t.size)
+        sel = (st_t > (t[a - 1] if a else -np.inf)) & (st_t <= t[b - 1])  # the SingleTact samples up to this chunk's end
+        pre.feed(st_t[sel], st[sel], t[a:b], x[a:b])
         parts.append(pre.take(params.window_ms))
     pre.flush()
     parts.append(pre.take(params.window_ms))
