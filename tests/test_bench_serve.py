@@ -3,6 +3,7 @@
 import asyncio
 
 import numpy as np
+import pytest
 from touchreal_client import protocol as P
 
 from touchreal.bench.serve import _light_clients
@@ -11,6 +12,7 @@ from touchreal.server.settings import RuntimeConfig
 from server_harness import running_server
 
 
+@pytest.mark.slow  # four light-client processes against a real server: ~19 s (pytest -m slow; .ci/run runs it)
 def test_light_subscribers_see_every_frame_in_order_with_its_size(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
         spikes, spikes_joining = asyncio.run(_light_clients(addr, 3, 1.5, {}, settle_s=0.3))
