@@ -159,9 +159,9 @@ class PvdfFilter:
             self.held = None
             if held.shape[0] == 0:
                 return self.slot, held
-            params = self.params
-            if self.mains.resolve() != params.mains_hz:
-                params = params.model_copy(update={"mains_hz": self.mains.resolve()})
+            params, mains_hz = self.params, self.mains.resolve()
+            if mains_hz != params.mains_hz:
+                params = params.model_copy(update={"mains_hz": mains_hz})
                 self.filt = pvdf_filter(params, PVDF_FS_HZ, self.n_taxels, np.float64)
             prime_with_hum(self.filt, held[:n_prime], PVDF_FS_HZ,
                            mains_frequencies(params.mains_hz, params.notch_harmonics, PVDF_FS_HZ))
