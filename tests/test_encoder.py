@@ -242,6 +242,31 @@ def test_set_columns_keeps_continuing_columns_and_starts_new_ones_from_rest():
         enc.set_columns({"PC": [3]})
 
 
+def test_gathered_encoders_continue_their_columns_bit_for_bit():
+    """Two encoders over taxel subsets, gathered (reordered) into one mid-stream: every column they ran
+    continues bit for bit (the whole encoder's spikes on those taxels); a column neither ran starts from rest."""
+    p = default_params()
+    ch = _channels(t=4000, taxels=5, seed=7)
+    whole = Encoder(p, n_taxels=5).process(Channels(0, ch))
+    a, b = Encoder(p, n_taxels=2), Encoder(p, n_taxels=3, columns={"SA1": [0, 1, 2], "RA": [2]})
+    cols_a, cols_b = [3, 1], [0, 4, 2]  # the taxels each one runs
+    first = [a.process(Channels(0, ch[:1500, cols_a])), b.process(Channels(0, ch[:1500, cols_b]))]
+    g = Encoder.gather([(b, np.array([2, 0])), (a, np.array([0, 1]))], {"SA1": [0, 1, 2, 3], "RA": [0, 2, 3], "PC": [2]})
+    taxels = [cols_b[2], cols_b[0], cols_a[0], cols_a[1]]  # the gathered encoder's taxels: 2, 0, 3, 1
+    assert g.n_taxels == 4 and g.columns == [(0, "SA1"), (0, "RA"), (1, "SA1"), (2, "SA1"), (2, "RA"), (2, "PC"), (3, "SA1"), (3, "RA")]
+    later = g.process(Channels(1500, ch[1500:, taxels]))
+    for local, x in enumerate(taxels):
+        ran = [c for c in CLASSES if (local, c) in g.columns]
+        for c in ran:
+            before = [e.train(c, cols.index(x)) for e, cols in zip(first, (cols_a, cols_b)) if x in cols]
+            got = np.concatenate(before + [later.train(c, local)])
+            if (c, x) == ("RA", 0):  # neither part ran it: started at the gather, from rest
+                fresh = Encoder(p, n_taxels=1, classes=[c]).process(Channels(1500, ch[1500:, [x]]))
+                np.testing.assert_array_equal(later.train(c, local), fresh.train(c))
+            else:
+                np.testing.assert_array_equal(got, whole.train(c, x))
+
+
 def test_set_columns_carries_state_between_stages_with_and_without_a_highpass_section():
     p = default_params()
     classes = dict(p.classes)

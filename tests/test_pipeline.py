@@ -173,3 +173,43 @@ def test_a_preprocessor_on_a_shared_acquisition_is_fed_through_it():
         pre.feed(np.array([0.0]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="contiguous block"):
         Preprocessor(PreprocessParams(), acquisition=acq, taxels=range(2, 4))
+
+
+def test_gathered_preprocessors_continue_their_taxels():
+    """Preprocessors over taxel subsets of one acquisition (every source), gathered (reordered) into one
+    mid-stream, continue as the parts would have: the channels of a preprocessor that ran every taxel
+    all along, to rounding (a batch of another size may round the FFTs differently: ~1e-15 of the range)."""
+    from touchreal.preprocess.pipeline import Acquisition
+
+    trial = synthetic_trial(duration_s=1.5, seed=3)
+    n = 5
+    st = np.float64(trial.st)[:, None] * np.linspace(0.5, 1.5, n)[None, :]
+    pv = np.float64(trial.pvdf)[:, None] * np.linspace(1.5, 0.5, n)[None, :]
+    sources = [None, 16.0, 128.0]
+    acq = Acquisition(n, 128.0)
+    whole = Preprocessor(PreprocessParams(), sources=sources, acquisition=acq, taxels=range(n))
+    a = Preprocessor(PreprocessParams(), sources=sources, acquisition=acq, taxels=np.array([3, 1]))
+    b = Preprocessor(PreprocessParams(), sources=sources, acquisition=acq, taxels=np.array([0, 4, 2]))
+    out = {s: [] for s in sources}
+    merged = None
+    for t0 in np.arange(0.0, 1.5, 0.005):
+        si = (trial.st_t >= t0) & (trial.st_t < t0 + 0.005)
+        pi = (trial.pvdf_t >= t0) & (trial.pvdf_t < t0 + 0.005)
+        new = acq.push(trial.st_t[si], st[si], trial.pvdf_t[pi], pv[pi])
+        for pre in (whole, a, b) if merged is None else (whole, merged):
+            pre.consume(*new)
+        for s in sources:
+            ref = whole.take(s)
+            parts = [a.take(s), b.take(s)] if merged is None else [merged.take(s)]
+            out[s].append((ref, parts))
+        if merged is None and t0 >= 0.6:  # a's taxel 1, then all of b's, then a's taxel 3
+            merged = Preprocessor.gather([(a, np.array([1])), (b, np.arange(3))])
+            assert merged.taxels.tolist() == [1, 0, 4, 2] and merged.cursor == a.cursor
+    for s in sources:
+        for ref, parts in out[s]:
+            cols = [a.taxels, b.taxels] if len(parts) == 2 else [merged.taxels]
+            for ch, taxels in zip(parts, cols):
+                assert ch.k0 == ref.k0 and ch.n_samples == ref.n_samples
+                scale = 1.0 + np.abs(ref.data).max(axis=(0, 1), initial=0.0)  # per channel
+                assert (np.abs(ch.data - ref.data[:, taxels]) <= 1e-12 * scale).all()
+    assert sum(ref.n_samples for ref, _ in out[None]) > 6000

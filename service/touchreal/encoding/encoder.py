@@ -16,6 +16,7 @@ is reported at ``(k + 1) / 5000 + delay`` seconds on the recording clock.
 
 from __future__ import annotations
 
+import copy
 import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -208,12 +209,15 @@ class InputStage:
         self._zi_unit = np.zeros((n, LOWPASS_SECTIONS, 2))
         self.hp_sos = np.zeros((n, 1, 6))
         self._hp_zi_unit = np.zeros((n, 1, 2))
+        rows: dict[tuple[float | None, float | None], list[int]] = {}  # columns by input filter (a class's share one)
         for j, p in enumerate(params):
-            sos, zi = _input_design(p.lowpass_hz, p.highpass_hz)
-            if self.has_lp[j]:
-                self.sos[j], self._zi_unit[j] = sos[:LOWPASS_SECTIONS], zi[:LOWPASS_SECTIONS]
-            if self.has_hp[j]:
-                self.hp_sos[j], self._hp_zi_unit[j] = sos[LOWPASS_SECTIONS:], zi[LOWPASS_SECTIONS:]
+            rows.setdefault((p.lowpass_hz, p.highpass_hz), []).append(j)
+        for (lowpass_hz, highpass_hz), js in rows.items():
+            sos, zi = _input_design(lowpass_hz, highpass_hz)
+            if lowpass_hz is not None:
+                self.sos[js], self._zi_unit[js] = sos[:LOWPASS_SECTIONS], zi[:LOWPASS_SECTIONS]
+            if highpass_hz is not None:
+                self.hp_sos[js], self._hp_zi_unit[js] = sos[LOWPASS_SECTIONS:], zi[LOWPASS_SECTIONS:]
         self.lead = np.array([int(round(p.negative_lead_ms * OUT_FS_HZ / 1000.0)) for p in params], dtype=np.int64)
         self.zi = np.zeros((n, LOWPASS_SECTIONS, 2, N_CHANNELS))
         self.hp_zi = np.zeros((n, 1, 2, N_CHANNELS))
@@ -234,6 +238,28 @@ class InputStage:
         self.ring[new_rows, :lead] = old.ring[old_rows, :lead]
         self.head[new_rows] = old.head[old_rows]
         self.fresh[new_rows] = old.fresh[old_rows]
+
+    #: per-column arrays (first axis: the column), copied row by row when stages are gathered
+    _COLUMN_ARRAYS = ("src", "w", "i_sat", "has_lp", "has_hp", "sos", "_zi_unit", "hp_sos", "_hp_zi_unit", "lead", "zi", "hp_zi",
+                      "head", "fresh")
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["InputStage", np.ndarray]], src: np.ndarray) -> "InputStage":
+        """One stage of the columns ``rows`` of each part, in order, reading the taxels ``src``
+        (one per column): parameters and state copied bit for bit."""
+        out = copy.copy(parts[0][0])
+        for name in InputStage._COLUMN_ARRAYS:
+            setattr(out, name, np.concatenate([getattr(st, name)[rows] for st, rows in parts]))
+        out.src = np.ascontiguousarray(src, dtype=np.int64)
+        out._n_taxels = int(out.src.max(initial=-1)) + 1
+        width = int(out.lead.max(initial=0))  # a column uses its own lead's first entries only
+        out.ring = np.zeros((out.src.size, width))
+        at = 0
+        for st, rows in parts:
+            k = min(width, st.ring.shape[1])
+            out.ring[at : at + len(rows), :k] = st.ring[rows, :k]
+            at += len(rows)
+        return out
 
     def _start(self, first: np.ndarray) -> None:
         """Fresh columns start in steady state at their first sample ``first`` (X, 4): the input
@@ -375,13 +401,14 @@ class Encoder:
 
     ``process(channels)`` takes a :class:`~touchreal.preprocess.pipeline.Channels` block (or the raw
     (T, n_taxels, 4) array with its first grid index) and returns the block's :class:`SpikeEvents`.
-    All columns are active at first; :meth:`set_columns` changes the set: continuing columns keep
+    All columns are active at first (or ``columns``, class -> taxels); :meth:`set_columns` changes the set: continuing columns keep
     their state bit-exactly (columns are independent, so a column's spikes do not depend on which
     others run), a (re)started column starts from rest at the next sample it is given (membrane at
     0, no recent spike, class input filter and lead history in steady state at that sample).
     """
 
-    def __init__(self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None):
+    def __init__(self, params: EncoderParams, n_taxels: int = 1, classes: Sequence[str] | None = None,
+                 columns: Mapping[str, Iterable[int]] | None = None):
         classes = tuple(classes) if classes is not None else tuple(params.classes)
         missing = [c for c in classes if c not in params.classes]
         if missing:
@@ -390,7 +417,10 @@ class Encoder:
         self.n_taxels = n_taxels
         self.classes = tuple(c for c in CLASSES if c in classes)
         self.class_index = np.array([CLASSES.index(c) for c in self.classes])
-        self._build([(x, c) for x in range(self.n_units) for c in self.classes if self._has(x, c)])
+        if columns is None:  # every column
+            self._build([(x, c) for x in range(self.n_units) for c in self.classes if self._has(x, c)])
+        else:
+            self._build(self._column_list(columns))
 
     def _build(self, columns: list[tuple[int, str]]) -> None:
         """Fresh input stages and neurons for ``columns`` [(taxel, class)], taxel-major."""
@@ -427,16 +457,20 @@ class Encoder:
     def n_columns(self) -> int:
         return len(self.columns)
 
+    def _column_list(self, columns: Mapping[str, Iterable[int]]) -> list[tuple[int, str]]:
+        """The (unit, class) columns of ``columns`` (class -> units), unit-major, as :meth:`_build` takes them."""
+        want = {c: {int(x) for x in columns.get(c, ())} for c in self.classes}
+        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_units})
+        if bad:
+            raise ValueError(f"units {bad} out of range 0..{self.n_units - 1}")
+        return sorted(((x, c) for c in self.classes for x in want[c] if self._has(x, c)), key=lambda xc: (xc[0], self.classes.index(xc[1])))
+
     def set_columns(self, columns: Mapping[str, Iterable[int]]) -> None:
         """Make the given (class -> taxels) the active columns (classes of this encoder only)."""
         unknown = set(columns) - set(self.classes)
         if unknown:
             raise ValueError(f"classes {sorted(unknown)} are not encoded here (have {list(self.classes)})")
-        want = {c: {int(x) for x in columns.get(c, ())} for c in self.classes}
-        bad = sorted({x for xs in want.values() for x in xs if not 0 <= x < self.n_units})
-        if bad:
-            raise ValueError(f"units {bad} out of range 0..{self.n_units - 1}")
-        new = [(x, c) for x in range(self.n_units) for c in self.classes if x in want[c] and self._has(x, c)]
+        new = self._column_list(columns)
         if new == self.columns:
             return
         old_index = {col: i for i, col in enumerate(self.columns)}
@@ -448,6 +482,34 @@ class Encoder:
             self.inputs.carry(old_inputs, rows_old, rows_new)
             self.lif.state.v[rows_new] = old_state.v[rows_old]
             self.lif.state.counter[rows_new] = old_state.counter[rows_old]
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["Encoder", np.ndarray]], columns: Mapping[str, Iterable[int]]) -> "Encoder":
+        """One encoder over the taxels ``idx`` of each part, in order, with the active ``columns``
+        (class -> taxels of the result): a column its part ran continues bit for bit (its arrays
+        gathered, nothing rebuilt from the parameters), the others start from rest (:meth:`set_columns`)."""
+        out = copy.copy(parts[0][0])
+        out.n_taxels = sum(len(idx) for _, idx in parts)
+        rows, taxels, offset = [], [], 0
+        for enc, idx in parts:  # each part's columns on the taxels idx, renumbered to their place in the result
+            place = np.full(enc.n_taxels, -1, np.int64)
+            place[np.asarray(idx, np.int64)] = offset + np.arange(len(idx))
+            new = place[enc._taxel_n]
+            keep = np.flatnonzero(new >= 0)
+            order = keep[np.argsort(new[keep], kind="stable")]  # taxel-major; a taxel's classes keep their order
+            rows.append(order)
+            taxels.append(new[order])
+            offset += len(idx)
+        parts_rows = [(enc, r) for (enc, _), r in zip(parts, rows)]
+        taxel_n = np.concatenate(taxels)
+        out._taxel_n = taxel_n
+        out._cls_n = np.concatenate([enc._cls_n[r] for enc, r in parts_rows])
+        out._delay_n = np.concatenate([enc._delay_n[r] for enc, r in parts_rows])
+        out.columns = list(zip(taxel_n.tolist(), [CLASSES[c] for c in out._cls_n.tolist()]))
+        out.inputs = InputStage.gather([(enc.inputs, r) for enc, r in parts_rows], out._input_rows())
+        out.lif = LifPopulation.gather([(enc.lif, r) for enc, r in parts_rows])
+        out.set_columns(columns)
+        return out
 
     def reset(self) -> None:
         self._build(self.columns)

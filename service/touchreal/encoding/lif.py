@@ -85,6 +85,15 @@ class LifPopulation:
         self.ih = ih
         self.state = LifState.rest(tau.size, ih.shape[1])
 
+    @staticmethod
+    def gather(parts: "list[tuple[LifPopulation, np.ndarray]]") -> "LifPopulation":
+        """The neurons ``rows`` of each part, in order (parameters and state copied)."""
+        out = LifPopulation.__new__(LifPopulation)
+        out.tau = np.concatenate([p.tau[r] for p, r in parts])
+        out.ih = np.concatenate([p.ih[r] for p, r in parts])
+        out.state = LifState(np.concatenate([p.state.v[r] for p, r in parts]), np.concatenate([p.state.counter[r] for p, r in parts]))
+        return out
+
     @property
     def n_neurons(self) -> int:
         return self.tau.size

@@ -9,16 +9,21 @@
 * :class:`Grid`: a branch's 5 kHz output until every source has read it.
 
 Each branch is a sans-I/O state machine fed slot-indexed samples; frame boundaries, knots and grid
-points depend only on sample indices, so chunking never changes the output.
+points depend only on sample indices, so chunking never changes the output. Per-taxel processing
+is independent, so branches fed the same samples can be regrouped by taxel (``gather``: the taxels
+``idx`` of each part, in order, into one branch, every state copied bit for bit): the activity-driven
+stream merges the taxels a contact woke into the running set and drops those that went quiet.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import copy
+from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy import signal
 
-from ..params import PreprocessParams
+from ..params import GateCalibration, PreprocessParams
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
 from .filters import HUM_PRIME_S, AlphaBeta, SosFilter, butter_lowpass, mains_frequencies, prime_with_hum
 from .gate import gate_thresholds, pvdf_filter
@@ -50,14 +55,26 @@ class History:
         self.count = min(self.count + x.shape[0], size)
         self.end = end
 
-    def since(self, slot: int) -> tuple[int, np.ndarray]:
-        """(first slot, samples) from ``slot`` (or the oldest kept) to the newest."""
+    def since(self, slot: int, cols: slice | np.ndarray = slice(None)) -> tuple[int, np.ndarray]:
+        """(first slot, samples of the taxels ``cols``) from ``slot`` (or the oldest kept) to the newest."""
         first = max(slot, self.end - self.count)
-        return first, self.buf[np.arange(first, self.end) % self.buf.shape[0]]
+        return first, self.buf[:, cols][np.arange(first, self.end) % self.buf.shape[0]]
 
     @property
     def first(self) -> int | None:
         return self.end - self.count if self.count else None
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["History", np.ndarray]]) -> "History":
+        """The taxels ``idx`` of each part, in order: the samples every part holds."""
+        held = [h for h, _ in parts if h.count]
+        if len({h.end for h in held}) > 1:
+            raise ValueError("histories gathered into one must end at the same slot")
+        out = History(parts[0][0].buf.shape[0], 0, parts[0][0].buf.dtype)
+        out.buf = np.concatenate([h.buf[:, idx] for h, idx in parts], axis=1)
+        out.count = min(h.count for h, _ in parts)
+        out.end = held[0].end if held and out.count else 0
+        return out
 
     def clear(self) -> None:
         self.count = 0
@@ -98,6 +115,31 @@ class Grid:
     def arrays(self) -> list[np.ndarray]:
         return [blk for _, blk in self.blocks]
 
+    @staticmethod
+    def gather(parts: Sequence[tuple["Grid", np.ndarray]]) -> "Grid":
+        """The taxels ``idx`` of each part, in order, as one block from the earliest sample any part
+        holds to their common end; a part that starts later (a branch rebuilt from a short raw history)
+        holds its first value back to there."""
+        ends = {g.end for g, _ in parts}
+        if len(ends) > 1:
+            raise ValueError(f"grids gathered into one must end at the same index, have {sorted(ends, key=str)}")
+        out = Grid(sum(len(idx) for _, idx in parts))
+        out.end = end = ends.pop()
+        starts = [g.k0 for g, _ in parts if g.blocks]
+        if end is None or not starts:
+            return out
+        k0 = min(starts)
+        dtype = next(g.blocks[0][1].dtype for g, _ in parts if g.blocks)
+        cols = []
+        for g, idx in parts:
+            x = g.read(g.k0, end)[:, idx] if g.blocks else np.zeros((0, len(idx), 2), dtype)
+            if x.shape[0] < end - k0:
+                head = x[:1] if x.shape[0] else np.zeros((1, len(idx), 2), dtype)
+                x = np.concatenate((np.repeat(head, end - k0 - x.shape[0], axis=0), x))
+            cols.append(x)
+        out.blocks = [(k0, np.concatenate(cols, axis=1))]
+        return out
+
 
 class SingleTactBranch:
     """SingleTact: Butterworth low-pass -> alpha-beta -> PCHIP onto the 5 kHz grid (ST [N], dST [N/s])."""
@@ -118,6 +160,15 @@ class SingleTactBranch:
 
     def finish(self, until_s: float) -> None:
         self.out.add(self.rs.finish(until_s))
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["SingleTactBranch", np.ndarray]]) -> "SingleTactBranch":
+        out = copy.copy(parts[0][0])
+        out.lp = SosFilter.gather([(b.lp, idx) for b, idx in parts])
+        out.ab = AlphaBeta.gather([(b.ab, idx) for b, idx in parts])
+        out.rs = CausalPchip.gather([(b.rs, idx) for b, idx in parts], groups=2)
+        out.out = Grid.gather([(b.out, idx) for b, idx in parts])
+        return out
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {"st_ab_v": self.ab.v, "st_rs": self.rs._y}
@@ -170,11 +221,40 @@ class PvdfFilter:
         self.slot += x.shape[0]
         return first, self.filt.process(x).astype(self.dtype, copy=False)
 
+    @staticmethod
+    def gather(parts: Sequence[tuple["PvdfFilter", np.ndarray]]) -> "PvdfFilter":
+        """Filters at the same slot, all primed or all still holding the same start."""
+        held = [None if f.held is None else np.concatenate(f.held) if f.held else np.zeros((0, f.n_taxels)) for f, _ in parts]
+        if any(f.slot != parts[0][0].slot for f, _ in parts) or len({None if h is None else h.shape[0] for h in held}) > 1:
+            raise ValueError("PVDF filters gathered into one must be at the same slot, all primed or holding the same samples")
+        out = copy.copy(parts[0][0])
+        out.filt = SosFilter.gather([(f.filt, idx) for f, idx in parts])
+        out.n_taxels = out.filt.n_taxels
+        if held[0] is not None:
+            out.held = [np.concatenate([h[:, idx] for h, (_, idx) in zip(held, parts)], axis=1)]
+        return out
+
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {} if self.filt.zi is None else {"pv_filter": self.filt.zi}
         if self.held:
             out["pv_held"] = np.concatenate(self.held)
         return out
+
+
+_THRESHOLDS: dict[tuple[int, int, str], tuple[GateCalibration, np.ndarray]] = {}  #: by (id of the calibration, frame, dtype)
+
+
+def _thresholds(gate: GateCalibration, n: int, dtype: np.dtype) -> np.ndarray:
+    """The gate's per-bin thresholds for frames of ``n`` samples windowed in ``dtype`` (computed once per
+    calibration: a stream that wakes taxels builds branches often)."""
+    key = (id(gate), n, dtype.str)
+    hit = _THRESHOLDS.get(key)
+    if hit is None or hit[0] is not gate:
+        if len(_THRESHOLDS) >= 64:
+            _THRESHOLDS.clear()
+        window = signal.get_window("hann", n, fftbins=True).astype(dtype).astype(np.float64)
+        hit = _THRESHOLDS[key] = (gate, gate_thresholds(gate, window, PVDF_FS_HZ))
+    return hit[1]
 
 
 class PvdfWindowBranch:
@@ -186,11 +266,11 @@ class PvdfWindowBranch:
 
     def __init__(self, params: PreprocessParams, window_ms: float, n_taxels: int, dtype: np.dtype, slot_time: Callable, slot: int):
         n = frame_length(window_ms, PVDF_FS_HZ)
-        gate = StftGate(n, n_taxels, dtype=dtype)
-        if params.gate is not None:
-            thresholds = gate_thresholds(params.gate, gate.window.astype(np.float64), PVDF_FS_HZ)
-            gate = StftGate(n, n_taxels, thresholds, params.gate.attenuation, dtype=dtype)
-        self.gate = gate
+        if params.gate is None:
+            self.gate = StftGate(n, n_taxels, dtype=dtype)
+        else:
+            self.gate = StftGate(n, n_taxels, _thresholds(params.gate, n, np.dtype(dtype)), params.gate.attenuation, dtype=dtype)
+        gate = self.gate
         self.n_taxels = n_taxels
         self.in_slot = -(-slot // gate.hop) * gate.hop  # first input slot: the next frame boundary
         self.out_slot = self.in_slot  # slot of the next gate output sample
@@ -221,6 +301,20 @@ class PvdfWindowBranch:
         slots = np.arange(self.out_slot, self.out_slot + y.shape[0])
         self.out_slot += y.shape[0]
         self.out.add(self.rs.process(self.slot_time(slots), np.concatenate((y, dy), axis=1)))
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["PvdfWindowBranch", np.ndarray]]) -> "PvdfWindowBranch":
+        """Branches at the same input and output slots."""
+        first = parts[0][0]
+        if any((b.in_slot, b.out_slot, b.prev is None) != (first.in_slot, first.out_slot, first.prev is None) for b, _ in parts):
+            raise ValueError("window branches gathered into one must be at the same slots")
+        out = copy.copy(first)
+        out.gate = StftGate.gather([(b.gate, idx) for b, idx in parts])
+        out.n_taxels = out.gate.n_taxels
+        out.prev = None if first.prev is None else np.concatenate([b.prev[idx] for b, idx in parts])
+        out.rs = CausalPchip.gather([(b.rs, idx) for b, idx in parts], groups=2)
+        out.out = Grid.gather([(b.out, idx) for b, idx in parts])
+        return out
 
     def state_arrays(self, name: str) -> dict[str, np.ndarray]:
         out = {f"{name}_gate_buf": self.gate._buf, f"{name}_gate_acc": self.gate._acc, f"{name}_rs": self.rs._y}

@@ -7,6 +7,7 @@ same output as feeding it whole, so the same code runs offline, online and in te
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numba
 import numpy as np
@@ -45,6 +46,14 @@ def _sos_run(sos, x, zi, out):  # pragma: no cover - compiled
             out[i, j] = v[j]
 
 
+@lru_cache(maxsize=256)
+def _unit_state(sos: bytes, n_sections: int, dtype: str) -> np.ndarray:
+    """``sosfilt_zi`` of a cascade given as bytes (a filter built often, e.g. per woken taxel, designs it once), read-only."""
+    zi = signal.sosfilt_zi(np.frombuffer(sos, np.dtype(dtype)).reshape(n_sections, 6)).astype(dtype)
+    zi.flags.writeable = False
+    return zi
+
+
 class SosFilter:
     """A cascade of second-order sections with persistent ``zi`` (one state per taxel).
 
@@ -61,7 +70,7 @@ class SosFilter:
         sos = sos / sos[:, 3:4]  # a0 = 1
         self.sos = np.ascontiguousarray(sos.astype(self.dtype))
         self.n_taxels = n_taxels
-        self._zi_unit = signal.sosfilt_zi(self.sos).astype(self.dtype)  # (n_sections, 2)
+        self._zi_unit = _unit_state(self.sos.tobytes(), self.sos.shape[0], self.dtype.str)  # (n_sections, 2)
         self.zi: np.ndarray | None = None
         if initial is not None:  # steady state at a known level instead of the first sample
             self.zi = np.ascontiguousarray(self._zi_unit[:, :, None] * np.broadcast_to(initial, (n_taxels,))[None, None, :])
@@ -85,6 +94,20 @@ class SosFilter:
         self.zi = None
         self.process(history)
 
+    @staticmethod
+    def gather(parts: Sequence[tuple["SosFilter", np.ndarray]]) -> "SosFilter":
+        """One filter over the columns ``idx`` of each part, in order (the same cascade; each
+        column's state copied bit for bit). Parts must all have started (state set) or none."""
+        first = parts[0][0]
+        out = SosFilter(first.sos, sum(len(idx) for _, idx in parts), first.dtype)
+        out.sos = first.sos
+        started = [f.zi is not None for f, _ in parts]
+        if any(not np.array_equal(f.sos, first.sos) for f, _ in parts) or len(set(started)) > 1:
+            raise ValueError("filters gathered into one must share their cascade and have all started, or none")
+        if started[0]:
+            out.zi = np.ascontiguousarray(np.concatenate([f.zi[:, :, idx] for f, idx in parts], axis=2))
+        return out
+
     def then(self, other: "SosFilter | None") -> "SosFilter":
         """One cascade: this filter followed by ``other`` (fresh state)."""
         if other is None:
@@ -96,9 +119,16 @@ class SosFilter:
         return 0.0 if self.zi is None else float(np.max(np.abs(self.zi)))
 
 
+@lru_cache(maxsize=64)
+def _butter_sos(cutoff_hz: float, fs_hz: float, order: int) -> np.ndarray:
+    sos = signal.butter(order, cutoff_hz, btype="low", fs=fs_hz, output="sos")
+    sos.flags.writeable = False
+    return sos
+
+
 def butter_lowpass(cutoff_hz: float, fs_hz: float, order: int, n_taxels: int = 1, dtype: type = np.float64) -> SosFilter:
-    """Butterworth low-pass as a stateful :class:`SosFilter`."""
-    return SosFilter(signal.butter(order, cutoff_hz, btype="low", fs=fs_hz, output="sos"), n_taxels, dtype)
+    """Butterworth low-pass as a stateful :class:`SosFilter` (its design computed once per cutoff, rate and order)."""
+    return SosFilter(_butter_sos(float(cutoff_hz), float(fs_hz), int(order)), n_taxels, dtype)
 
 
 def periodic_history(block: np.ndarray, fs_hz: float, freqs_hz: Sequence[float], n_history: int) -> np.ndarray:
@@ -180,6 +210,19 @@ class AlphaBeta:
         self.alpha, self.beta, self.dt = float(alpha), float(beta), 1.0 / fs_hz
         self.x: np.ndarray | None = None
         self.v = np.zeros(n_taxels)
+
+    @staticmethod
+    def gather(parts: Sequence[tuple["AlphaBeta", np.ndarray]]) -> "AlphaBeta":
+        """One tracker over the columns ``idx`` of each part, in order (same gains; state copied).
+        Parts must all have started or none."""
+        first = parts[0][0]
+        out = AlphaBeta(first.alpha, first.beta, 1.0 / first.dt, 0)
+        if len({ab.x is None for ab, _ in parts}) > 1:
+            raise ValueError("trackers gathered into one must all have started, or none")
+        out.v = np.concatenate([ab.v[idx] for ab, idx in parts])
+        if first.x is not None:
+            out.x = np.concatenate([ab.x[idx] for ab, idx in parts])
+        return out
 
     def process(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         z = np.ascontiguousarray(z, dtype=np.float64)

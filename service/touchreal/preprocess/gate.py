@@ -11,6 +11,7 @@ Two things are measured on baseline PVDF (V, 2 kHz) and stored in the parameter 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 from scipy import signal
@@ -39,12 +40,20 @@ def _welch(segments: Sequence[np.ndarray], fs_hz: float) -> tuple[np.ndarray, np
     return freqs, total / weight
 
 
+@lru_cache(maxsize=64)
+def _pvdf_sos(lowpass_hz: float, fs_hz: float, mains_hz: float | None, harmonics: tuple[int, ...], q: float) -> np.ndarray:
+    """The PVDF cascade's sections (a stream that wakes taxels builds it often); ``mains_hz`` None: no notches."""
+    filt = butter_lowpass(lowpass_hz, fs_hz, _PVDF_LP_ORDER)
+    if mains_hz is not None:
+        filt = filt.then(mains_notches(mains_hz, list(harmonics), q, fs_hz))
+    filt.sos.flags.writeable = False
+    return filt.sos
+
+
 def pvdf_filter(params: PreprocessParams, fs_hz: float, n_taxels: int = 1, dtype: type = np.float64, notch: bool = True) -> SosFilter:
     """The PVDF cascade: Butterworth low-pass, then (with ``notch``) the mains notch comb."""
-    filt = butter_lowpass(params.pvdf_lowpass_hz, fs_hz, _PVDF_LP_ORDER, n_taxels, dtype)
-    if not notch:
-        return filt
-    return filt.then(mains_notches(params.mains_hz, params.notch_harmonics, params.notch_q, fs_hz, n_taxels, dtype))
+    sos = _pvdf_sos(params.pvdf_lowpass_hz, fs_hz, params.mains_hz if notch else None, tuple(params.notch_harmonics), params.notch_q)
+    return SosFilter(sos, n_taxels, dtype)
 
 
 def filter_segments(segments: Sequence[np.ndarray], params: PreprocessParams, fs_hz: float, notch: bool = True) -> list[np.ndarray]:

@@ -80,6 +80,17 @@ class Channels:
         return Channels(blocks[0].k0, np.concatenate([b.data for b in blocks], axis=0))
 
 
+def _valid_taxels(taxels: range | np.ndarray | None, n_taxels: int) -> bool:
+    """A contiguous block (range, step 1) or an array of distinct ids of ``n_taxels`` taxels."""
+    if isinstance(taxels, range):
+        return taxels.step == 1 and 0 <= taxels.start < taxels.stop <= n_taxels
+    if taxels is None:
+        return False
+    ids = np.asarray(taxels)
+    return (ids.ndim == 1 and ids.dtype.kind in "iu" and (not ids.size or (ids.min() >= 0 and ids.max() < n_taxels))
+            and np.unique(ids).size == ids.size)
+
+
 def check_raw(st_t, st, pvdf_t, pvdf, n_taxels: int) -> None:
     """Raise ValueError unless each sensor's values are (n, n_taxels) (or (n,) for one taxel) for
     its n timestamps."""
@@ -150,8 +161,10 @@ class Preprocessor:
 
     ``sources`` are the initially active sources (default: ``params.window_ms``); ``max_window_ms``
     sizes the raw history kept for restarts (default: the longest window of ``sources``). With a
-    shared ``acquisition``, the preprocessor serves its ``taxels`` (a block of the acquisition's
-    taxels) and is fed by :meth:`consume` after the owner's :meth:`Acquisition.push`.
+    shared ``acquisition``, the preprocessor serves its ``taxels`` (a contiguous block of the
+    acquisition's taxels, or any array of them) and is fed by :meth:`consume` after the owner's
+    :meth:`Acquisition.push`; ``start`` (per source, a grid index) delivers a source from there
+    instead of the restart index, as far as the raw history reaches (see :meth:`set_sources`).
     """
 
     def __init__(
@@ -162,7 +175,8 @@ class Preprocessor:
         sources: Iterable[Source] | None = None,
         max_window_ms: float | None = None,
         acquisition: Acquisition | None = None,
-        taxels: range | None = None,
+        taxels: range | np.ndarray | None = None,
+        start: dict[Source, int | None] | None = None,
     ):
         self.params = params = params or PreprocessParams()
         self.dtype = np.dtype(dtype)  # arithmetic of the filters, the STFT gate and PCHIP; dtype of the channels
@@ -172,25 +186,25 @@ class Preprocessor:
         self._owns_acquisition = acquisition is None
         if acquisition is None:
             acquisition, taxels = Acquisition(n_taxels, max_window_ms, params), range(n_taxels)
-        elif taxels is None or taxels.step != 1 or not 0 <= taxels.start < taxels.stop <= acquisition.n_taxels:
-            raise ValueError("a preprocessor on a shared acquisition needs a contiguous block of its taxels")
+        elif not _valid_taxels(taxels, acquisition.n_taxels):
+            raise ValueError("a preprocessor on a shared acquisition needs a contiguous block or an array of its taxels")
         self.acq = acquisition
         self.taxels = taxels
         self.n_taxels = len(taxels)
-        self._cols = slice(taxels.start, taxels.stop)
+        self._cols = slice(taxels.start, taxels.stop) if isinstance(taxels, range) else np.asarray(taxels, np.int64)
         self.pv_filtered = History(acquisition.n_pv, self.n_taxels, self.dtype)  # the running PVDF filter's output (window restarts)
         self.st: SingleTactBranch | None = None
         self.pv_filter: PvdfFilter | None = None
         self.pv_windows: dict[float, PvdfWindowBranch] = {}
         self.cursor: dict[Source, int | None] = {}  # per active source: next grid index to deliver
-        self.set_sources(sources)
+        self.set_sources(sources, start)
 
     # -- demand ---------------------------------------------------------------------------------
     @property
     def sources(self) -> tuple[Source, ...]:
         return tuple(self.cursor)
 
-    def set_sources(self, sources: Iterable[Source]) -> None:
+    def set_sources(self, sources: Iterable[Source], start: dict[Source, int | None] | None = None) -> None:
         """Make ``sources`` the active ones: branches no active source needs stop (their state is
         dropped); a branch that (re)starts is rebuilt from the raw history the acquisition keeps
         (SingleTact: the last :data:`ST_HISTORY_S`; PVDF: the hum estimate plus two frames of the
@@ -199,11 +213,13 @@ class Preprocessor:
         its output from one frame after the history start on is the one of a branch that never
         stopped (exactly so when the PVDF filter kept running). A source that (re)starts delivers
         from the first grid index after the newest raw sample received
-        (:meth:`Acquisition.restart_index`), or from the stream start before any data."""
+        (:meth:`Acquisition.restart_index`), or from the stream start before any data; or from
+        ``start[source]`` when given (a source that joins another's taxels at their read position)."""
         sources = list(dict.fromkeys(float(s) if s is not None else None for s in sources))
         acq, cols = self.acq, self._cols
         k_r = acq.restart_index()
-        self.cursor = {s: self.cursor[s] if s in self.cursor else k_r for s in sources}
+        start = start or {}
+        self.cursor = {s: self.cursor[s] if s in self.cursor else start.get(s, k_r) for s in sources}
         windows = {s for s in sources if s is not None}
         if not sources:
             self.st = None
@@ -211,8 +227,7 @@ class Preprocessor:
             self.st = SingleTactBranch(self.params, self.n_taxels, self.dtype, acq.st_in.slot_time)
             first = acq.st_hist.first
             if first is not None:
-                slot, x = acq.st_hist.since(first)
-                self.st.process(slot, x[:, cols])
+                self.st.process(*acq.st_hist.since(first, cols))
         if not windows:
             self.pv_filter = None
             self.pv_filtered.clear()
@@ -222,7 +237,7 @@ class Preprocessor:
                                         acq.mains)
             self.pv_filtered.clear()
             if first is not None:
-                self.pv_filtered.push(*self.pv_filter.process(acq.pv_hist.since(first)[1][:, cols]))
+                self.pv_filtered.push(*self.pv_filter.process(acq.pv_hist.since(first, cols)[1]))
         self.pv_windows = {w: b for w, b in self.pv_windows.items() if w in windows}
         for w in windows - set(self.pv_windows):
             first = self.pv_filtered.first
@@ -236,6 +251,30 @@ class Preprocessor:
     def restart_index(self) -> int | None:
         """First grid index after the newest raw sample of either sensor (None before any data)."""
         return self.acq.restart_index()
+
+    @staticmethod
+    def gather(parts: "list[tuple[Preprocessor, np.ndarray]]") -> "Preprocessor":
+        """One preprocessor over the local taxels ``idx`` of each part, in order (parts on one
+        acquisition, with the same sources at the same read positions): every branch's state is
+        copied bit for bit, so the result continues exactly as the parts would have. Window
+        branches first read all the filtered PVDF they hold (a gate run earlier than its take, with
+        the same output)."""
+        first = parts[0][0]
+        if any(p.acq is not first.acq or p.cursor != first.cursor or p.dtype != first.dtype for p, _ in parts):
+            raise ValueError("preprocessors gathered into one must share the acquisition, sources and read positions")
+        for p, _ in parts:
+            for branch in p.pv_windows.values():
+                p._catch_up(branch)
+        taxels = np.concatenate([np.asarray(p.taxels, np.int64)[idx] for p, idx in parts])
+        out = Preprocessor(first.params, dtype=first.dtype, sources=[], acquisition=first.acq, taxels=taxels)
+        out.cursor = dict(first.cursor)
+        if first.st is not None:
+            out.st = SingleTactBranch.gather([(p.st, idx) for p, idx in parts])
+        if first.pv_filter is not None:
+            out.pv_filter = PvdfFilter.gather([(p.pv_filter, idx) for p, idx in parts])
+        out.pv_filtered = History.gather([(p.pv_filtered, idx) for p, idx in parts])
+        out.pv_windows = {w: PvdfWindowBranch.gather([(p.pv_windows[w], idx) for p, idx in parts]) for w in first.pv_windows}
+        return out
 
     # -- data -----------------------------------------------------------------------------------
     def feed(self, st_t=None, st=None, pvdf_t=None, pvdf=None) -> None:

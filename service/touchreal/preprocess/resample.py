@@ -40,6 +40,21 @@ class CausalPchip:
         self._y = np.zeros((0, n_cols), self.dtype)
         self.next_k: int | None = None  # next output grid index to emit
 
+    @staticmethod
+    def gather(parts: "list[tuple[CausalPchip, np.ndarray]]", groups: int = 1) -> "CausalPchip":
+        """One resampler over the columns ``idx`` of each part, in order, where a part's columns
+        are ``groups`` consecutive groups of its taxels (e.g. value and rate) and ``idx`` picks taxels:
+        the result keeps the group layout. Parts must hold the same knot times (fed the same samples)."""
+        first = parts[0][0]
+        if any(p.next_k != first.next_k or not np.array_equal(p._t, first._t) for p, _ in parts):
+            raise ValueError("resamplers gathered into one must hold the same knots")
+        n = sum(len(idx) for _, idx in parts)
+        out = CausalPchip(first.fs_out, groups * n, first.dtype)
+        out._t, out.next_k = first._t.copy(), first.next_k
+        cols = [p._y[:, g * (p.n_cols // groups) + idx] for g in range(groups) for p, idx in parts]
+        out._y = np.concatenate(cols, axis=1) if cols else out._y
+        return out
+
     def process(self, t: np.ndarray, y: np.ndarray) -> tuple[int, np.ndarray]:
         """Add knots; return (first grid index, (T, n_cols) values) of the newly final points."""
         t_all = np.concatenate((self._t, np.asarray(t, dtype=np.float64)))

@@ -11,6 +11,8 @@ preceded by N - H virtual zeros so the output starts at input sample 0.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.fft
 from numpy.lib.stride_tricks import as_strided
@@ -22,6 +24,14 @@ from .parallel import split_run
 def frame_length(window_ms: float, fs_hz: float) -> int:
     """Frame length (samples) for a window: rounded to a multiple of 4, at least 8."""
     return max(8, 4 * int(round(window_ms * fs_hz / 1000.0 / 4.0)))
+
+
+@lru_cache(maxsize=32)
+def _hann(n: int, dtype: str) -> np.ndarray:
+    """Periodic Hann window of ``n`` samples in ``dtype`` (read-only: gates built per woken taxel share it)."""
+    w = signal.get_window("hann", n, fftbins=True).astype(dtype)
+    w.flags.writeable = False
+    return w
 
 
 class StftGate:
@@ -41,7 +51,7 @@ class StftGate:
         self.n, self.hop = n, n // 4
         self.n_taxels = n_taxels
         self.dtype = np.dtype(dtype)
-        self.window = signal.get_window("hann", n, fftbins=True).astype(self.dtype)
+        self.window = _hann(n, self.dtype.str)
         self.norm = self.window.sum() / self.dtype.type(self.hop)  # constant overlap-add gain (2.0 for Hann at N/4)
         self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64).astype(self.dtype)
         if self.thresholds is not None and self.thresholds.shape != (n // 2 + 1,):
@@ -53,6 +63,20 @@ class StftGate:
         self._acc = np.zeros((n_taxels, n - self.hop), self.dtype)  # overlap-add tail of frames already done
         self._skip = n - self.hop  # leading outputs that belong to the virtual zeros
         self.frames = 0
+
+    @staticmethod
+    def gather(parts: "list[tuple[StftGate, np.ndarray]]") -> "StftGate":
+        """One gate over the taxels ``idx`` of each part, in order (same frame, thresholds and
+        position in the stream; state copied bit for bit)."""
+        first = parts[0][0]
+        if any((g.n, g._buf.shape[1], g._acc.shape[1], g._skip) != (first.n, first._buf.shape[1], first._acc.shape[1], first._skip)
+               for g, _ in parts):
+            raise ValueError("gates gathered into one must be at the same position of the stream")
+        out = StftGate(first.n, sum(len(idx) for _, idx in parts), None, first.attenuation, first.dtype)
+        out.thresholds, out._skip, out.frames = first.thresholds, first._skip, max(g.frames for g, _ in parts)
+        out._buf = np.concatenate([g._buf[idx] for g, idx in parts])
+        out._acc = np.concatenate([g._acc[idx] for g, idx in parts])
+        return out
 
     @property
     def to_next_frame(self) -> int:
@@ -82,11 +106,15 @@ class StftGate:
             if self.thresholds is not None:
                 np.multiply(spec, self.attenuation, out=spec, where=np.abs(spec) < self.thresholds)
             y = scipy.fft.irfft(spec, n=self.n, axis=-1, overwrite_x=True)
-            # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1
-            acc = np.zeros((b - a, total), self.dtype)
-            acc[:, : self._acc.shape[1]] += self._acc[a:b]
-            for f in range(n_frames):  # at most a few frames per update; each add is vectorised
-                acc[:, f * self.hop : f * self.hop + self.n] += y[:, f]
+            # overlap-add: frame f contributes to output positions f*H ... f*H + N - 1, i.e. its quarter q
+            # (N = 4 H) to hop f + q: one vectorised add per quarter, whatever the number of frames; the
+            # last quarters first, so that every hop sums its frames in stream order (chunk invariance, bit for bit)
+            acc = np.zeros((b - a, n_frames + 3, self.hop), self.dtype)
+            acc.reshape(b - a, total)[:, : self._acc.shape[1]] += self._acc[a:b]
+            quarters = y.reshape(b - a, n_frames, 4, self.hop)
+            for q in (3, 2, 1, 0):
+                acc[:, q : q + n_frames] += quarters[:, :, q]
+            acc = acc.reshape(b - a, total)
             np.divide(acc[:, drop:done], self.norm, out=out[a:b])
             tail[a:b] = acc[:, done:]
 
