@@ -204,8 +204,11 @@ def test_a_channels_only_subscriber_gets_continuous_channels_and_nothing_is_enco
     assert np.isfinite(np.concatenate([f.data for f in ch])).all()
 
 
-def test_taxel_blocks_nobody_subscribes_to_run_nothing(tmp_path):
-    with running_server(tmp_path, RuntimeConfig(taxels=8), taxel_block=4) as (addr, svc):
+@pytest.mark.parametrize("dense", [True, False], ids=["dense", "activity"])
+def test_taxels_nobody_subscribes_to_run_nothing(tmp_path, dense):
+    """Dense: a taxel block nobody subscribes to runs nothing. Activity-driven: only the subscribed taxel runs
+    (its channels are wanted, so it runs whether a contact woke it or not)."""
+    with running_server(tmp_path, RuntimeConfig(taxels=8), taxel_block=4, dense=dense) as (addr, svc):
         cover = covers(2.0)
 
         async def go():
@@ -213,10 +216,14 @@ def test_taxel_blocks_nobody_subscribes_to_run_nothing(tmp_path):
                 await hello_and_subscribe(ws, taxels=[5], classes=["SA1"], streams=["spikes", "channels"])
                 frames = await collect(ws, 30.0, lambda fs: len(_channels(fs)) > 40 and cover(fs),
                                        what="over 40 channels frames, 2 s of the stream")
-                return frames, [b.pre.running for b in svc.runtime.encoder.blocks]
+                enc = svc.runtime.encoder
+                return frames, [(b.pre.running, list(b.taxels)) for b in enc.blocks]
 
         frames, blocks = run(go())
-    assert [bool(r["singletact"]) for r in blocks] == [False, True]  # taxels 0-3: nothing runs
+    if dense:
+        assert [bool(r["singletact"]) for r, _ in blocks] == [False, True]  # taxels 0-3: nothing runs
+    else:
+        assert [taxels for r, taxels in blocks if r["singletact"]] == [[5]]
     ch = [f for f in frames if isinstance(f, P.ChannelsFrame)]
     assert len(ch) > 40 and all(f.taxels.tolist() == [5] and np.isfinite(f.data).all() for f in ch)
     assert all(set(f.taxel.tolist()) <= {5} for f in _spikes(frames))

@@ -9,6 +9,7 @@ same object; offline encoding is the same object fed once.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -23,7 +24,7 @@ from .preprocess.stft_gate import frame_length
 from .recording import Trial
 from .raw import RawChunk
 from .sources.replay import ReplaySource
-from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
+from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
 
 _BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per block range from which taxel blocks run on both cores (~0.3 ms of work)
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
@@ -45,27 +46,56 @@ def class_latency_s(params: EncoderParams, cls: str) -> float:
 
 
 class _TaxelBlock:
-    """The branches and encoders of a contiguous block of taxels: a Preprocessor on the shared
-    acquisition and one Encoder per source. A block none of whose columns is active runs nothing;
-    its branches (re)start without touching any other block's columns."""
+    """The branches and encoders of a block of taxels (a contiguous range, or any array of taxel
+    places): a Preprocessor on the shared acquisition and one Encoder per source. A block none of
+    whose columns is active runs nothing; its branches (re)start without touching any other
+    block's columns. ``start``: per source, the grid index it delivers from (see :class:`Preprocessor`)."""
 
-    def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range, groups: dict[Source, list[str]],
-                 dtype: type, channels_source: Source, index: int = 0, population: Population | None = None):
+    def __init__(self, params: EncoderParams, acquisition: Acquisition, taxels: range | np.ndarray, groups: dict[Source, list[str]],
+                 dtype: type, channels_source: Source, population: Population | None = None,
+                 start: dict[Source, int | None] | None = None, want: Mapping[str, Sequence[int]] | None = None,
+                 shows: bool = True, sources: Sequence[Source] | None = None):
         self.taxels = taxels
-        self.index = index  #: position in the encoder's blocks
         self.channels_source = channels_source
-        self.shows = True  #: channels wanted from this block (every taxel at first, like every column)
-        self.encoders = {s: Encoder(params, len(taxels), cs) if population is None else PopulationEncoder(params, population, cs)
-                         for s, cs in groups.items()}
-        self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups), acquisition=acquisition, taxels=taxels)
+        self.shows = shows  #: channels wanted from this block (every taxel at first, like every column)
+        if population is not None:
+            self.encoders = {s: PopulationEncoder(params, population, cs) for s, cs in groups.items()}
+        else:  # every column at first, or ``want``
+            self.encoders = {s: Encoder(params, len(taxels), cs, None if want is None else {c: want.get(c, ()) for c in cs})
+                             for s, cs in groups.items()}
+        self.pre = Preprocessor(params.preprocess, len(taxels), dtype, sources=list(groups) if sources is None else sources,
+                                acquisition=acquisition, taxels=taxels, start=start)
 
-    def set_active(self, want: Mapping[str, Sequence[int]], shows: bool) -> None:
+    @staticmethod
+    def gather(parts: list[tuple["_TaxelBlock", np.ndarray]], want: Mapping[str, Sequence[int]], shows: bool) -> "_TaxelBlock":
+        """One block over the local taxels ``idx`` of each part, in order (parts with the same sources
+        at the same read positions), running ``want`` (per class, the result's local taxels): the
+        branches and the continuing columns keep their state bit for bit (:meth:`Preprocessor.gather`,
+        :meth:`Encoder.gather`)."""
+        out = copy.copy(parts[0][0])
+        out.taxels = np.concatenate([np.asarray(b.taxels, np.int64)[idx] for b, idx in parts])
+        out.pre = Preprocessor.gather([(b.pre, idx) for b, idx in parts])
+        out.encoders = {s: Encoder.gather([(b.encoders[s], idx) for b, idx in parts], {c: want.get(c, ()) for c in enc.classes})
+                        for s, enc in parts[0][0].encoders.items()}
+        out.shows = shows
+        return out
+
+    def set_active(self, want: Mapping[str, Sequence[int]], shows: bool, sources: Sequence[Source] | None = None) -> None:
         """``want``: per class, the block's own (local) taxel indices (afferent ids with a population); ``shows``: channels are wanted
-        from this block (its channels source then runs even when none of its columns is active)."""
+        from this block (its channels source then runs even when none of its columns is active); ``sources``: the
+        sources it runs (default: those of its active columns, and the channels source when it shows channels)."""
         for enc in self.encoders.values():
             enc.set_columns({c: want.get(c, ()) for c in enc.classes})
         self.shows = shows
-        self.pre.set_sources([s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else []))
+        if sources is None:
+            sources = [s for s, enc in self.encoders.items() if enc.n_columns] + ([self.channels_source] if shows else [])
+        self.pre.set_sources(sources)
+
+    def ids(self, local: np.ndarray) -> np.ndarray:
+        """Taxel places of local indices."""
+        if isinstance(self.taxels, range):
+            return local + self.taxels.start if self.taxels.start else local
+        return self.taxels[local]
 
     def encode(self, slow: frozenset[Source] = frozenset(), phase: str | None = None) -> tuple[Channels | None, list[SpikeEvents]]:
         """Spikes of every active source (global taxel indices), and the channels of the channels
@@ -81,7 +111,7 @@ class _TaxelBlock:
                 continue
             ch = self.pre.take(s)
             ev = self.encoders[s].process(ch)
-            parts.append(SpikeEvents(ev.t_s, ev.taxel + self.taxels.start, ev.cls) if self.taxels.start else ev)
+            parts.append(SpikeEvents(ev.t_s, self.ids(ev.taxel), ev.cls))
             if self.shows and s == self.channels_source:
                 channels = ch
         return channels, parts
@@ -146,6 +176,8 @@ class StreamEncoder:
         if population is not None and (taxel_block is not None or activity is not None or order is not None):
             raise ValueError("a population runs on one taxel block (its afferents mix neighbouring taxels): no taxel_block, "
                              "activity or order")
+        if activity is not None and (taxel_block is not None or order is not None):
+            raise ValueError("activity-driven compute groups the awake taxels itself: no taxel_block or order")
         if population is not None and len(population.taxels_xy_mm) != n_taxels:
             raise ValueError(f"the population is built on {len(population.taxels_xy_mm)} taxels, the stream has {n_taxels}")
         self.population = population
@@ -171,19 +203,28 @@ class StreamEncoder:
         self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess)
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
+        self._groups = groups
         size = n_taxels if taxel_block is None else taxel_block
-        self._block_starts = np.arange(0, n_taxels, n_taxels if taxel_block is None else taxel_block)
-        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source, i,
+        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source,
                                    population)
-                       for i, a in enumerate(range(0, n_taxels, size))]
+                       for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(self.units(c)) for c in self.classes}
-        #: activity-driven compute (None: dense, every demanded block runs on every chunk)
-        self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
+        #: dense: per block, its demand (per class its local columns; whether it shows channels)
         self._wants: list[tuple[dict[str, list[int]], bool]] = [
             ({c: list(range(len(b.taxels))) if population is None else list(self.active[c]) for c in self.classes}, True)
             for b in self.blocks]
-        self._awake = np.ones(len(self.blocks), bool)  #: per block: running (all, until the detector says)
-        self._spiked_s = np.full(len(self.blocks), -np.inf)  #: per block: sensor time (s) of its latest spikes
+        #: activity-driven compute (None: dense, every demanded block runs on every chunk)
+        self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
+        if self.detector is not None:  # every taxel runs until the detector has judged it
+            self.blocks = [_TaxelBlock(params, self.acq, np.arange(n_taxels), groups, dtype, self.channels_source)]
+        #: activity-driven: per class, the taxels whose spikes are wanted; the taxels whose channels are wanted
+        self._demand = {c: np.ones(n_taxels, bool) for c in self.classes}
+        self._shown = np.ones(n_taxels, bool)
+        self._member = np.ones(n_taxels, bool)  #: taxels in a running block (activity-driven compute)
+        self._spiked_s = np.full(n_taxels, -np.inf)  #: per taxel: sensor time (s) of its latest spike
+        self._regroup_at = -np.inf  #: sensor time (s) of the next regrouping of the awake taxels
+        self._woken_s = np.full(n_taxels, np.inf)  #: per taxel woken but not started yet: the newest sample time before it woke
+        self._newest_s = -np.inf  #: the newest raw sample time (s) seen by the detector
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
         self._work = 0  #: size of the last chunk for split_run (see _feed)
@@ -233,6 +274,13 @@ class StreamEncoder:
             self._set_block(0)
             self.active = {c: xs for c, xs in want.items() if xs}
             return
+        if self.detector is not None:
+            self._demand = {c: np.isin(np.arange(self.n_taxels), xs) for c, xs in want.items()}
+            self._shown = np.isin(np.arange(self.n_taxels), sorted(shown))
+            for block in self.blocks:
+                block.set_active(*self._local_want(block.taxels), self._awake_sources())
+            self.active = {c: xs for c, xs in want.items() if xs}
+            return
         placed, shown_at = want, shown  # by place in the blocks' order
         if self._place is not None:
             placed = {c: sorted(self._place[list(xs)].tolist()) for c, xs in want.items()}
@@ -244,37 +292,114 @@ class StreamEncoder:
         self.active = {c: xs for c, xs in want.items() if xs}
 
     def _set_block(self, i: int) -> None:
-        """Block ``i`` runs its demanded columns while awake (always, dense), and its channels source
-        while channels are wanted from it, awake or not."""
-        want, shows = self._wants[i]
-        self.blocks[i].set_active(want if self._awake[i] else {}, shows)
+        """Block ``i`` runs its demanded columns, and its channels source while channels are wanted from it."""
+        self.blocks[i].set_active(*self._wants[i])
+
+    # -- activity-driven compute ------------------------------------------------------------------
+    #: the awake taxels are regrouped this often (s, sensor clock): the ones a contact woke since (run
+    #: meanwhile as a second block) join the main block, and the ones that went quiet leave it
+    REGROUP_S = 0.25
+    #: the least any source's read position lags the newest raw sample (s): the SingleTact PCHIP emits
+    #: nothing past its second-newest knot (one 100 Hz interval); the PVDF windows' gates lag more
+    MIN_LAG_S = 1.0 / ST_FS_HZ
+
+    def _local_want(self, taxels: np.ndarray) -> tuple[dict[str, list[int]], bool]:
+        """The demand on a block of ``taxels``: per class its local columns, and whether it shows channels."""
+        return {c: np.flatnonzero(w[taxels]).tolist() for c, w in self._demand.items()}, bool(self._shown[taxels].any())
+
+    def _awake_sources(self) -> list[Source]:
+        """The sources every awake block runs (blocks that merge must run the same): those of the
+        demanded classes, and the channels source while channels are wanted."""
+        sources = {self.source[c] for c, w in self._demand.items() if w.any()}
+        if self._shown.any():
+            sources.add(self.channels_source)
+        return sorted(sources, key=lambda s: -1.0 if s is None else s)
 
     def _follow_activity(self, chunk: RawChunk) -> None:
-        """Before the chunk is processed: wake the blocks in which a taxel left its band (rebuilt from
-        the raw history, so this chunk's samples run through the whole chain), and stop those all of
-        whose taxels have been quiet for the plan's ``hold_s``."""
+        """Before the chunk is processed: the demanded taxels that left their band, or spiked within
+        the plan's ``hold_s`` (their LIF has not settled), or whose channels are wanted, run.
+
+        A taxel that wakes joins a second block, rebuilt from the raw history and reading from the
+        main block's positions, so that its columns start (from rest) before the first sample that
+        woke it: the chain delivers no sample before it has seen the :data:`MIN_LAG_S` after it, so
+        the taxels that woke within the last two hops or so start together, in the last chunk before
+        the main block's positions could pass their waking samples (fewer rebuilds for a moving
+        contact, the same spikes). Every :attr:`REGROUP_S` that block and the main block's taxels
+        still needed become one block, bit for bit (:meth:`_TaxelBlock.gather`), so compute follows
+        the awake taxels, not blocks of them, at one block's fixed cost per call."""
         awake = self.detector.push(chunk)
-        blocks = np.logical_or.reduceat(awake, self._block_starts) if self.n_taxels else awake
         ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
-        if ends:  # a block whose columns spiked within hold_s stays awake (its LIF has not settled)
-            blocks |= self._spiked_s >= max(ends) - self.detector.plan.hold_s
-        for i in np.flatnonzero(blocks != self._awake):
-            self._awake[i] = blocks[i]
-            self._set_block(int(i))
+        if not ends:
+            return
+        now, before = float(max(ends)), self._newest_s
+        self._newest_s = now
+        awake |= self._spiked_s >= now - self.detector.plan.hold_s
+        demanded = np.logical_or.reduce(list(self._demand.values())) if self._demand else np.zeros(self.n_taxels, bool)
+        need = (awake & demanded) | self._shown
+        woken = need & ~self._member
+        self._woken_s[~woken] = np.inf  # a taxel that woke and went quiet again before it started does not start
+        self._woken_s[woken & np.isinf(self._woken_s)] = before
+        if woken.any() and (not self.blocks or now - self.MIN_LAG_S > self._woken_s[woken].min()):
+            self._start_woken()
+        if now >= self._regroup_at:
+            self._regroup_at = now + self.REGROUP_S
+            self._regroup(need)
+
+    def _start_woken(self) -> None:
+        """Run the taxels that woke since the last start."""
+        woken = np.isfinite(self._woken_s)
+        self._woken_s[woken] = np.inf
+        self._wake(np.flatnonzero(woken))
+
+    def _wake(self, taxels: np.ndarray) -> None:
+        """Run ``taxels`` from now on, in the second block."""
+        main = self.blocks[0] if self.blocks else None
+        want, shows = self._local_want(taxels)
+        block = _TaxelBlock(self.params, self.acq, taxels, self._groups, self.dtype, self.channels_source,
+                            start=None if main is None else dict(main.pre.cursor), want=want, shows=shows,
+                            sources=self._awake_sources())
+        self._member[taxels] = True
+        if main is None:
+            self.blocks = [block]
+            return
+        if len(self.blocks) > 1:
+            young = self.blocks[1]
+            ids = np.concatenate((young.taxels, taxels))
+            block = _TaxelBlock.gather([(young, np.arange(len(young.taxels))), (block, np.arange(len(taxels)))],
+                                       *self._local_want(ids))
+        self.blocks = [main, block]
+
+    def _regroup(self, need: np.ndarray) -> None:
+        """One block of the running taxels still ``need`` ed (none when no taxel is)."""
+        parts = [(b, np.flatnonzero(need[b.taxels])) for b in self.blocks]
+        if len(parts) < 2 and all(idx.size == len(b.taxels) for b, idx in parts):
+            return  # nothing leaves, nothing joins
+        parts = [(b, idx) for b, idx in parts if idx.size]
+        self._member[:] = False
+        if not parts:
+            self.blocks = []
+            return
+        ids = np.concatenate([b.taxels[idx] for b, idx in parts])
+        self.blocks = [_TaxelBlock.gather(parts, *self._local_want(ids))]
+        self._member[ids] = True
 
     def continue_activity(self, previous: StreamEncoder) -> None:
-        """Take over ``previous``'s detector and awake blocks (a restart after shedding load: the scene
-        did not change, so neither its learned noise nor which blocks it keeps awake starts again)."""
-        if self.detector is None or previous.detector is None or len(previous.blocks) != len(self.blocks):
+        """Take over ``previous``'s detector and running taxels (a restart after shedding load: the scene
+        did not change, so neither its learned noise nor which taxels it keeps awake starts again)."""
+        if self.detector is None or previous.detector is None or previous.n_taxels != self.n_taxels:
             return
-        self.detector, self._awake, self._spiked_s = previous.detector, previous._awake.copy(), previous._spiked_s.copy()
-        for i in range(len(self.blocks)):
-            self._set_block(i)
+        self.detector, self._spiked_s = previous.detector, previous._spiked_s.copy()
+        self._member = previous._member.copy()
+        taxels = np.flatnonzero(self._member)
+        self.blocks = [_TaxelBlock(self.params, self.acq, taxels, self._groups, self.dtype, self.channels_source,
+                                   **dict(zip(("want", "shows"), self._local_want(taxels))), sources=self._awake_sources())
+                       ] if taxels.size else []
 
     @property
     def awake_taxels(self) -> int:
-        """Taxels in blocks the activity detector keeps running (all of them when dense)."""
-        return int(sum(len(b.taxels) for b, a in zip(self.blocks, self._awake) if a))
+        """Taxels the encoder runs: those a contact woke, and those whose channels are wanted (all of
+        them when dense)."""
+        return int(sum(len(b.taxels) for b in self.blocks)) if self.detector is not None else self.n_taxels
 
     def restart_index(self) -> int | None:
         """The grid index a source that (re)started now would deliver from (None before any data)."""
@@ -312,6 +437,8 @@ class StreamEncoder:
 
     def finish(self) -> SpikeEvents:
         """End of stream: flush every running branch and return the last spikes (of every source)."""
+        if self.detector is not None and np.isfinite(self._woken_s).any():
+            self._start_woken()
         for block in self.blocks:
             block.pre.flush()
         return self._encode(final=True)[1]
@@ -327,8 +454,9 @@ class StreamEncoder:
         self._work = self.n_taxels * (0 if new[1] is None else new[1][1].shape[0])
         blocks = [b for b in self.blocks if b.pre.sources]  # a stopped block has nothing to consume
         self._work = self._work * sum(len(b.taxels) for b in blocks) // max(self.n_taxels, 1)
-        if len(blocks) == 1:
-            blocks[0].pre.consume(*new)
+        if len(blocks) == 1 or self.detector is not None:  # the awake set's two blocks are unequal: each splits its own kernels
+            for block in blocks:
+                block.pre.consume(*new)
             return
 
         def consume(a: int, b: int) -> None:
@@ -340,8 +468,8 @@ class StreamEncoder:
     def _encode(self, final: bool = False, phase: str | None = None) -> tuple[Channels, SpikeEvents]:
         slow, phase = (frozenset(), None) if final else (self.slow, phase)
         running = [b for b in self.blocks if b.pre.sources]
-        if len(running) == 1:
-            results = [running[0].encode(slow, phase)]
+        if len(running) == 1 or self.detector is not None:
+            results = [block.encode(slow, phase) for block in running]
         else:
             results = [(None, [])] * len(running)
 
@@ -351,15 +479,13 @@ class StreamEncoder:
 
             split_run(encode, len(running), self._work, _BLOCK_MIN_WORK)
         shown, parts = [], []
-        if self.detector is not None:
-            for block, (_, evs) in zip(running, results):
-                if any(ev.t_s.size for ev in evs):
-                    self._spiked_s[block.index] = max(float(ev.t_s.max()) for ev in evs if ev.t_s.size)
         for block, (ch, evs) in zip(running, results):
             if ch is not None:
                 shown.append((block.taxels, ch))
             parts += evs
         events = SpikeEvents.concatenate(parts)
+        if self.detector is not None and events.t_s.size:
+            np.maximum.at(self._spiked_s, events.taxel, events.t_s)
         channels = self._assemble(shown)
         if self._order is not None:  # back to taxel ids, an instant's spikes sorted by id
             taxel = self._order[events.taxel].astype(events.taxel.dtype)
@@ -373,7 +499,7 @@ class StreamEncoder:
     def _assemble(self, shown: list[tuple[range, Channels]]) -> Channels:
         """One block's channels as they are when it covers every taxel; else the blocks' channels on
         the union of their grid ranges, NaN where a block has no samples."""
-        if len(shown) == 1 and len(shown[0][0]) == self.n_taxels:
+        if len(shown) == 1 and isinstance(shown[0][0], range) and len(shown[0][0]) == self.n_taxels:
             return shown[0][1]
         spans = [(ch.k0, ch.k0 + ch.n_samples) for _, ch in shown if ch.n_samples]
         if not spans:
@@ -381,7 +507,7 @@ class StreamEncoder:
         k0, k1 = min(a for a, _ in spans), max(b for _, b in spans)
         data = np.full((k1 - k0, self.n_taxels, 4), np.nan, dtype=shown[0][1].data.dtype)
         for taxels, ch in shown:
-            data[ch.k0 - k0 : ch.k0 - k0 + ch.n_samples, taxels.start : taxels.stop] = ch.data
+            data[ch.k0 - k0 : ch.k0 - k0 + ch.n_samples, slice(taxels.start, taxels.stop) if isinstance(taxels, range) else taxels] = ch.data
         return Channels(k0, data)
 
     # -- reporting ------------------------------------------------------------------------------

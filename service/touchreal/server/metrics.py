@@ -34,8 +34,8 @@ METRICS: dict[str, tuple[type, str, str, tuple[str, ...]]] = {
             "compute started (clock model)", ()),
     "real_time_factor": (Gauge, "touchreal_real_time_factor", "wall time spent per second of signal encoded, "
                          "about 1 s average (< 1 keeps up)", ()),
-    "awake": (Gauge, "touchreal_taxels_awake", "taxels in blocks that run (a contact woke them; all of them when "
-              "dense)", ()),
+    "awake": (Gauge, "touchreal_taxels_awake", "taxels the encoder runs (a contact woke them, or their channels "
+              "are wanted; all of them when dense)", ()),
     "clients": (Gauge, "touchreal_clients_connected", "connected stream clients", ()),
     "client_drops": (Gauge, "touchreal_client_dropped_frames", "frames dropped for a connected client", ("client",)),
     "drops": (Counter, "touchreal_dropped_frames", "frames dropped for clients, connected or gone (queue_full: "

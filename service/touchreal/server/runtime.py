@@ -151,12 +151,13 @@ class Runtime:
         self.population = population
         if population is not None:
             taxel_block = None
-        #: activity-driven compute for the StreamEncoder (None: dense); only a skin of several taxel blocks
-        #: uses it: a single block always runs, so its spikes are the offline encoder's bit for bit
+        #: activity-driven compute for the StreamEncoder (None: dense); only a skin larger than one taxel block
+        #: uses it (it then runs the awake taxels, grouped by itself): a single block always runs, so its spikes
+        #: are the offline encoder's bit for bit
         blocks = taxel_block is not None and source.n_taxels > taxel_block
         self.activity = activity if blocks else None
-        #: the order the blocks take the taxels in: patches of the skin (:func:`~touchreal.raw.spatial_order`)
-        self.order = spatial_order(source.positions_mm) if blocks else None
+        #: the order dense blocks take the taxels in: patches of the skin (:func:`~touchreal.raw.spatial_order`)
+        self.order = spatial_order(source.positions_mm) if blocks and self.activity is None else None
         #: a chunk whose spikes would leave more than this (s) after its oldest sample is shed (:meth:`_shed`)
         self.max_lag_s = max_lag_s
         #: a replay is never shed: its frames stay ``touchreal encode``'s, and one that falls behind catches up
@@ -170,7 +171,8 @@ class Runtime:
         self.shed_s = 0.0  #: seconds of signal acquired but not encoded because compute was behind
         self.sheds = 0  #: chunks shed
         self.last_shed_us: int | None = None  #: wall clock (us) of the latest shed
-        self.taxel_block = taxel_block  #: StreamEncoder's taxel_block (None: one block)
+        #: StreamEncoder's taxel_block (None: one block, or the awake set's blocks with activity-driven compute)
+        self.taxel_block = None if self.activity is not None else taxel_block
         self.dtype = np.dtype(dtype)  #: StreamEncoder's dtype (the preprocessing's arithmetic)
         self._demand, self._params, self._publish = demand, params, publish
         self._make_decoder = make_decoder

@@ -109,9 +109,10 @@ class ServeSettings(ServerSettings):
                               "writes open to whoever reaches the port")
     state_dir: Path = Field(default=Path("touchreal-state"), description="parameter history and user models")
     params: Path | None = Field(default=None, description="initial parameter file (default: last active, else shipped)")
-    taxel_block: int = Field(default=256, ge=0, le=4096, description="taxels per preprocessing block: a block whose "
-                             "taxels nobody subscribes to runs nothing, and each block costs a fixed ~130 us per 5 ms "
-                             "hop (docs/benchmarks.md, Encoder); 0 = one block")
+    taxel_block: int = Field(default=256, ge=0, le=4096, description="taxels per preprocessing block of dense "
+                             "compute: a block whose taxels nobody subscribes to runs nothing, and each block costs a "
+                             "fixed ~130 us per 5 ms hop (docs/benchmarks.md, Encoder); 0 = one block. A larger skin "
+                             "runs activity-driven (unless --dense), taxel by taxel")
     compute_dtype: Literal["float64", "float32"] = Field(default="float64", description="arithmetic of the "
                                                         "preprocessing: float32 takes ~40 % less CPU at 4096 taxels and "
                                                         "gave the same spikes on the measured sets (docs/benchmarks.md, Encoder)")
@@ -134,7 +135,7 @@ class ServeSettings(ServerSettings):
                           "the SingleTact-only and short-window classes go out this often (at most update_ms); "
                           "long windows keep update_ms (docs/architecture.md, Latency)")
     dense: bool = Field(default=False, description="run every demanded taxel block on every update; by default a "
-                        "skin of several blocks runs only the blocks a contact has woken (activity-driven compute, "
+                        "skin larger than one block runs only the taxels a contact has woken (activity-driven compute, "
                         "docs/architecture.md), a single block always runs")
     max_lag_ms: float = Field(default=250.0, ge=10.0, le=60_000.0, description="real time, or honest about it: a "
                               "chunk whose spikes would leave more than this (ms) after its oldest sample is dropped "
