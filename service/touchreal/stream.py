@@ -436,9 +436,8 @@ class StreamEncoder:
         return self._encode(phase="slow")
 
     def finish(self) -> SpikeEvents:
-        """End of stream: flush every running branch and return the last spikes (of every source)."""
-        if self.detector is not None and np.isfinite(self._woken_s).any():
-            self._start_woken()
+        """End of stream: flush every running branch and return the last spikes (of every source; a taxel
+        that woke in the last two hops or so has not started and stays silent)."""
         for block in self.blocks:
             block.pre.flush()
         return self._encode(final=True)[1]

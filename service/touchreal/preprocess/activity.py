@@ -20,10 +20,12 @@ Per taxel and sensor the detector keeps a *baseline* and a *noise level*, both l
   removed) over the last ``energy_tau_s``: above ``energy_ratio`` x the noise's, the chunk is out
   of band too;
 * a new taxel (the stream's start) is judged once it has learned its noise for a quarter of
-  ``noise_tau_s`` (0.5 s): until then it is awake;
+  ``noise_tau_s`` (0.5 s): until then it is awake and every chunk teaches its noise level, from
+  then on only quiet ones;
 * on quiet chunks the baseline follows the chunk's mean and the noise level the chunk's mean
-  square deviation (a loud chunk never moves the level), so slow drift and a build's noise and
-  hum are learned, never configured per build;
+  square deviation (a loud chunk never moves the level, nor a quiet one whose mean square is
+  beyond ``teach_ratio`` x the level's: a slow press the baseline lags stays out of it), so slow
+  drift and a build's noise and hum are learned, never configured per build;
 * on loud chunks the baseline still follows, ``drift_tau_s`` slowly: a taxel left under a
   constant load (or a sensor stuck at a new level) settles and sleeps again.
 
@@ -41,7 +43,7 @@ import numpy as np
 from scipy.signal import butter, sosfilt_zi
 
 from ..raw import RawChunk
-from ..settings import PVDF_RANGE_V, ST_RESOLUTION_N
+from ..settings import PVDF_FS_HZ, PVDF_RANGE_V, ST_FS_HZ, ST_RESOLUTION_N
 from .filters import sos_step
 
 _PVDF_ADC_STEP_V = (PVDF_RANGE_V[1] - PVDF_RANGE_V[0]) / 4096.0  #: the 12-bit PVDF converter's step
@@ -57,6 +59,9 @@ class ActivityPlan:
     """How the detector decides (printable, overridable, recorded; times in s)."""
 
     k_noise: float = 5.0  #: out of band: a deviation > k_noise x the noise level (rms) + floor
+    #: a judged taxel's quiet chunk teaches its noise level only while its mean square deviation is within this x
+    #: the level's (3 x the rms: Gaussian noise passes 99.7 % of single samples, a lagged slow press soon does not)
+    teach_ratio: float = 9.0
     energy_ratio: float = 1.8  #: out of band: the PVDF's recent high-passed mean square > this x the noise's
     energy_tau_s: float = 0.02  #: "recent": about 40 PVDF samples (the ratio's noise sd ~0.22: 1.8 is 3.6 sd)
     hold_s: float = 1.0  #: a block sleeps once all its taxels have been in band this long
@@ -72,7 +77,7 @@ class ActivityPlan:
 
 @numba.njit(cache=True, nogil=True)
 def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, energy_ratio, a_recent, k_noise, floor,
-                 a_base, a_drift, a_noise, learned, stuck_min, out):  # pragma: no cover - compiled
+                 a_base, a_drift, a_noise, learned, teach, stuck_min, out):  # pragma: no cover - compiled
     """One chunk ``x`` (n, N) through a :class:`_Band`'s test and learning, state in place; ``out`` (N,)
     gets the out-of-band verdicts. Returns (non-finite samples, taxels stuck: all ``n`` >= ``stuck_min``
     samples identical; 0 for shorter chunks). Per taxel: the chunk's finite samples give its mean, the mean
@@ -146,11 +151,13 @@ def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, ene
         out[i] = loud and seen[i] >= learned
         quiet = not out[i]
         base[i] += (a_base if quiet else a_drift) * (mean[i] - base[i])
-        # while a taxel is new, the noise level is the running mean of every chunk's (learned in a few chunks)
-        if seen[i] < 1.0:
+        # until a taxel is judged, its noise level is the running mean of every chunk's (learned in a few
+        # chunks); from then on only quiet chunks within ``teach`` x its mean square teach it, so a slow press
+        # that the baseline lags (its deviation growing inside the band) is not learned as noise
+        if seen[i] < learned:
             rate = min(1.0, a_noise / max(seen[i], a_noise))
         else:
-            rate = a_noise if quiet else 0.0
+            rate = a_noise if quiet and ms[i] <= teach * var[i] else 0.0
         var[i] += rate * (ms[i] - var[i])
         if energy_ratio > 0.0:
             hp_var[i] += rate * (hms[i] - hp_var[i])
@@ -174,7 +181,7 @@ class _Band:
         self.stuck = 0  #: taxels whose samples were all identical in the latest chunk (of :data:`_STUCK_MIN_SAMPLES` or more)
 
     def step(self, x: np.ndarray, k_noise: float, energy_ratio: float, a_recent: float, a_base: float,
-             a_drift: float, a_noise: float, learned_by: float) -> np.ndarray:
+             a_drift: float, a_noise: float, learned_by: float, teach: float) -> np.ndarray:
         """The (N,) out-of-band mask of samples ``x`` (n, N), NaN ignored, then learn from them.
 
         Out of band: a sample beyond ``k_noise`` x the noise level (+ the floor), or (``energy_ratio`` >
@@ -192,7 +199,7 @@ class _Band:
         out = np.empty(self.base.size, bool)
         self.non_finite, self.stuck = _band_kernel(
             x, self.base, self.var, self.known, self.seen, self.recent, self.hp_var, self.zi, self.last_x, _HP_SOS,
-            energy_ratio, a_recent, k_noise, self.floor, a_base, a_drift, a_noise, learned_by, _STUCK_MIN_SAMPLES, out)
+            energy_ratio, a_recent, k_noise, self.floor, a_base, a_drift, a_noise, learned_by, teach, _STUCK_MIN_SAMPLES, out)
         return out
 
 
@@ -217,14 +224,15 @@ class ActivityDetector:
             return self.last_out_s > -np.inf
         now = float(max(ends))
         loud = np.zeros(self.n_taxels, bool)
-        span = chunk.pvdf_t.size / 2000.0 if chunk.pvdf_t.size else chunk.st_t.size / 100.0
-        rates = [min(1.0, span / tau) for tau in (p.baseline_tau_s, p.drift_tau_s, p.noise_tau_s)]
+        span = chunk.pvdf_t.size / PVDF_FS_HZ if chunk.pvdf_t.size else chunk.st_t.size / ST_FS_HZ
         # the energy test on the PVDF only: a SingleTact sample every 10 ms is too few for a 20 ms mean square
-        for band, x, ratio in ((self._st, chunk.st, 0.0), (self._pv, chunk.pvdf, p.energy_ratio)):
+        for band, x, ratio, fs in ((self._st, chunk.st, 0.0, ST_FS_HZ), (self._pv, chunk.pvdf, p.energy_ratio, PVDF_FS_HZ)):
             if x.shape[0] == 0:
                 continue
-            loud |= band.step(x, p.k_noise, ratio, min(1.0, span / p.energy_tau_s), *rates, _JUDGED_AFTER)
-            band.seen += span / p.noise_tau_s
+            covers = x.shape[0] / fs  # each band learns on its own samples' time
+            rates = [min(1.0, covers / tau) for tau in (p.baseline_tau_s, p.drift_tau_s, p.noise_tau_s)]
+            loud |= band.step(x, p.k_noise, ratio, min(1.0, covers / p.energy_tau_s), *rates, _JUDGED_AFTER, p.teach_ratio)
+            band.seen += covers / p.noise_tau_s
             self.counters["non_finite"] += band.non_finite
         if chunk.pvdf.shape[0] >= _STUCK_MIN_SAMPLES:
             self.stuck = self._pv.stuck
