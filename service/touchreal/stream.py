@@ -215,11 +215,12 @@ class StreamEncoder:
             for b in self.blocks]
         #: activity-driven compute (None: dense, every demanded block runs on every chunk)
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
-        if self.detector is not None:  # every taxel runs until the detector has judged it
-            self.blocks = [_TaxelBlock(params, self.acq, np.arange(n_taxels), groups, dtype, self.channels_source)]
         #: activity-driven: per class, the taxels whose spikes are wanted; the taxels whose channels are wanted
         self._demand = {c: np.ones(n_taxels, bool) for c in self.classes}
         self._shown = np.ones(n_taxels, bool)
+        self._young = False  #: activity-driven: the last block holds the taxels woken since the last regrouping
+        if self.detector is not None:  # every taxel runs until the detector has judged it
+            self.blocks = self._start_blocks(np.arange(n_taxels))
         self._member = np.ones(n_taxels, bool)  #: taxels in a running block (activity-driven compute)
         self._spiked_s = np.full(n_taxels, -np.inf)  #: per taxel: sensor time (s) of its latest spike
         self._regroup_at = -np.inf  #: sensor time (s) of the next regrouping of the awake taxels
@@ -303,6 +304,17 @@ class StreamEncoder:
     #: nothing past its second-newest knot (one 100 Hz interval); the PVDF windows' gates lag more
     MIN_LAG_S = 1.0 / ST_FS_HZ
 
+    #: taxels per block while every taxel runs (a stream's start, before the detector has judged them):
+    #: one block of 65,536 taxels held ~3 GiB of temporaries per call, blocks of 4096 a sixteenth
+    START_BLOCK = 4096
+
+    def _start_blocks(self, taxels: np.ndarray) -> list[_TaxelBlock]:
+        """``taxels`` from rest, in blocks of at most :attr:`START_BLOCK`."""
+        return [_TaxelBlock(self.params, self.acq, taxels[a : a + self.START_BLOCK], self._groups, self.dtype, self.channels_source,
+                            **dict(zip(("want", "shows"), self._local_want(taxels[a : a + self.START_BLOCK]))),
+                            sources=self._awake_sources())
+                for a in range(0, taxels.size, self.START_BLOCK)]
+
     def _local_want(self, taxels: np.ndarray) -> tuple[dict[str, list[int]], bool]:
         """The demand on a block of ``taxels``: per class its local columns, and whether it shows channels."""
         return {c: np.flatnonzero(w[taxels]).tolist() for c, w in self._demand.items()}, bool(self._shown[taxels].any())
@@ -326,7 +338,8 @@ class StreamEncoder:
         the main block's positions could pass their waking samples (fewer rebuilds for a moving
         contact, the same spikes). Every :attr:`REGROUP_S` that block and the main block's taxels
         still needed become one block, bit for bit (:meth:`_TaxelBlock.gather`), so compute follows
-        the awake taxels, not blocks of them, at one block's fixed cost per call."""
+        the awake taxels, not blocks of them, at one block's fixed cost per call. (At the stream's
+        start every taxel runs, in blocks of :attr:`START_BLOCK`, until the detector has judged them.)"""
         awake = self.detector.push(chunk)
         ends = [a[-1] for a in (chunk.st_t, chunk.pvdf_t) if a.size]
         if not ends:
@@ -362,20 +375,22 @@ class StreamEncoder:
         if main is None:
             self.blocks = [block]
             return
-        if len(self.blocks) > 1:
-            young = self.blocks[1]
+        if self._young:
+            young = self.blocks.pop()
             ids = np.concatenate((young.taxels, taxels))
             block = _TaxelBlock.gather([(young, np.arange(len(young.taxels))), (block, np.arange(len(taxels)))],
                                        *self._local_want(ids))
-        self.blocks = [main, block]
+        self.blocks.append(block)
+        self._young = True
 
     def _regroup(self, need: np.ndarray) -> None:
         """One block of the running taxels still ``need`` ed (none when no taxel is)."""
         parts = [(b, np.flatnonzero(need[b.taxels])) for b in self.blocks]
-        if len(parts) < 2 and all(idx.size == len(b.taxels) for b, idx in parts):
+        if not self._young and all(idx.size == len(b.taxels) for b, idx in parts):
             return  # nothing leaves, nothing joins
         parts = [(b, idx) for b, idx in parts if idx.size]
         self._member[:] = False
+        self._young = False
         if not parts:
             self.blocks = []
             return
@@ -384,16 +399,15 @@ class StreamEncoder:
         self._member[ids] = True
 
     def continue_activity(self, previous: StreamEncoder) -> None:
-        """Take over ``previous``'s detector and running taxels (a restart after shedding load: the scene
-        did not change, so neither its learned noise nor which taxels it keeps awake starts again)."""
+        """Take over ``previous``'s detector and the running taxels it keeps awake (a restart after shedding
+        load: the scene did not change, so neither its learned noise nor its contacts start again). Taxels
+        kept running only by their recent spikes stop: the new pipeline's neurons start from rest (and each
+        restart's first spikes would otherwise keep them running through the next restart)."""
         if self.detector is None or previous.detector is None or previous.n_taxels != self.n_taxels:
             return
-        self.detector, self._spiked_s = previous.detector, previous._spiked_s.copy()
-        self._member = previous._member.copy()
-        taxels = np.flatnonzero(self._member)
-        self.blocks = [_TaxelBlock(self.params, self.acq, taxels, self._groups, self.dtype, self.channels_source,
-                                   **dict(zip(("want", "shows"), self._local_want(taxels))), sources=self._awake_sources())
-                       ] if taxels.size else []
+        self.detector = previous.detector
+        self._member = previous._member & self.detector.awake
+        self.blocks = self._start_blocks(np.flatnonzero(self._member))
 
     @property
     def awake_taxels(self) -> int:

@@ -27,7 +27,10 @@ Per taxel and sensor the detector keeps a *baseline* and a *noise level*, both l
   beyond ``teach_ratio`` x the level's: a slow press the baseline lags stays out of it), so slow
   drift and a build's noise and hum are learned, never configured per build;
 * on loud chunks the baseline still follows, ``drift_tau_s`` slowly: a taxel left under a
-  constant load (or a sensor stuck at a new level) settles and sleeps again.
+  constant load (or a sensor stuck at a new level) settles and sleeps again. The deviation is
+  tested around the baseline and around the *resting level* (which follows only chunks in band
+  around it: slow drift, not a load); a chunk must leave both, so a taxel let go, back at its
+  resting level, sleeps after ``hold_s`` instead of waiting for the drifted baseline to return.
 
 Non-finite samples (the input policy repairs them downstream) are skipped and counted
 (``non_finite``); a taxel whose samples are all identical over a chunk of several samples is
@@ -76,12 +79,13 @@ class ActivityPlan:
 
 
 @numba.njit(cache=True, nogil=True)
-def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, energy_ratio, a_recent, k_noise, floor,
+def _band_kernel(x, base, rest, var, known, seen, recent, hp_var, zi, last_x, sos, energy_ratio, a_recent, k_noise, floor,
                  a_base, a_drift, a_noise, learned, teach, stuck_min, out):  # pragma: no cover - compiled
     """One chunk ``x`` (n, N) through a :class:`_Band`'s test and learning, state in place; ``out`` (N,)
     gets the out-of-band verdicts. Returns (non-finite samples, taxels stuck: all ``n`` >= ``stuck_min``
     samples identical; 0 for shorter chunks). Per taxel: the chunk's finite samples give its mean, the mean
-    square and peak of their deviation from the baseline, and (``energy_ratio`` > 0) the mean square
+    square and peak of their deviation from the baseline, the peak of their deviation from the resting
+    level (the baseline of quiet chunks only), and (``energy_ratio`` > 0) the mean square
     of their high-pass (a non-finite sample stands in as the previous chunk's newest sample); then
     the baseline and noise levels follow (:meth:`_Band.step`). A taxel without a finite sample
     keeps its state."""
@@ -104,12 +108,13 @@ def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, ene
     non_finite = n * m - int(cnt.sum())
     ms = np.zeros(m)
     peak = np.zeros(m)
+    peak_rest = np.zeros(m)
     mean = np.zeros(m)
     for i in range(m):
         if cnt[i] > 0.0:
             mean[i] = total[i] / cnt[i]
             if not known[i]:
-                base[i], known[i] = mean[i], True
+                base[i], rest[i], known[i] = mean[i], mean[i], True
                 seen[i] = -1.0  # marks "new in this chunk" until its noise level is set below
     for k in range(n):
         for i in range(m):
@@ -118,6 +123,7 @@ def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, ene
                 d = v - base[i]
                 ms[i] += d * d
                 peak[i] = max(peak[i], abs(d))
+                peak_rest[i] = max(peak_rest[i], abs(v - rest[i]))
     hms = np.zeros(m)
     if energy_ratio > 0.0:
         row = np.empty(m)
@@ -142,7 +148,10 @@ def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, ene
         ms[i] /= cnt[i]
         if seen[i] < 0.0:  # new: its noise level starts at this chunk's
             seen[i], var[i] = 0.0, ms[i]
-        loud = peak[i] > k_noise * np.sqrt(var[i]) + floor
+        # out of band around the baseline (which drifts under a constant load) and around the resting level
+        # (which a release returns to: a taxel let go sleeps after hold_s, not once the baseline has drifted back)
+        band = k_noise * np.sqrt(var[i]) + floor
+        loud = min(peak[i], peak_rest[i]) > band
         if energy_ratio > 0.0:
             if hp_var[i] == 0.0:
                 hp_var[i] = recent[i] = hms[i]
@@ -151,6 +160,8 @@ def _band_kernel(x, base, var, known, seen, recent, hp_var, zi, last_x, sos, ene
         out[i] = loud and seen[i] >= learned
         quiet = not out[i]
         base[i] += (a_base if quiet else a_drift) * (mean[i] - base[i])
+        if quiet and peak_rest[i] <= band:  # at rest (a settled load is quiet around the baseline only)
+            rest[i] += a_base * (mean[i] - rest[i])
         # until a taxel is judged, its noise level is the running mean of every chunk's (learned in a few
         # chunks); from then on only quiet chunks within ``teach`` x its mean square teach it, so a slow press
         # that the baseline lags (its deviation growing inside the band) is not learned as noise
@@ -170,6 +181,7 @@ class _Band:
     def __init__(self, n_taxels: int, floor: float):
         self.floor = floor
         self.base = np.zeros(n_taxels)
+        self.rest = np.zeros(n_taxels)  #: the baseline of chunks in band around it (where a released taxel returns)
         self.var = np.zeros(n_taxels)  #: mean square deviation from the baseline of quiet samples
         self.known = np.zeros(n_taxels, bool)  #: a taxel's band is learned from its first finite chunk
         self.seen = np.zeros(n_taxels)  #: fraction of the learning time (``noise_tau_s``) seen so far
@@ -198,7 +210,7 @@ class _Band:
             self.zi = np.ascontiguousarray(_HP_ZI[:, :, None] * first[None, None, :])
         out = np.empty(self.base.size, bool)
         self.non_finite, self.stuck = _band_kernel(
-            x, self.base, self.var, self.known, self.seen, self.recent, self.hp_var, self.zi, self.last_x, _HP_SOS,
+            x, self.base, self.rest, self.var, self.known, self.seen, self.recent, self.hp_var, self.zi, self.last_x, _HP_SOS,
             energy_ratio, a_recent, k_noise, self.floor, a_base, a_drift, a_noise, learned_by, teach, _STUCK_MIN_SAMPLES, out)
         return out
 
@@ -214,6 +226,7 @@ class ActivityDetector:
         self.last_out_s = np.full(n_taxels, -np.inf)  #: sensor time (s) of each taxel's latest loud chunk
         self.counters = {"wakes": 0, "non_finite": 0}  #: taxel wake-ups; non-finite raw samples seen
         self.stuck = 0  #: taxels whose PVDF samples were all identical in the latest chunk
+        self.awake = np.ones(n_taxels, bool)  #: the mask :meth:`push` returned last (every taxel before any)
 
     def push(self, chunk: RawChunk) -> np.ndarray:
         """Learn from the chunk's raw samples; the (N,) mask of taxels awake: loud in this chunk or
@@ -240,4 +253,5 @@ class ActivityDetector:
         self.counters["wakes"] += int((loud & ~awake_before).sum())
         self.last_out_s[loud] = now
         unjudged = (self._pv.seen < _JUDGED_AFTER) | (self._st.seen < _JUDGED_AFTER)  # awake until judged
-        return (self.last_out_s >= now - p.hold_s) | unjudged
+        self.awake = (self.last_out_s >= now - p.hold_s) | unjudged
+        return self.awake
