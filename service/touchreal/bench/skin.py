@@ -8,9 +8,8 @@ warm-up past the stream start. Ratios are against the dense 4096-taxel figure of
 dtype, so they hold across machines; the CPU is named beside the absolute figures.
 
 * fraction sweep: 4096 taxels, touched fraction 0 / 1 / 5 / 25 / 100 % activity-driven, beside
-  dense at 0, 5 and 100 % (dense compute does not depend on the contacts), float64 and float32;
-  blocks are square tiles of the grid (:func:`~touchreal.raw.spatial_order`, as the service takes
-  them), and at 1 and 5 % also runs of ids (strips along the rows) for comparison;
+  dense at 0, 5 and 100 % (dense compute does not depend on the contacts; every taxel in one block,
+  the fastest dense chain), float64 and float32;
 * scale: 16,384 taxels at 1 % and 5 %, 65,536 at 1 % (activity-driven);
 * idle cost: an idle taxel's cost as a fraction of a touched one's (the 0 % and 100 % sweep figures);
 * agreement: per class, the spike count difference and the van Rossum distance (10 ms) between the
@@ -32,7 +31,7 @@ from ..analysis.spiketrains import vr_distance
 from ..encoding.encoder import SpikeEvents
 from ..params import EncoderParams
 from ..preprocess.activity import ActivityPlan
-from ..raw import RawChunk, spatial_order, taxel_grid
+from ..raw import RawChunk
 from ..settings import CLASSES
 from ..sources.live import SimHops
 from ..stream import StreamEncoder
@@ -40,7 +39,6 @@ from ..stream import StreamEncoder
 HOP_S = 0.005  #: the service's hop
 WARM_S = 1.5  #: past the stream start and the detector's learning (its noise scale, ``noise_tau_s`` / 2)
 FRACTIONS = (0.0, 0.01, 0.05, 0.25, 1.0)
-BLOCK = 64  #: taxels per block (``touchreal serve --taxel-block``)
 
 
 def cpu_name() -> str:
@@ -64,11 +62,11 @@ def _hops(n: int, touched: float, seconds: float, seed: int = 0) -> Iterator[tup
 
 
 def run_skin(params: EncoderParams, n: int, touched: float, seconds: float, dtype: type, sparse: bool,
-             keep: bool = False, tiles: bool = True) -> tuple[float, float, SpikeEvents | None]:
-    """(encoder CPU s per s of signal, mean fraction of taxels awake, the spikes if ``keep``); ``tiles``:
-    the blocks take the taxels in :func:`~touchreal.raw.spatial_order` (as the service does), else by id."""
-    se = StreamEncoder(params, n, dtype=dtype, taxel_block=BLOCK, update_s=params.preprocess.update_ms / 1000.0,
-                       activity=ActivityPlan() if sparse else None, order=spatial_order(taxel_grid(n)) if tiles else None)
+             keep: bool = False) -> tuple[float, float, SpikeEvents | None]:
+    """(encoder CPU s per s of signal, mean fraction of taxels awake, the spikes if ``keep``); dense:
+    every taxel in one block (the fastest dense chain)."""
+    se = StreamEncoder(params, n, dtype=dtype, update_s=params.preprocess.update_ms / 1000.0,
+                       activity=ActivityPlan() if sparse else None)
     se.set_active({c: range(n) for c in se.classes})  # every column's spikes, no channels (as a spikes subscriber)
     parts, cpu, sim_cpu, signal, awake = [], 0.0, 0.0, 0.0, []
     for i, (hop, sim_s) in enumerate(_hops(n, touched, seconds + WARM_S)):
@@ -112,28 +110,24 @@ def agreement(dense: SpikeEvents, sparse: SpikeEvents) -> None:
 
 def skin(params: EncoderParams, seconds: float) -> None:
     print(f"\n== large skins: activity-driven against dense ({cpu_name()}; encoder process CPU per second of signal, "
-          f"5 ms hop, blocks of {BLOCK}, {seconds:g} s after {WARM_S:g} s of warm-up; ratios against dense 4096 at 5 %)")
-    print(f"{'taxels':>6} {'touched':>7} {'dtype':>7} {'compute':>7} {'blocks':>6} {'awake':>6} {'ms per s':>9} {'x dense 4096':>12}")
+          f"5 ms hop, {seconds:g} s after {WARM_S:g} s of warm-up; ratios against dense 4096 at 5 %)")
+    print(f"{'taxels':>6} {'touched':>7} {'dtype':>7} {'compute':>7} {'awake':>6} {'ms per s':>9} {'x dense 4096':>12}")
     dense_ref, rows, spikes = {}, [], {}
 
-    def row(n: int, f: float, dtype: type, sparse: bool, keep: bool = False, tiles: bool = True) -> None:
+    def row(n: int, f: float, dtype: type, sparse: bool, keep: bool = False) -> None:
         name = np.dtype(dtype).name
-        per_s, awake, ev = run_skin(params, n, f, seconds, dtype, sparse, keep, tiles)
+        per_s, awake, ev = run_skin(params, n, f, seconds, dtype, sparse, keep)
         if keep:
             spikes[sparse] = ev
         if n == 4096 and f == 0.05 and not sparse:
             dense_ref[name] = per_s
-        if tiles:
-            rows.append((n, f, name, sparse, awake, per_s))
-        print(f"{n:6d} {100 * f:6.0f}% {name:>7} {'sparse' if sparse else 'dense':>7} {'tiles' if tiles else 'ids':>6} "
+        rows.append((n, f, name, sparse, awake, per_s))
+        print(f"{n:6d} {100 * f:6.0f}% {name:>7} {'sparse' if sparse else 'dense':>7} "
               f"{100 * awake:5.1f}% {per_s * 1000:9.1f} {per_s / dense_ref[name]:12.3f}", flush=True)
 
     for dtype in (np.float64, np.float32):
         row(4096, 0.05, dtype, False, keep=dtype is np.float64)  # the reference first
         row(4096, 0.05, dtype, True, keep=dtype is np.float64)
-        if dtype is np.float64:  # blocks as runs of ids (strips along the grid's rows), beside the tiles
-            for f in (0.01, 0.05):
-                row(4096, f, dtype, True, tiles=False)
         for f in FRACTIONS:
             if f != 0.05:
                 row(4096, f, dtype, True)
