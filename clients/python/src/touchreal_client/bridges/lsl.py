@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from typing import Any
 
@@ -36,14 +37,19 @@ from . import FIRST_SYNC_SAMPLES, forward
 log = logging.getLogger("touchreal_client.bridges.lsl")
 
 
-def lsl_minus_wall_s() -> float:
-    """LSL's ``local_clock()`` minus this machine's wall clock (s), read between two wall reads."""
+def lsl_minus_wall_s(tries: int = 3) -> float:
+    """LSL's ``local_clock()`` minus this machine's wall clock (s), read between two wall reads; of
+    ``tries`` reads the one with the tightest bracket (a thread preempted between the reads would
+    otherwise put its pause into the offset)."""
     import pylsl
 
-    a = time.time()
-    lsl = pylsl.local_clock()
-    b = time.time()
-    return lsl - (a + b) / 2.0
+    best = (math.inf, 0.0)
+    for _ in range(tries):
+        a = time.time()
+        lsl = pylsl.local_clock()
+        b = time.time()
+        best = min(best, (b - a, lsl - (a + b) / 2.0))
+    return best[1]
 
 
 def _describe(info: Any, hello: dict[str, Any], labels: list[str], units: list[str]) -> None:
