@@ -19,12 +19,12 @@ from .population.encoder import Population, PopulationEncoder
 from .params import EncoderParams
 from .preprocess.activity import ActivityDetector, ActivityPlan
 from .preprocess.parallel import split_run
-from .preprocess.pipeline import Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
+from .preprocess.pipeline import MIN_LAG_S, Acquisition, Channels, Preprocessor, Source, preprocess_trial_windows
 from .preprocess.stft_gate import frame_length
 from .recording import Trial
 from .raw import RawChunk
 from .sources.replay import ReplaySource
-from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
+from .settings import CLASSES, OUT_FS_HZ, PVDF_FS_HZ
 
 _BLOCK_MIN_WORK = 1000  #: taxels x PVDF samples per block range from which taxel blocks run on both cores (~0.3 ms of work)
 _PVDF_WEIGHTS = slice(4, 8)  #: PVDF+, PVDF-, dPVDF+, dPVDF- in w1..w8
@@ -131,8 +131,10 @@ class StreamEncoder:
     block is fastest. Spikes do not depend on the blocking (per-taxel processing is independent);
     channels equal to rounding (~1e-15). ``order`` (a permutation of the taxel ids, e.g.
     :func:`~touchreal.raw.spatial_order` of their positions) is the order the blocks take the taxels
-    in, so that a block is a patch of the skin rather than a strip of ids: a touch wakes, and a
-    region demands, fewer blocks. Spikes and channels stay addressed by taxel id; spikes of one
+    in, so that a block is a patch of the skin rather than a strip of ids: a
+    region demands fewer blocks. ``activity`` (an :class:`ActivityPlan`) instead runs only the
+    taxels a contact keeps awake, grouped by the encoder itself (no ``taxel_block`` or ``order``;
+    :meth:`_follow_activity`). Spikes and channels stay addressed by taxel id; spikes of one
     instant come sorted by id.
 
     ``update_s`` (the service's ``preprocess.update_ms``) splits the sources into two cadences: a
@@ -300,9 +302,6 @@ class StreamEncoder:
     #: the awake taxels are regrouped this often (s, sensor clock): the ones a contact woke since (run
     #: meanwhile as a second block) join the main block, and the ones that went quiet leave it
     REGROUP_S = 0.25
-    #: the least any source's read position lags the newest raw sample (s): the SingleTact PCHIP emits
-    #: nothing past its second-newest knot (one 100 Hz interval); the PVDF windows' gates lag more
-    MIN_LAG_S = 1.0 / ST_FS_HZ
 
     #: taxels per block while every taxel runs (a stream's start, before the detector has judged them):
     #: one block of 65,536 taxels held ~3 GiB of temporaries per call, blocks of 4096 a sixteenth
@@ -333,7 +332,8 @@ class StreamEncoder:
 
         A taxel that wakes joins a second block, rebuilt from the raw history and reading from the
         main block's positions, so that its columns start (from rest) before the first sample that
-        woke it: the chain delivers no sample before it has seen the :data:`MIN_LAG_S` after it, so
+        woke it: the chain delivers no sample before it has seen the
+        :data:`~touchreal.preprocess.pipeline.MIN_LAG_S` after it, so
         the taxels that woke within the last two hops or so start together, in the last chunk before
         the main block's positions could pass their waking samples (fewer rebuilds for a moving
         contact, the same spikes). Every :attr:`REGROUP_S` that block and the main block's taxels
@@ -352,7 +352,7 @@ class StreamEncoder:
         woken = need & ~self._member
         self._woken_s[~woken] = np.inf  # a taxel that woke and went quiet again before it started does not start
         self._woken_s[woken & np.isinf(self._woken_s)] = before
-        if woken.any() and (not self.blocks or now - self.MIN_LAG_S > self._woken_s[woken].min()):
+        if woken.any() and (not self.blocks or now - MIN_LAG_S > self._woken_s[woken].min()):
             self._start_woken()
         if now >= self._regroup_at:
             self._regroup_at = now + self.REGROUP_S

@@ -67,7 +67,7 @@ class ActivityPlan:
     teach_ratio: float = 9.0
     energy_ratio: float = 1.8  #: out of band: the PVDF's recent high-passed mean square > this x the noise's
     energy_tau_s: float = 0.02  #: "recent": about 40 PVDF samples (the ratio's noise sd ~0.22: 1.8 is 3.6 sd)
-    hold_s: float = 1.0  #: a block sleeps once all its taxels have been in band this long
+    hold_s: float = 1.0  #: a taxel sleeps once it has been in band this long
     baseline_tau_s: float = 0.5  #: the baseline's time constant on quiet chunks
     noise_tau_s: float = 2.0  #: the noise level's time constant (and how long a new taxel learns from every chunk)
     drift_tau_s: float = 5.0  #: the baseline's time constant on loud chunks (constant load, drift)
@@ -85,7 +85,7 @@ def _band_kernel(x, base, rest, var, known, seen, recent, hp_var, zi, last_x, so
     gets the out-of-band verdicts. Returns (non-finite samples, taxels stuck: all ``n`` >= ``stuck_min``
     samples identical; 0 for shorter chunks). Per taxel: the chunk's finite samples give its mean, the mean
     square and peak of their deviation from the baseline, the peak of their deviation from the resting
-    level (the baseline of quiet chunks only), and (``energy_ratio`` > 0) the mean square
+    level (which follows only chunks in band around it), and (``energy_ratio`` > 0) the mean square
     of their high-pass (a non-finite sample stands in as the previous chunk's newest sample); then
     the baseline and noise levels follow (:meth:`_Band.step`). A taxel without a finite sample
     keeps its state."""

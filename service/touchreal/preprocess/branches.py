@@ -21,7 +21,6 @@ import copy
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy import signal
 
 from ..params import GateCalibration, PreprocessParams
 from ..settings import OUT_FS_HZ, PVDF_FS_HZ, ST_FS_HZ
@@ -29,7 +28,7 @@ from .filters import HUM_PRIME_S, AlphaBeta, SosFilter, butter_lowpass, mains_fr
 from .gate import gate_thresholds, pvdf_filter
 from .mains import MainsResolver
 from .resample import CausalPchip
-from .stft_gate import StftGate, frame_length
+from .stft_gate import StftGate, frame_length, hann_window
 
 _ST_LP_ORDER = 2
 
@@ -252,8 +251,7 @@ def _thresholds(gate: GateCalibration, n: int, dtype: np.dtype) -> np.ndarray:
     if hit is None or hit[0] is not gate:
         if len(_THRESHOLDS) >= 64:
             _THRESHOLDS.clear()
-        window = signal.get_window("hann", n, fftbins=True).astype(dtype).astype(np.float64)
-        hit = _THRESHOLDS[key] = (gate, gate_thresholds(gate, window, PVDF_FS_HZ))
+        hit = _THRESHOLDS[key] = (gate, gate_thresholds(gate, hann_window(n, dtype.str).astype(np.float64), PVDF_FS_HZ))
     return hit[1]
 
 

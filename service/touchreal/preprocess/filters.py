@@ -6,6 +6,7 @@ same output as feeding it whole, so the same code runs offline, online and in te
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from functools import lru_cache
 
@@ -99,11 +100,11 @@ class SosFilter:
         """One filter over the columns ``idx`` of each part, in order (the same cascade; each
         column's state copied bit for bit). Parts must all have started (state set) or none."""
         first = parts[0][0]
-        out = SosFilter(first.sos, sum(len(idx) for _, idx in parts), first.dtype)
-        out.sos = first.sos
         started = [f.zi is not None for f, _ in parts]
         if any(not np.array_equal(f.sos, first.sos) for f, _ in parts) or len(set(started)) > 1:
             raise ValueError("filters gathered into one must share their cascade and have all started, or none")
+        out = copy.copy(first)
+        out.n_taxels = sum(len(idx) for _, idx in parts)
         if started[0]:
             out.zi = np.ascontiguousarray(np.concatenate([f.zi[:, :, idx] for f, idx in parts], axis=2))
         return out
@@ -216,7 +217,7 @@ class AlphaBeta:
         """One tracker over the columns ``idx`` of each part, in order (same gains; state copied).
         Parts must all have started or none."""
         first = parts[0][0]
-        out = AlphaBeta(first.alpha, first.beta, 1.0 / first.dt, 0)
+        out = copy.copy(first)
         if len({ab.x is None for ab, _ in parts}) > 1:
             raise ValueError("trackers gathered into one must all have started, or none")
         out.v = np.concatenate([ab.v[idx] for ab, idx in parts])

@@ -24,6 +24,7 @@ and a short raw history) always runs, and a branch that (re)starts is rebuilt fr
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -43,6 +44,9 @@ Source = float | None  #: a consumer of the preprocessing: its PVDF window (ms),
 
 ST_HISTORY_S = 0.5  #: raw SingleTact history kept for a restart of its branch (s; > 5x the alpha-beta settling)
 ST_LOOKAHEAD_KNOTS = 2  #: PCHIP needs the knot after the next one: up to 2 knot intervals of look-ahead
+#: the least any source's read position lags the newest raw sample (s): the SingleTact PCHIP emits nothing
+#: past its second-newest knot (one knot interval); the PVDF windows' gates lag more
+MIN_LAG_S = 1.0 / ST_FS_HZ
 
 
 @dataclass
@@ -265,8 +269,9 @@ class Preprocessor:
         for p, _ in parts:
             for branch in p.pv_windows.values():
                 p._catch_up(branch)
-        taxels = np.concatenate([np.asarray(p.taxels, np.int64)[idx] for p, idx in parts])
-        out = Preprocessor(first.params, dtype=first.dtype, sources=[], acquisition=first.acq, taxels=taxels)
+        out = copy.copy(first)
+        out.taxels = out._cols = np.concatenate([np.asarray(p.taxels, np.int64)[idx] for p, idx in parts])
+        out.n_taxels = out.taxels.size
         out.cursor = dict(first.cursor)
         if first.st is not None:
             out.st = SingleTactBranch.gather([(p.st, idx) for p, idx in parts])

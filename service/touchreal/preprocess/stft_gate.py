@@ -27,7 +27,7 @@ def frame_length(window_ms: float, fs_hz: float) -> int:
 
 
 @lru_cache(maxsize=32)
-def _hann(n: int, dtype: str) -> np.ndarray:
+def hann_window(n: int, dtype: str) -> np.ndarray:
     """Periodic Hann window of ``n`` samples in ``dtype`` (read-only: gates built per woken taxel share it)."""
     w = signal.get_window("hann", n, fftbins=True).astype(dtype)
     w.flags.writeable = False
@@ -51,7 +51,7 @@ class StftGate:
         self.n, self.hop = n, n // 4
         self.n_taxels = n_taxels
         self.dtype = np.dtype(dtype)
-        self.window = _hann(n, self.dtype.str)
+        self.window = hann_window(n, self.dtype.str)
         self.norm = self.window.sum() / self.dtype.type(self.hop)  # constant overlap-add gain (2.0 for Hann at N/4)
         self.thresholds = None if thresholds is None else np.asarray(thresholds, dtype=np.float64).astype(self.dtype)
         if self.thresholds is not None and self.thresholds.shape != (n // 2 + 1,):
