@@ -126,11 +126,11 @@ def _ns(t: Any) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
 
 
-def _start(msgs: list[tuple[int, list[int]]]) -> int:
-    """The instant after which a side has every spike of a class: its first message's finality or
-    latest spike, whichever is later (a reader or client that joins mid-stream misses earlier ones)."""
-    final, t_us = next((f, t) for f, t in msgs if f >= 0)
-    return max([final, *t_us])
+def _start(finals: list[int]) -> int:
+    """The instant from which on a side has every spike of a class: its first message's finality (a
+    reader or client that joins mid-stream misses earlier spikes; a message holds those stamped
+    before its ``final_us``, so a spike stamped at it comes with the next)."""
+    return next(f for f in finals if f >= 0)
 
 
 def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anything_demanded(server, domain):
@@ -204,13 +204,13 @@ def test_ros_readers_get_the_streams_spikes_on_its_clock_and_only_then_is_anythi
         assert all(m.afferent_class == cls and m.header.frame_id == "touchreal" for m in msgs)
         # the same spikes as the direct client, to the microsecond and taxel, over the stretch both have whole
         mine = [f for f in frames if f.final_us.get(cls) is not None]
-        lo = max(_start([(f.final_us[cls], f.t_us[f.cls == k].tolist()) for f in mine]),
-                 _start([(m.final_us, m.t_us.tolist()) for m in msgs]))
+        lo = max(_start([f.final_us[cls] for f in mine]),
+                 _start([m.final_us for m in msgs]))
         hi = mine[-1].final_us[cls]
         direct = [(int(t), int(x)) for f in mine for t, x in zip(f.t_us[f.cls == k], f.taxel[f.cls == k])]
         dds = [(int(t), int(x)) for m in msgs for t, x in zip(m.t_us, m.taxel)]
-        common = [s for s in direct if lo < s[0] <= hi]
-        assert common == [s for s in dds if lo < s[0] <= hi], topic
+        common = [s for s in direct if lo <= s[0] < hi]
+        assert common == [s for s in dds if lo <= s[0] < hi], topic
         compared += len(common)
         # each spike's stamp and the header stamp (of final_us): the clock model's wall time of the wire stamp
         errs = [abs(_ns(s) / 1000.0 - clock.to_server_wall_us(int(t))) for m in msgs for t, s in zip(m.t_us, m.stamps)]
@@ -386,14 +386,14 @@ def test_a_population_reaches_ros_as_the_spikes_of_its_afferents(tmp_path, domai
     ra = P.CLASSES.index("RA")
     assert all(m.afferent_class == "RA" and (pop.layout.cls[np.asarray(m.taxel, np.int64)] == ra).all() for m in msgs)
     # the same spikes as the direct client over the stretch both hold whole
-    lo = max(_start([(f.final_us["RA"], f.t_us.tolist()) for f in frames if f.final_us.get("RA") is not None]),
-             _start([(m.final_us, m.t_us.tolist()) for m in msgs]))
+    lo = max(_start([f.final_us["RA"] for f in frames if f.final_us.get("RA") is not None]),
+             _start([m.final_us for m in msgs]))
     hi = max(v for f in frames if (v := f.final_us.get("RA")) is not None)
     direct = [(int(t), int(x)) for f in frames for t, x in zip(f.t_us, f.taxel)]
     dds = [(int(t), int(x)) for m in msgs for t, x in zip(m.t_us, m.taxel)]
-    common = [s for s in direct if lo < s[0] <= hi]
+    common = [s for s in direct if lo <= s[0] < hi]
     assert len(common) >= 20, "too few spikes in the stretch both sides hold whole"
-    got = [s for s in dds if lo < s[0] <= hi]
+    got = [s for s in dds if lo <= s[0] < hi]
     if not any(missed):
         assert got == common
     else:  # a frame the server's flow control dropped for one client (a seq gap it counts) is missing there only
