@@ -124,6 +124,7 @@ def test_held_out_selection_follows_the_fit_provenance(tiny):
         T.select_held_out(tiny, p, "train")
 
 
+@pytest.mark.slow
 def test_cli_evaluate(tiny, tmp_path):
     from touchreal.cli import main
 

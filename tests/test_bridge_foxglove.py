@@ -206,6 +206,7 @@ def test_the_command_serves_until_sigint_and_fails_clearly_without_a_stream(serv
     assert "cannot open" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path):
     from touchreal.bridge import natsd
     if not natsd.available():
@@ -288,6 +289,7 @@ def test_a_hostile_foxglove_client_harms_neither_the_bridge_nor_the_other_client
     run(go())
 
 
+@pytest.mark.slow
 def test_a_population_reaches_foxglove_as_the_spikes_of_its_afferents(tmp_path):
     """From a service running an afferent population (protocol version 2) the bridge advertises the
     spike topics only (a population has no channels or force), marked ``addresses: afferents``; a

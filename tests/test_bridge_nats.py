@@ -303,6 +303,7 @@ def test_a_decoders_frames_lost_on_the_hop_become_gaps_its_subscribers_see(tmp_p
     assert np.array_equal(step_gaps > 0, seq_gaps > 0) and np.all(step_gaps >= seq_gaps)
 
 
+@pytest.mark.slow
 def test_a_gateway_restarted_mid_stream_resumes_and_others_lose_nothing(tmp_path, nats_url):
     with publishing(tmp_path, nats_url) as (addr, svc, pub), gateway(nats_url) as (gb, _g2):
         port = natsd.free_port()

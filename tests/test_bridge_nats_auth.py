@@ -376,6 +376,7 @@ def test_deploy_nats_gives_each_gateway_its_own_identity_and_wires_what_the_comm
     assert {"name": "TOUCHREAL_NATS_USER", "value": "publisher"} in sensor["env"]
 
 
+@pytest.mark.slow
 def test_grasp_force_example_runs_through_a_gateway(tmp_path, broker):
     """clients/examples/grasp_force.py against a gateway: the decoder routes are the publisher's,
     asked over the authenticated broker; the model it downloads decodes the gateway's spikes exactly

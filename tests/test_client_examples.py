@@ -65,6 +65,7 @@ def test_population_channels_take_the_mean_rate_of_their_afferents():
     assert amp == {0: 550.0, 1: 145.0}  # field 0: half the amplitude range (100 Hz); field 1: its one SA1 at 10 Hz
 
 
+@pytest.mark.slow
 def test_prosthesis_example_drives_electrode_fields_from_a_population(tmp_path):
     plan = tmp_path / "plan.json"
     plan.write_text(json.dumps({"variants": {"SA1": [1.0], "RA": [1.0], "PC": [1.0]}}))
@@ -77,6 +78,7 @@ def test_prosthesis_example_drives_electrode_fields_from_a_population(tmp_path):
     assert rows and {r["class"] for r in rows} <= {"RA", "PC"} and {int(r["channel"]) for r in rows} <= set(range(6))
 
 
+@pytest.mark.slow
 def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
     with running_server(tmp_path / "state", RuntimeConfig(taxels=2)) as (addr, _):
         url = f"http://{addr}"
@@ -118,6 +120,7 @@ def test_prosthesis_and_recorder_examples_run_against_a_live_service(tmp_path):
     assert "turning_points" not in metrics and metrics["mapping"]
 
 
+@pytest.mark.slow
 def test_grasp_example_runs_the_downloaded_force_model_like_the_service(tmp_path):
     pytest.importorskip("onnxruntime")
     import grasp_force as gf

@@ -82,6 +82,7 @@ def csp_violations(entries: list[dict]) -> list[dict]:
     return [e for e in entries if e.get("source") == "security" or "Content Security Policy" in e["message"]]
 
 
+@pytest.mark.slow
 def test_dashboard_draws_live_spikes_and_drives_subscription_and_window(browser, tmp_path):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys

@@ -122,6 +122,7 @@ def test_stateful_metadata_is_validated(stateful, tmp_path):
         load_model(tmp_path / "force_fast.onnx")
 
 
+@pytest.mark.slow
 def test_served_stateful_decoder_equals_a_client_running_the_downloaded_file(tmp_path):
     """The service streams force_fast; a client with the downloaded ONNX, the numpy binner and its own
     state (zeros at the first decoded step) gets the same numbers from the spikes it received."""

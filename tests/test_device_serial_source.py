@@ -273,6 +273,7 @@ def test_emulator_command_reports_bad_arguments_clearly(tmp_path, capsys):
     assert "jitter_ms must be in" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_emulator_command_with_faults_and_unplug_the_stream_goes_on(tmp_path):
     """The real ``touchreal mcu-emulate`` process: corrupted bytes, dropped frames, two unplugs."""
     trial = synthetic_trial(duration_s=3.0, seed=5)
@@ -333,6 +334,7 @@ def test_link_drifts_the_device_clock_delays_frames_in_order_and_stalls():
         Link(jitter_ms=-1.0)
 
 
+@pytest.mark.slow
 def test_clock_of_a_drifting_device_behind_a_jittery_link_through_a_pty(tmp_path):
     """The real ``touchreal mcu-emulate`` process, device clock 100 ppm fast, 2 ms mean jitter with
     stalls: after settling, the wall time SerialSource.clock() states for a sample is within 2 ms of

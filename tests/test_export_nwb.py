@@ -31,6 +31,7 @@ def _units(nwb):
             for r in df.itertuples()}
 
 
+@pytest.mark.slow
 def test_a_recording_of_a_live_server_exports_to_nwb(tmp_path):
     rec, out = tmp_path / "live.mcap", tmp_path / "live.nwb"
     with running_server(tmp_path / "state") as (addr, svc):

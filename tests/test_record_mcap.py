@@ -11,6 +11,7 @@ import threading
 import httpx
 import jsonschema
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from mcap.records import Attachment, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -175,6 +176,7 @@ def _sent_over(svc, n: int):
     return lambda: any(sub.sent > n for sub in list(svc.hub.subscribers.values()))
 
 
+@pytest.mark.slow
 def test_a_recording_continues_across_a_server_restart(tmp_path):
     """The recorder reconnects to the restarted server (a new session): both hellos are attached and
     each session's spikes are placed by its own clock model."""

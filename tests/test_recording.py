@@ -106,6 +106,7 @@ def test_missing_manifest(tmp_path):
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_every_rig_trial_validates(rig):
     counts = {}
     for e in rig.trials:

@@ -10,6 +10,7 @@ import httpx
 import numpy as np
 import onnx
 import onnxruntime as ort
+import pytest
 from server_harness import client_decoded, collect, connect, decoded_stream, hello_and_subscribe, running_server
 from touchreal_client import protocol as P
 
@@ -38,6 +39,7 @@ def test_decoder_endpoints_list_describe_and_serve_onnx(tmp_path):
     assert model.graph.input and np.isfinite(out).all()
 
 
+@pytest.mark.slow
 def test_decoded_outputs_stream_and_equal_the_downloaded_model_on_the_streamed_spikes(tmp_path):
     def enough(names: list[str], fs: list) -> bool:  # over 100 force outputs and a texture one
         decoded = [names[f.decoder] for f in fs if isinstance(f, P.DecodedFrame)]

@@ -95,6 +95,7 @@ def test_a_bad_population_plan_is_a_clear_source_error(tmp_path):
         assert svc.runtime is None and "Merkel" in (svc.source_error or "")
 
 
+@pytest.mark.slow
 def test_a_population_recording_exports_one_nwb_unit_per_afferent(tmp_path, plan_file):
     from pynwb import NWBHDF5IO
     from test_export_nwb import _inspect

@@ -10,6 +10,7 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 from server_harness import connect, hello_and_subscribe, running_server, wait_until
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockMap, ClockPoint
@@ -82,6 +83,7 @@ def test_a_skin_too_large_for_the_machine_sheds_load_and_says_so(tmp_path):
     assert lat.max() < MAX_LAG_MS + 20 + DELIVERY_MS, np.percentile(lat, [50, 99, 100])
 
 
+@pytest.mark.slow
 def test_a_skin_the_machine_serves_streams_without_shedding(tmp_path):
     with running_server(tmp_path, RuntimeConfig(taxels=4)) as (addr, svc):
         wait_until(lambda: svc.runtime is not None and svc.runtime.state != "starting", 120, "the runtime started")

@@ -9,6 +9,7 @@ import sys
 
 import httpx
 import numpy as np
+import pytest
 from helpers import synthetic_trial
 from server_harness import collect, connect, hello_and_subscribe, running_server, wait_until
 from touchreal_client import protocol as P
@@ -18,6 +19,7 @@ from touchreal.recording import write_dataset
 from touchreal.server.settings import RuntimeConfig
 
 
+@pytest.mark.slow
 def test_service_streams_from_the_emulated_microcontroller_through_faults_and_an_unplug(tmp_path):
     trials = {"a": synthetic_trial(duration_s=2.0, seed=0)}
     entries = [{"id": "a", "protocol": "ramp", "condition": "c", "repeat": 0, "params": {}, "onset_s": 0.3, "stim_end_s": 1.05}]

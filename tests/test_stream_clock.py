@@ -192,6 +192,7 @@ def test_a_new_hello_follows_a_parameter_upload_and_a_window_change(tmp_path):
     assert second["params"]["rev"] == 3 and second["latency_us"]["PC"] < first["latency_us"]["PC"]
 
 
+@pytest.mark.slow
 def test_clock_messages_pass_through_a_gateway_unchanged(tmp_path):
     from test_bridge_nats import gateway, publishing
 
