@@ -195,3 +195,26 @@ def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
         changes += before != sorted(int(x) for b in new.blocks for x in b.taxels)
     parts.append(new.finish())
     assert changes > 5 and len(SpikeEvents.concatenate(parts)) > 100
+
+
+def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on_its_first_chunk():
+    """A service that sheds its first chunk of demand: the old pipeline ran acquisition only (nobody
+    subscribed), so the new one continues its detector with no taxel running; the taxels awake on its
+    first chunk start then (woken before any sample it saw), and every started block holds taxels."""
+    params = default_params()
+    src = SimHops(64, HOP_S, seed=2, touched=0.1)
+    hops = [src.read_hop() for _ in range(int(3.0 / HOP_S))]
+    old = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
+    old.set_active({})
+    for h in hops[:400]:
+        old.process(h)
+    assert old.awake_taxels == 0
+    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
+    new.continue_activity(old)
+    new.set_active({c: range(64) for c in new.classes})
+    parts = []
+    for h in hops[420:]:
+        parts.append(new.process(h))
+        assert all(len(b.taxels) for b in new.blocks)
+    parts.append(new.finish())
+    assert new.detector.counters["wakes"] > 0 and len(SpikeEvents.concatenate(parts)) > 50

@@ -226,7 +226,8 @@ class StreamEncoder:
         self._member = np.ones(n_taxels, bool)  #: taxels in a running block (activity-driven compute)
         self._spiked_s = np.full(n_taxels, -np.inf)  #: per taxel: sensor time (s) of its latest spike
         self._regroup_at = -np.inf  #: sensor time (s) of the next regrouping of the awake taxels
-        self._woken_s = np.full(n_taxels, np.inf)  #: per taxel woken but not started yet: the newest sample time before it woke
+        #: per taxel woken but not started yet: the newest sample time before it woke (-inf: before any), else inf
+        self._woken_s = np.full(n_taxels, np.inf)
         self._newest_s = -np.inf  #: the newest raw sample time (s) seen by the detector
         self._delay_s = {c: params.classes[c].delay_ms / 1000.0 for c in self.classes}
         #: sources run only in a call that completes one of their gate frames (the others every call)
@@ -351,7 +352,7 @@ class StreamEncoder:
         need = (awake & demanded) | self._shown
         woken = need & ~self._member
         self._woken_s[~woken] = np.inf  # a taxel that woke and went quiet again before it started does not start
-        self._woken_s[woken & np.isinf(self._woken_s)] = before
+        self._woken_s[woken & (self._woken_s == np.inf)] = before
         if woken.any() and (not self.blocks or now - MIN_LAG_S > self._woken_s[woken].min()):
             self._start_woken()
         if now >= self._regroup_at:
@@ -360,7 +361,7 @@ class StreamEncoder:
 
     def _start_woken(self) -> None:
         """Run the taxels that woke since the last start."""
-        woken = np.isfinite(self._woken_s)
+        woken = self._woken_s < np.inf
         self._woken_s[woken] = np.inf
         self._wake(np.flatnonzero(woken))
 
