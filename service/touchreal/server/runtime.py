@@ -243,7 +243,8 @@ class Runtime:
             failed = self.enc_rev
             if self._fallback is None or not self._fallback(failed, self.good_rev, exc):
                 raise
-            log.error("parameter revision %d failed in the pipeline (%s: %s); fell back", failed, type(exc).__name__, exc)
+            log.error("parameter revision %d failed in the pipeline (%s: %s); fell back", failed, type(exc).__name__, exc,
+                      exc_info=True)
             self.encoder, self.decoders = None, {}
             self._pending_flags |= FLAG_RESTARTED
 
