@@ -75,3 +75,37 @@ def test_a_sim_process_that_dies_fails_the_source_with_a_reason():
         while time.monotonic() < deadline:  # the hops already simulated are still handed over
             src.next_chunk()
     src.close()
+
+
+def test_a_consumer_late_by_more_than_a_catch_up_chunk_keeps_the_schedule():
+    """The consumer's own lateness is the consumer's to see (the service sheds on it): a fast simulation
+    has the hops ready, so the schedule stays and the late hops' clock says how late they are."""
+    src = SimLiveSource(1, 0.005, seed=1, own_process=True)
+    src.next_chunk()
+    time.sleep(0.5)  # the stimulus: 100 hops come due, more than one catch-up chunk
+    late = src.next_chunk()
+    assert late.pvdf_t.size // 10 == 64  # one catch-up chunk's worth
+    assert src.status()["fell_behind"] == 0 and src.clock().epoch == 0
+    assert time.time_ns() // 1000 - src.clock().wall_us > 100_000  # its newest sample was acquired long ago
+    src.close()
+
+
+def test_a_simulation_slower_than_real_time_restarts_its_clock_and_says_so():
+    """A skin this machine cannot simulate in real time (32,768 taxels in one process): once the consumer
+    waits for a hop more than a catch-up chunk late, the schedule restarts there (a new clock epoch), the
+    samples stay continuous, and the status counts it."""
+    src = SimLiveSource(32768, 0.005, seed=0, touched=0.05, own_process=True)
+    try:
+        chunks, deadline = [src.next_chunk()], time.monotonic() + 120
+        while src.status()["fell_behind"] == 0:
+            assert time.monotonic() < deadline, "the simulation never fell a catch-up chunk behind"
+            chunks.append(src.next_chunk())
+        restarted = src.next_chunk()  # the first chunk on the new schedule
+        chunks.append(restarted)
+        status, clock = src.status(), src.clock()
+    finally:
+        src.close()
+    assert np.allclose(np.diff(np.concatenate([c.pvdf_t for c in chunks])), 0.0005)  # no sample lost or repeated
+    assert clock.epoch >= 1 and clock.sensor_us == round(restarted.pvdf_t[-1] * 1e6)
+    assert abs(time.time_ns() // 1000 - clock.wall_us) < 1_000_000  # acquired about now on the new schedule
+    assert status["sim_load"] > 1.0 and status["behind_s"] > 0.32 and status["behind_wall_us"] is not None

@@ -199,14 +199,18 @@ class ServiceView:
                 "last_shed_age_s": None if last is None else round((wall_us() - last) / 1e6, 3)}
 
     def health(self) -> str:
-        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback, or while compute
-        has shed load within the last :data:`SHED_DEGRADED_S`; ``failed`` once the acquisition
-        thread has failed."""
+        """``ok``; ``degraded: WHY`` while the parameters in force are a fallback, or while the
+        simulated skin or compute has fallen behind within the last :data:`SHED_DEGRADED_S`;
+        ``failed`` once the acquisition thread has failed."""
         rt = self.service.runtime
         if rt is not None and rt.state == "failed":
             return "failed"
         if self.service.store.fallback_reason:
             return f"degraded: {self.service.store.fallback_reason}"
+        src = rt.source.status() if rt is not None else {}
+        if src.get("behind_wall_us") is not None and wall_us() - src["behind_wall_us"] < SHED_DEGRADED_S * 1e6:
+            return (f"degraded: the simulated skin cannot be simulated in real time on this machine; it fell behind "
+                    f"{src['fell_behind']} times, {src['behind_s']:.1f} s in all (its clock restarted each time)")
         if rt is not None and rt.last_shed_us is not None and wall_us() - rt.last_shed_us < SHED_DEGRADED_S * 1e6:
             return (f"degraded: compute fell behind acquisition; {rt.shed_s:.1f} s of signal shed in {rt.sheds} "
                     f"chunks (max_lag_ms {self.service.settings.max_lag_ms:g}, real-time factor "

@@ -15,6 +15,7 @@ encode``'s; only the wire adds the offset).
 
 from __future__ import annotations
 
+import logging
 import math
 import multiprocessing as mp
 import threading
@@ -38,6 +39,8 @@ from ..simulator.scene import SceneSource, default_scene
 
 
 MAX_CATCH_UP_HOPS = 64  #: a sim or replay that fell behind hands over up to this many hops at once
+
+log = logging.getLogger("touchreal.sources")
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 #: a replayed trial's span on the wire runs this long past its last sample, so that no spike of it (stamped at
 #: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
@@ -106,6 +109,10 @@ class _Paced:
         self._due_s = t_s
         return True
 
+    def late_s(self, t_s: float) -> float:
+        """How long ago (s) ``t_s`` (s after the start) was due; negative before it, 0 before the start."""
+        return 0.0 if self._start is None else self.clock() - (self._start + t_s)
+
     def take_passed(self, limit: int) -> int:
         """How many of the next regular releases (:meth:`wait_next`'s) are already past, up to
         ``limit``; they count as released (a source that fell behind hands them over at once)."""
@@ -140,6 +147,8 @@ class SimHops:
     Hops span ``update_s`` (rounded to PVDF ticks), on a grid phased so that a hop's newest sample is
     a SingleTact sample (with its PVDF tick) when the hop divides the SingleTact period (10 ms)."""
 
+    load = 0.0  #: simulated in the caller's thread when read: its cost is the caller's (see SimHopsProcess.load)
+
     def __init__(self, n_taxels: int = 1, update_s: float = 0.032, seed: int = 0, t0_s: float | None = None,
                  touched: float | None = None):
         positions = taxel_grid(n_taxels)
@@ -171,17 +180,24 @@ class SimHops:
 def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int,
                    touched: float | None = None) -> None:
     """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
-    simulated, then (newest sample's instant (s), hop) pairs, never more than ``ahead`` beyond those the parent has taken (it sends
-    how many it took, an int). Ends when the parent's end of ``conn`` closes."""
+    simulated, then (newest sample's instant (s), hop, wall time (s) its simulation took) triples, never more
+    than ``ahead`` beyond those the parent has taken (it sends how many it took, an int). Ends when the
+    parent's end of ``conn`` closes."""
     hops = SimHops(n_taxels, update_s, seed, t0_s, touched)
-    first = (hops.next_newest_s(), hops.read_hop())  # simulated before the source counts as open
+
+    def simulated() -> tuple[float, RawChunk, float]:
+        t = time.perf_counter()
+        newest, hop = hops.next_newest_s(), hops.read_hop()
+        return newest, hop, time.perf_counter() - t
+
+    first = simulated()  # before the source counts as open
     try:
         conn.send(hops.zero_s)
         conn.send(first)
         credit = ahead - 1
         while True:
             for _ in range(credit):
-                conn.send((hops.next_newest_s(), hops.read_hop()))
+                conn.send(simulated())
             credit = int(conn.recv())
     except (EOFError, OSError, KeyboardInterrupt):
         return
@@ -212,6 +228,9 @@ class SimHopsProcess:
         child.close()
         self._hops: deque[tuple[float, RawChunk]] = deque()
         self._taken = 0  #: hops taken since the last credit sent
+        #: the simulation's recent real-time factor: wall time simulating per second of signal (about the
+        #: last 20 hops; > 1: it cannot keep up in real time on this machine, under its present load)
+        self.load = 0.0
         self.zero_s = float(self._receive())
 
     def _receive(self):
@@ -245,7 +264,10 @@ class SimHopsProcess:
         if not self._hops:
             self.prefetch()
         self._taken += 1
-        return self._hops.popleft()[1]
+        _, hop, took_s = self._hops.popleft()
+        if hop.pvdf_t.size:
+            self.load += 0.05 * (took_s * PVDF_FS_HZ / hop.pvdf_t.size - self.load)
+        return hop
 
     def close(self) -> None:
         self._proc.terminate()
@@ -257,6 +279,15 @@ class SimLiveSource:
     reaches the instant of its newest sample (the sensor clock runs from its zero at the pace's
     start), and its clock point says so. A consumer that fell behind gets every hop already due in
     one chunk (up to :data:`MAX_CATCH_UP_HOPS`): fewer, larger calls until it has caught up.
+
+    A simulation in a process of its own that cannot keep up (a skin too large for the machine)
+    would hand over ever older hops, which a real-time consumer could only drop. When it is slower
+    than real time (:attr:`SimHopsProcess.load` > 1) and its next hop is already later than one
+    catch-up chunk (:data:`MAX_CATCH_UP_HOPS` hops), the schedule restarts at that hop instead (a
+    new clock epoch, as after a pause; the samples stay continuous): the simulated skin runs slower
+    than real time, and says so: ``status()`` gives ``sim_load``, ``fell_behind`` (the restarts),
+    ``behind_s`` (how late their hops were) and ``behind_wall_us`` (the latest), and the log warns.
+    A consumer that is late itself, behind a simulation that keeps up, sees its own lag.
 
     ``own_process``: simulate in a process of its own (:class:`SimHopsProcess`; the service does),
     so the acquisition thread only receives hops; otherwise in this thread (``scene`` is then the
@@ -278,6 +309,9 @@ class SimLiveSource:
         self._zero_s = self.hops.zero_s
         self._chunks = 0
         self._clock: ClockPoint | None = None
+        self.fell_behind = 0  #: schedule restarts because the simulation fell behind real time
+        self.behind_s = 0.0  #: how late the hops were at those restarts, summed (s)
+        self.behind_wall_us: int | None = None  #: wall clock (us) of the latest
 
     @property
     def scene(self) -> SceneSource | LargeSkinSource:
@@ -303,6 +337,15 @@ class SimLiveSource:
     def _next_chunk(self) -> RawChunk | None:
         self.hops.prefetch()
         newest_s = self.next_newest_s()
+        late = self._pace.late_s(newest_s - self._zero_s)
+        if self.hops.load > 1.0 and late > MAX_CATCH_UP_HOPS * self.update_s:  # the simulation cannot keep up
+            self._pace.restart()
+            self._zero_s = newest_s - self.update_s
+            self.fell_behind += 1
+            self.behind_s += late
+            self.behind_wall_us = time.time_ns() // 1000
+            log.warning("the simulated skin (%d taxels) fell %.2f s behind real time: this machine cannot simulate it "
+                        "in real time; its clock restarts (epoch %d)", self.n_taxels, late, self._pace.epoch + 1)
         if not self._pace.wait_until(newest_s - self._zero_s):
             return None
         self._chunks += 1
@@ -321,7 +364,9 @@ class SimLiveSource:
     def status(self) -> dict[str, int | float | str]:
         return {"state": "closed" if self._pace._closed.is_set() else "streaming", "kind": "sim", "chunks": self._chunks,
                 "scene": "script" if self.touched is None else "large",
-                **({} if self.touched is None else {"touched": self.touched})}
+                **({} if self.touched is None else {"touched": self.touched}),
+                "sim_load": round(self.hops.load, 3), "fell_behind": self.fell_behind, "behind_s": round(self.behind_s, 3),
+                "behind_wall_us": self.behind_wall_us}
 
     def close(self) -> None:
         self._pace.close()
