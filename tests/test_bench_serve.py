@@ -29,3 +29,43 @@ def test_light_subscribers_see_every_frame_in_order_with_its_size(tmp_path):
     assert np.all(spikes[0][:, 7] == P.HEADER_LEN + P.SPIKES_HEAD.size + spikes[0][:, 4] * P.EVENT_DTYPE.itemsize)
     assert every[0][:, 7].max() > spikes[0][:, 7].max()
     assert served > 0
+
+
+def test_tree_cpu_counts_the_descendants_of_a_process():
+    """The whole-service bench reads the CPU of a process tree: a grandchild's busy loop is counted."""
+    import subprocess
+    import sys
+    import time
+
+    from touchreal.bench.serve_skin import tree_cpu_s
+
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.6: pass\ntime.sleep(60)"
+    parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, time\n"
+                               f"subprocess.Popen([sys.executable, '-c', {burn!r}])\ntime.sleep(60)"])
+    try:
+        deadline = time.monotonic() + 30
+        while tree_cpu_s(parent.pid) < 0.6:  # the parent alone sleeps: only its grandchild's loop gets here
+            assert time.monotonic() < deadline, tree_cpu_s(parent.pid)
+            time.sleep(0.1)
+    finally:
+        subprocess.run(["pkill", "-P", str(parent.pid)])
+        parent.kill()
+        parent.wait()
+
+
+@pytest.mark.slow  # two `touchreal serve` processes for ~8 s each
+def test_whole_service_bench_runs_both_configurations_and_states_ratios():
+    import re
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "touchreal", "bench", "serve", "--skin", "--skin-reference", "64",
+                          "--skin-taxels", "512", "--skin-settle-s", "3", "--skin-seconds", "3"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = [line.split() for line in out.stdout.splitlines() if re.match(r"\s*\d+\s+(dense|activity)\s", line)]
+    assert [(r[0], r[1]) for r in rows] == [("64", "dense"), ("512", "activity")], out.stdout
+    cpu = [float(r[2]) for r in rows]
+    assert all(c > 0 for c in cpu) and rows[0][3] == "1.000"
+    assert float(rows[1][3]) == pytest.approx(cpu[1] / cpu[0], rel=0.03)  # the ratio is the two CPU figures' (printed to 0.01)
+    assert float(rows[0][4].rstrip("%")) == 100.0 and float(rows[1][4].rstrip("%")) < 100.0  # dense runs every taxel

@@ -21,6 +21,9 @@ over both), all on loopback; the latency is the same receipt minus ``emit_us`` (
 encoder), so the broker hop and the gateway are included; then one subscriber to the decoded force
 takes each path in turn (the decoder runs in the service; its outputs cross on ``decoded.force``).
 
+``--skin`` runs only the whole service on a large skin instead (bench/serve_skin.py): the CPU time
+of the ``touchreal serve`` process tree, activity-driven against ``--dense``.
+
 Part 3 drives the pipeline directly and compares the compute time per update for what a demand
 needs: everything, one class, one taxel of many, a PVDF-free class, and nobody.
 """
@@ -44,6 +47,7 @@ import numpy as np
 
 from ..params import EncoderParams, default_params
 from ..settings import CLASSES
+from . import serve_skin
 
 BENCH_SENSOR = "bench"
 
@@ -67,6 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--processes", type=int, default=2, help="client processes for the fan-out part")
     p.add_argument("--nats", action="store_true", help="also measure fan-out through NATS and two gateways")
     p.add_argument("--nats-subscribers", default="1,100,300", help="subscriber counts through the gateways")
+    serve_skin.add_arguments(p)
     p.add_argument("--url", default=None, help="measure an already running service (http://HOST:PORT) instead of "
                    "starting one: parts 1 (as its clients see it) and 2 only")
 
@@ -269,6 +274,8 @@ def _stats_ms(x: np.ndarray) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.skin:
+        return serve_skin.run(args)
     if args.url:
         return _run_remote(args)
     params = EncoderParams.load(args.params) if args.params else default_params()

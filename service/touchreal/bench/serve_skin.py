@@ -1,0 +1,173 @@
+"""The whole service on a large skin (``touchreal bench serve --skin``): the CPU time of the
+``touchreal serve`` process tree (the simulated skin's process included), activity-driven against
+``--dense``, side by side in one run.
+
+Each configuration starts ``touchreal serve`` in its own process on the large-skin scene
+(``--sim-scene large``, ``--sim-touched``), waits for health, connects one client in this process
+subscribed to every spike (the client's clock model from ``time`` exchanges and ``clock``
+messages), lets the stream start pass (every taxel runs until the detector has judged it), then (``--skin-settle-s``
+after subscribing) for ``--skin-seconds`` reads the CPU time of the process and all its descendants from /proc, the spikes'
+latency as the client holds them (receipt minus the acquisition of the causing sample), and the
+service's own counters (sheds, overload drops, real-time factor, taxels awake). Ratios are against
+``--dense`` at ``--skin-reference`` taxels (4096) in the same run. A configuration the machine cannot serve sheds; its CPU
+is then capped by the cores, and its row says how much signal it shed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..settings import CLASSES
+from .skin import cpu_name
+
+
+
+def tree_cpu_s(pid: int) -> float:
+    """User + system CPU time (s) of process ``pid`` and every live descendant, from /proc."""
+    parent: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parent[int(entry.name)] = int(fields[1])
+    tree, frontier = {pid}, [pid]
+    while frontier:
+        p = frontier.pop()
+        kids = [c for c, pp in parent.items() if pp == p and c not in tree]
+        tree.update(kids)
+        frontier.extend(kids)
+    ticks = 0
+    for p in tree:
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        ticks += int(fields[11]) + int(fields[12])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def _metric(text: str, name: str) -> float:
+    """The value of an unlabelled sample ``name`` in a Prometheus exposition (0 when absent)."""
+    m = re.search(rf"^{name} (\S+)$", text, re.M)
+    return float(m.group(1)) if m else 0.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+async def _measure(base: str, pid: int, settle_s: float, seconds: float) -> dict:
+    """One client subscribed to everything; the figures over ``seconds`` from ``settle_s`` after subscribing."""
+    import httpx
+    from touchreal_client import protocol as P
+    from touchreal_client.stream import AsyncStream
+
+    lat: dict[str, list[np.ndarray]] = {c: [] for c in CLASSES}
+    awake: list[float] = []
+    measuring = False
+
+    async def read(st: AsyncStream) -> None:  # every frame is taken; those held while measuring count
+        async for frame in st.frames():
+            if measuring and isinstance(frame, P.SpikesFrame) and frame.t_us.size:
+                v = st.spike_latency_us(frame)
+                for i, c in enumerate(CLASSES):
+                    lat[c].append(v[frame.cls == i])
+
+    async with httpx.AsyncClient(base_url=base, timeout=10) as http, AsyncStream(f"{base.replace('http', 'ws')}/v1/stream") as st:
+        await st.sync_clock()
+        reader = asyncio.create_task(read(st))
+        await asyncio.sleep(settle_s)
+        measuring = True
+        t0, cpu0, before = time.monotonic(), tree_cpu_s(pid), (await http.get("/metrics")).text
+        while time.monotonic() < t0 + seconds:  # whether or not frames arrive (a service shedding every chunk sends none)
+            awake.append(_metric((await http.get("/metrics")).text, "touchreal_taxels_awake"))
+            await asyncio.sleep(min(1.0, max(0.0, t0 + seconds - time.monotonic())))
+        wall, cpu = time.monotonic() - t0, tree_cpu_s(pid) - cpu0
+        after = (await http.get("/metrics")).text
+        reader.cancel()
+    delta = {k: _metric(after, k) - _metric(before, k) for k in
+             ("touchreal_sheds_total", "touchreal_shed_seconds_total", "touchreal_updates_dropped_overload_total")}
+    return {"cpu_per_s": cpu / wall, "awake": float(np.mean(awake)) if awake else float("nan"),
+            "rtf": _metric(after, "touchreal_real_time_factor"),
+            "latency_ms": {c: np.concatenate(v) / 1000.0 if v else np.zeros(0) for c, v in lat.items()}, **delta}
+
+
+def _serve(n: int, dense: bool, touched: float, settle_s: float, seconds: float, state: Path) -> dict:
+    """Start ``touchreal serve`` for one configuration, measure it, stop it."""
+    import httpx
+
+    port = _free_port()
+    cmd = [sys.executable, "-m", "touchreal", "serve", "--taxels", str(n), "--port", str(port), "--state-dir",
+           str(state / f"{n}-{'dense' if dense else 'activity'}"), "--sim-scene", "large", "--sim-touched", str(touched)]
+    log = state / f"serve-{port}.log"  # a file, not a pipe: nobody reads it while the service runs
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(cmd + (["--dense"] if dense else []), stdout=subprocess.DEVNULL, stderr=err)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            if proc.poll() is not None:
+                raise RuntimeError(f"touchreal serve exited ({proc.returncode}): {log.read_text()[-500:]}")
+            try:
+                if httpx.get(base + "/v1/health", timeout=1).status_code < 500:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                raise RuntimeError("touchreal serve did not answer /v1/health within 120 s")
+            time.sleep(0.2)
+        return asyncio.run(_measure(base, proc.pid, settle_s, seconds))
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--skin", action="store_true", help="only the whole service on a large skin: the serve process "
+                   "tree's CPU, activity-driven against --dense 4096 (bench/serve_skin.py)")
+    p.add_argument("--skin-taxels", default="4096,16384", help="activity-driven taxel counts for --skin")
+    p.add_argument("--skin-touched", type=float, default=0.05, help="the large scene's touched fraction for --skin")
+    p.add_argument("--skin-reference", type=int, default=4096, help="taxels of the --dense reference for --skin")
+    p.add_argument("--skin-settle-s", type=float, default=10.0, help="--skin: the measurement starts this long after "
+                   "subscribing (past the stream start, where every taxel runs until the detector has judged it)")
+    p.add_argument("--skin-seconds", type=float, default=60.0, help="measured seconds per --skin configuration")
+
+
+def run(args: argparse.Namespace) -> int:
+    configs = [(args.skin_reference, True)] + [(int(x), False) for x in args.skin_taxels.split(",") if x]
+    print(f"== the whole service on a large skin ({cpu_name()}; `touchreal serve --sim-scene large --sim-touched "
+          f"{args.skin_touched:g}`, one client subscribed to every spike, {args.skin_seconds:g} s after {args.skin_settle_s:g} s; "
+          f"CPU of the serve process tree per second, ratios against --dense {args.skin_reference})")
+    print(f"{'taxels':>6} {'compute':>8} {'CPU s/s':>8} {'x dense':>8} {'awake':>7} {'rtf':>5} {'sheds':>6} "
+          f"{'shed s':>7} {'overload':>8}  latency p50 / p95 ms: " + " ".join(f"{c:>13}" for c in CLASSES))
+    ref = None
+    with tempfile.TemporaryDirectory(prefix="touchreal-bench-") as tmp:
+        for n, dense in configs:
+            r = _serve(n, dense, args.skin_touched, args.skin_settle_s, args.skin_seconds, Path(tmp))
+            ref = ref or r["cpu_per_s"]
+            lat = " ".join(f"{f'{np.median(v):.1f}/{np.percentile(v, 95):.1f}' if v.size else '-':>13}"
+                           for v in (r["latency_ms"][c] for c in CLASSES))
+            print(f"{n:6d} {'dense' if dense else 'activity':>8} {r['cpu_per_s']:8.2f} {r['cpu_per_s'] / ref:8.3f} "
+                  f"{100 * r['awake'] / n:6.1f}% {r['rtf']:5.2f} {r['touchreal_sheds_total']:6.0f} "
+                  f"{r['touchreal_shed_seconds_total']:7.2f} {r['touchreal_updates_dropped_overload_total']:8.0f}  "
+                  f"{'':>21}{lat}", flush=True)
+    return 0
