@@ -218,3 +218,20 @@ def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on
         assert all(len(b.taxels) for b in new.blocks)
     parts.append(new.finish())
     assert new.detector.counters["wakes"] > 0 and len(SpikeEvents.concatenate(parts)) > 50
+
+
+def test_chunks_a_shed_drops_still_teach_the_detector():
+    """Observed only (their compute shed), the stream's first second of chunks judges the quiet taxels,
+    so the pipeline that continues the detector runs only the awake ones."""
+    params = default_params()
+    src = SimHops(64, HOP_S, seed=2, touched=0.1)
+    old = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
+    old.set_active({c: range(64) for c in old.classes})
+    for _ in range(int(1.0 / HOP_S)):
+        old.observe(src.read_hop())
+    assert old.awake_taxels == 64  # nothing ran: the start's blocks are still every taxel
+    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
+    new.continue_activity(old)
+    new.set_active({c: range(64) for c in new.classes})
+    new.process(src.read_hop())
+    assert 0 < new.awake_taxels < 32

@@ -399,6 +399,13 @@ class StreamEncoder:
         self.blocks = [_TaxelBlock.gather(parts, *self._local_want(ids))]
         self._member[ids] = True
 
+    def observe(self, chunk: RawChunk) -> None:
+        """A chunk that is not processed (a shed drops its compute): the activity detector still learns
+        from it, so a pipeline that restarts after a shed runs the taxels a contact holds awake, not every
+        taxel of a detector that saw too little to judge them."""
+        if self.detector is not None:
+            self.detector.push(chunk)
+
     def continue_activity(self, previous: StreamEncoder) -> None:
         """Take over ``previous``'s detector and the running taxels it keeps awake (a restart after shedding
         load: the scene did not change, so neither its learned noise nor its contacts start again). Taxels

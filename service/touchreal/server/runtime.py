@@ -263,6 +263,8 @@ class Runtime:
             # the backlog, the lag alone: nothing is computed then)
             due_s = self.lag_s + (0.0 if self._draining else self._cost.predict_s(self._span_s(chunk)))
             if self._sheds and due_s > (self.max_lag_s * _DRAIN_TO if self._draining else self.max_lag_s):
+                if self.encoder is not None:  # its compute is dropped, not what the activity detector learns from it
+                    self.encoder.observe(chunk)
                 self._shed(chunk)
                 return None
             self._draining = False
