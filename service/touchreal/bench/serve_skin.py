@@ -4,13 +4,14 @@
 
 Each configuration starts ``touchreal serve`` in its own process on the large-skin scene
 (``--sim-scene large``, ``--sim-touched``), waits for health, connects one client in this process
-subscribed to every spike (the client's clock model from ``time`` exchanges and ``clock``
-messages), lets the stream start pass (every taxel runs until the detector has judged it), then (``--skin-settle-s``
-after subscribing) for ``--skin-seconds`` reads the CPU time of the process and all its descendants from /proc, the spikes'
-latency as the client holds them (receipt minus the acquisition of the causing sample), and the
-service's own counters (sheds, overload drops, real-time factor, taxels awake). Ratios are against
-``--dense`` at ``--skin-reference`` taxels (4096) in the same run. A configuration the machine cannot serve sheds; its CPU
-is then capped by the cores, and its row says how much signal it shed.
+subscribed to every spike (its clock model from ``time`` exchanges and ``clock`` messages), and
+``--skin-settle-s`` after subscribing (past the stream start, where every taxel runs until the
+detector has judged it) reads for ``--skin-seconds`` the CPU time of the process and all its
+descendants from /proc, the spikes' latency as the client holds them (receipt minus the
+acquisition of the causing sample) and the service's counters (sheds, overload drops, real-time
+factor, taxels awake). Ratios are against ``--dense`` at ``--skin-reference`` taxels (4096) in the
+same run. A configuration the machine cannot serve sheds; its CPU is then capped by the cores, and
+its row says how much signal it shed.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import argparse
 import asyncio
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bridge.natsd import free_port, stop_process
 from ..settings import CLASSES
 from .skin import cpu_name
-
 
 
 def tree_cpu_s(pid: int) -> float:
@@ -63,12 +63,6 @@ def _metric(text: str, name: str) -> float:
     """The value of an unlabelled sample ``name`` in a Prometheus exposition (0 when absent)."""
     m = re.search(rf"^{name} (\S+)$", text, re.M)
     return float(m.group(1)) if m else 0.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 async def _measure(base: str, pid: int, settle_s: float, seconds: float) -> dict:
@@ -111,7 +105,7 @@ def _serve(n: int, dense: bool, touched: float, settle_s: float, seconds: float,
     """Start ``touchreal serve`` for one configuration, measure it, stop it."""
     import httpx
 
-    port = _free_port()
+    port = free_port()
     cmd = [sys.executable, "-m", "touchreal", "serve", "--taxels", str(n), "--port", str(port), "--state-dir",
            str(state / f"{n}-{'dense' if dense else 'activity'}"), "--sim-scene", "large", "--sim-touched", str(touched)]
     log = state / f"serve-{port}.log"  # a file, not a pipe: nobody reads it while the service runs
@@ -133,12 +127,7 @@ def _serve(n: int, dense: bool, touched: float, settle_s: float, seconds: float,
             time.sleep(0.2)
         return asyncio.run(_measure(base, proc.pid, settle_s, seconds))
     finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc, 20.0)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -29,6 +29,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def stop_process(proc: subprocess.Popen, timeout_s: float) -> None:
+    """Terminate ``proc``; kill it if it has not exited within ``timeout_s``."""
+    proc.terminate()
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 @contextmanager
 def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstream: bool = False,
                       config: Path | None = None, env: dict[str, str] | None = None) -> Iterator[str]:
@@ -58,12 +68,7 @@ def local_nats_server(port: int | None = None, timeout_s: float = 10.0, jetstrea
                 time.sleep(0.05)
         yield f"nats://127.0.0.1:{port}"
     finally:
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc, 5.0)
         log.close()
         if store is not None:
             store.cleanup()

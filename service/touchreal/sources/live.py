@@ -38,9 +38,9 @@ from ..simulator.large import LargeSkinSource
 from ..simulator.scene import SceneSource, default_scene
 
 
-MAX_CATCH_UP_HOPS = 64  #: a sim or replay that fell behind hands over up to this many hops at once
-
 log = logging.getLogger("touchreal.sources")
+
+MAX_CATCH_UP_HOPS = 64  #: a sim or replay that fell behind hands over up to this many hops at once
 SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 ms bins and 32 ms steps)
 #: a replayed trial's span on the wire runs this long past its last sample, so that no spike of it (stamped at
 #: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
