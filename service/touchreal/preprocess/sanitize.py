@@ -26,13 +26,13 @@ import numpy as np
 class SanitizeStats:
     """Counts of repaired or rejected input, per channel (all taxels together)."""
 
-    accepted: int = 0
-    bad_time: int = 0
-    duplicate: int = 0
-    non_finite: int = 0
-    out_of_range: int = 0
-    gaps: int = 0
-    gap_filled: int = 0
+    accepted: int = 0  #: samples placed on the grid
+    bad_time: int = 0  #: dropped: a non-finite timestamp
+    duplicate: int = 0  #: dropped: not after the previous accepted sample, or on a filled slot
+    non_finite: int = 0  #: values replaced by the taxel's last good one
+    out_of_range: int = 0  #: values clipped to the sensor's range
+    gaps: int = 0  #: runs of missing grid slots
+    gap_filled: int = 0  #: slots filled by interpolation
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

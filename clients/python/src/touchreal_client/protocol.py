@@ -119,13 +119,13 @@ class Header:
     """The common frame header. ``kind`` is KIND_*; ``flags`` a bit set of FLAG_*."""
 
     kind: int
-    update: int = 0
-    emit_us: int = 0
-    params_rev: int = 0
+    update: int = 0  #: the encoder update that made the frame (the same in every client's copy)
+    emit_us: int = 0  #: server wall clock (us) when the update left the encoder
+    params_rev: int = 0  #: revision of the parameter set that made the frame
     flags: int = 0
-    seq: int = 0
-    dropped: int = 0
-    sent_us: int = 0
+    seq: int = 0  #: per connection: 0, 1, 2, ... for every frame meant for this client; a jump = frames dropped
+    dropped: int = 0  #: per connection: frames dropped for this client so far
+    sent_us: int = 0  #: per connection: server wall clock (us) when the frame went to this client's socket
     version: int = FRAME_VERSION
     recv_us: int | None = None  #: client side only (not on the wire): this client's wall clock when it received the frame
 

@@ -93,10 +93,10 @@ def spike_latency_us(frame: SpikesFrame, recv_us: int, clock: ClockMap, delay_us
 class Latency:
     """One frame's delivery figures (us); ``total_us[c]`` adds the server's algorithmic latency."""
 
-    queue_us: int
-    network_us: int
-    delivery_us: int
-    total_us: dict[str, int]
+    queue_us: int  #: in the server's queue: sent_us - emit_us
+    network_us: int  #: from the server's socket to this client: receipt - sent_us, by the clock mapping
+    delivery_us: int  #: queue and network: receipt - emit_us
+    total_us: dict[str, int]  #: per class: delivery plus the class's algorithmic latency
 
 
 @dataclass(frozen=True)
