@@ -50,7 +50,7 @@ def test_interleaved_runs_draw_the_same_candidates_as_runs_alone_and_as_a_global
 
 def test_restarts_run_side_by_side_independently_and_the_best_point_wins():
     x0 = SPACE.initial(100.0)
-    fit = S.fit_class("RA", SPACE, _sphere, S.Budget(6, 12, restarts=1), [x0], 100.0, seed=4)
+    fit = S.Searcher(SPACE, _sphere, 4).stage("RA", S.Budget(6, 12, restarts=1), [x0], 100.0)
     assert [(r.popsize, r.budget, r.generations) for r in fit.runs] == [(6, 12, 12), (12, 6, 6)]
     grid = S.start_grid(SPACE, [x0], 100.0)
     start = grid[int(np.argmin([f for f, _ in _sphere("RA", grid)]))]
@@ -76,7 +76,8 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
 
     x0 = SPACE.initial(100.0)
     plan = default_plan(("RA",)).overridden({"popsize": 6, "generations": 30})  # RA is refined
-    fit = S.search_and_refine("RA", SPACE, two_objectives, plan, [x0], 100.0, seed=4)
+    searcher = S.Searcher(SPACE, two_objectives, 4)
+    fit = searcher.search_and_refine("RA", plan, [x0], 100.0)
     assert fit.cls == "RA" and fit.search is not None and fit.search.search is None
     on_refinement = lambda x: two_objectives("RA:refine", np.array([x]))[0][0]  # noqa: E731
     # the search's best point is on the refinement's start grid: the refinement starts no worse than it
@@ -84,8 +85,7 @@ def test_a_refinement_starts_from_the_search_best_point_and_optimises_its_own_ob
     assert on_refinement(fit.x) < on_refinement(fit.search.x)
     assert fit.runs[0].history[-1] <= fit.start_loss
     # a class not refined is searched once
-    plain = S.search_and_refine("RA", SPACE, two_objectives, plan.overridden({"generations": 3, "classes": {"RA": {"refine": None}}}), [x0], 100.0,
-                                seed=4)
+    plain = searcher.search_and_refine("RA", plan.overridden({"generations": 3, "classes": {"RA": {"refine": None}}}), [x0], 100.0)
     assert plain.search is None
     # the refinement draws from streams of its own
     assert S.cma_seed(4, "RA:refine") != S.cma_seed(4, "RA") == S.cma_seed(4, "RA", 0)
@@ -98,7 +98,7 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     assert np.all(own[:, Coord.LOG_ISAT] == 3.0) and np.all(saturated[:, Coord.LOG_ISAT] == -2.0)  # each start's own i_sat (e^3), and e^-2
     np.testing.assert_array_equal(np.delete(own, Coord.LOG_ISAT, axis=1), np.delete(saturated, Coord.LOG_ISAT, axis=1))  # the same points otherwise
     plan = default_plan(("SA1",)).overridden({"popsize": 6, "generations": 10, "classes": {"SA1": {"restarts": 1, "saturated_starts": [-2.0]}}})
-    fit = S.fit_class("SA1", sa1, _sphere, S.Budget.of(plan, "SA1"), starts, 100.0, seed=4)
+    fit = S.Searcher(sa1, _sphere, 4).stage("SA1", S.Budget.of(plan, "SA1"), starts, 100.0)
     assert [(r.popsize, r.budget) for r in fit.runs] == [(6, 10), (12, 5), (6, 10)]  # the search, its restart, the saturated run
     x_sat = saturated[int(np.argmin([f for f, _ in _sphere("SA1", saturated)]))]
     alone = S.run_cma("SA1", sa1, _sphere, x_sat, 6, 10, S.cma_seed(4, "SA1", 2))
@@ -106,7 +106,7 @@ def test_sa1_also_searches_from_a_saturated_start_in_a_run_of_its_own():
     assert fit.evaluations == len(own) + len(saturated) + 6 * 10 + 12 * 5 + 6 * 10
     assert min(r.best_loss for r in fit.runs) == pytest.approx(float(np.sum((fit.x - 0.3) ** 2)))  # the best run wins
     assert S.Budget.of(plan, "SA1:refine") == S.Budget(6, 10, restarts=1)  # a refinement keeps the search's saturation
-    refined = S.fit_class("SA1:refine", sa1, _sphere, S.Budget.of(plan, "SA1:refine"), [fit.x], 100.0, seed=4)
+    refined = S.Searcher(sa1, _sphere, 4).stage("SA1:refine", S.Budget.of(plan, "SA1:refine"), [fit.x], 100.0)
     assert [(r.popsize, r.budget) for r in refined.runs] == [(6, 10), (12, 5)]
-    quiet = S.fit_class("SA1", sa1, _sphere, S.Budget(6, 4), starts, 100.0, seed=4)
+    quiet = S.Searcher(sa1, _sphere, 4).stage("SA1", S.Budget(6, 4), starts, 100.0)
     assert len(quiet.runs) == 1 and quiet.evaluations == len(own) + 6 * 4  # not asked for (a quiet SingleTact): one run from its own grid

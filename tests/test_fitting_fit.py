@@ -196,7 +196,7 @@ def test_synthetic_fit_recovers_the_generating_parameters():
     x_start = space.initial(10.0)
     x_start[:8] = [0.5, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     l_start = loss(x_start)
-    fit = S.fit_class("SA1", space, ev, S.Budget.of(plan, "SA1"), [x_start], 0.0, seed=0)
+    fit = S.Searcher(space, ev, 0).stage("SA1", S.Budget.of(plan, "SA1"), [x_start], 0.0)
     for run in fit.runs:
         assert run.history == sorted(run.history, reverse=True)  # best-so-far never increases
     l_fit = loss(fit.x)

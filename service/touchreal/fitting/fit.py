@@ -54,7 +54,7 @@ from .plan import FitPlan, parse_stage_key, stage_key
 from .policy import Resolution, measured_with, resolve
 from .profile import measure_profile
 from .provenance import provenance
-from .search import ClassFit, search_and_refine
+from .search import ClassFit, Searcher
 from .space import INITIAL_WEIGHTS, ParamSpace, touchsim_class_defaults
 from .trials import TrialSet, baseline_segments, build_trial_set, channel_scale, estimate_lag_s, simulate
 
@@ -216,10 +216,11 @@ def fit_dataset(
             starts = [sp.clip(sp.encode(start.model_copy(update={"delay_ms": d0})))]
         else:
             starts = [sp.initial(d0, v) for v in range(len(INITIAL_WEIGHTS[cls]))]
-        jobs[cls] = (cls, sp, evaluator, plan, starts, d0, cfg.seed, cfg.progress, position)
+        jobs[cls] = (Searcher(sp, evaluator, cfg.seed, cfg.progress, position), starts, d0)
     try:  # every class searches at once, so the workers never wait for one class's next generation
         with ThreadPoolExecutor(len(jobs), thread_name_prefix="fit") as pool:
-            futures = {cls: pool.submit(search_and_refine, *job) for cls, job in jobs.items()}
+            futures = {cls: pool.submit(searcher.search_and_refine, cls, plan, starts, d0)
+                       for cls, (searcher, starts, d0) in jobs.items()}
             fits: dict[str, ClassFit] = {cls: f.result() for cls, f in futures.items()}
     finally:
         evaluator.close()

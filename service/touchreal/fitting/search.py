@@ -1,6 +1,6 @@
 """CMA-ES search of one class's parameters (``cma``) in the normalised space of :mod:`.space`.
 
-:func:`fit_class` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
+:meth:`Searcher.stage` evaluates a deterministic start grid, then runs the first CMA-ES run and its IPOP
 restarts side by side from the grid's best point (each from the same point with its own seed, so
 they are independent of each other), and one more run from the best point of the same grid at each
 saturated start the plan gives the class (SA1 on a noisy SingleTact: ``i_sat`` = e^-2); the best
@@ -8,8 +8,8 @@ point any of them evaluated wins (:class:`Budget`: the runs of one stage). Every
 samples from a random stream of its own, so runs (and the classes of a fit) may interleave in any
 order and the result is still the same for a seed. A run ends at its generation budget or at
 ``cma``'s own stopping rules. There is no stop on stagnation: on rig-v1 a run's best loss stays flat
-for 20-30 generations and then falls by 0.1-0.4 (docs/fitting.md). :func:`search_and_refine` follows a
-class's search with its refinement (a second :func:`fit_class` on another objective) where the plan has one.
+for 20-30 generations and then falls by 0.1-0.4 (docs/fitting.md). :meth:`Searcher.search_and_refine` follows a
+class's search with its refinement (a second stage on another objective) where the plan has one.
 """
 
 from __future__ import annotations
@@ -159,92 +159,80 @@ def run_cma(cls: str, space: ParamSpace, evaluate: Executor, x0: np.ndarray, pop
     return RunFit(popsize, budget, len(history), stop, best_f, best_x, history)
 
 
-def fit_class(
-    key: str,
-    space: ParamSpace,
-    evaluate: Executor,
-    budget: Budget,
-    starts: Sequence[np.ndarray],
-    delay0_ms: float,
-    seed: int,
-    progress: bool = False,
-    position: int = 0,
-) -> ClassFit:
-    """CMA-ES for one stage of a class from the best point of :func:`start_grid` around ``starts``,
-    with the budget's IPOP restarts (population doubled, generations halved each time, so every run
-    costs about the same) run side by side with the first run, each with its own seed, and one more
-    run from the best grid point at each of the budget's saturated starts.
-    The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
-    Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
-    differ by up to 0.2 in loss, while restarting from a converged point does not move it.
-    ``key`` is the state key the executor evaluates (a class, or a class's refinement); ``seed``: the
-    fit's; ``progress``: show a progress bar, on line ``position``."""
-    from tqdm import tqdm
+@dataclass(frozen=True)
+class Searcher:
+    """What every stage of one class's search shares: the class's space, the executor that scores its
+    points, the fit's seed, and its progress bar (``progress``: shown, on line ``position``)."""
 
-    t_start = time.perf_counter()
-    grids = [start_grid(space, starts, delay0_ms, li) for li in (None, *budget.saturated_starts)]
-    grid = np.concatenate(grids)
-    losses = np.array([r[0] for r in evaluate(key, grid)])
-    edges = np.cumsum([0] + [len(g) for g in grids])
-    x0s = [grid[a + int(np.argmin(losses[a:b]))] for a, b in zip(edges[:-1], edges[1:])]  # each saturation's best
-    best = int(np.argmin(losses))
-    start_loss = float(losses[best])
-    # (start, population, generations): the first run and its restarts from the best point at the
-    # starts' own saturation, then one run from the best point at each saturated start's
-    runs_plan = [(x0s[0], budget.popsize * 2**k, max(1, budget.generations // 2**k)) for k in range(budget.restarts + 1)]
-    runs_plan += [(x, budget.popsize, budget.generations) for x in x0s[1:]]
-    bar = tqdm(total=sum(g for _, _, g in runs_plan), desc=f"fit {key}", unit="gen", disable=not progress,
-               dynamic_ncols=True, position=position, leave=True)
-    lock = threading.Lock()
+    space: ParamSpace
+    evaluate: Executor
+    seed: int
+    progress: bool = False
+    position: int = 0
 
-    def advance(n: int) -> None:
-        with lock:
-            bar.update(n)
+    def stage(self, key: str, budget: Budget, starts: Sequence[np.ndarray], delay0_ms: float) -> ClassFit:
+        """CMA-ES for one stage of a class from the best point of :func:`start_grid` around ``starts``,
+        with the budget's IPOP restarts (population doubled, generations halved each time, so every run
+        costs about the same) run side by side with the first run, each with its own seed, and one more
+        run from the best grid point at each of the budget's saturated starts.
+        The best point ever evaluated wins (the grid's best if no run beats it; the earlier run on a tie).
+        Independent restarts matter: on rig-v1, runs that differ only in their seed end in optima that
+        differ by up to 0.2 in loss, while restarting from a converged point does not move it.
+        ``key`` is the state key the executor evaluates (a class, or a class's refinement)."""
+        from tqdm import tqdm
 
-    try:
-        with ThreadPoolExecutor(len(runs_plan), thread_name_prefix=f"fit-{key}") as pool:
-            futures = [pool.submit(run_cma, key, space, evaluate, x, p, g, cma_seed(seed, key, k), advance)
-                       for k, (x, p, g) in enumerate(runs_plan)]
-            runs = [f.result() for f in futures]
-    finally:
-        bar.close()
-    best_x, best_f = grid[best].copy(), start_loss
-    for r in runs:  # in run order: the earlier run wins a tie
-        if r.best_loss < best_f:
-            best_x, best_f = r.best_x, r.best_loss
-    return ClassFit(
-        cls=key,
-        params=space.decode(best_x),
-        x=space.clip(best_x),
-        generations=sum(r.generations for r in runs),
-        evaluations=len(grid) + sum(r.generations * r.popsize for r in runs),
-        seconds=time.perf_counter() - t_start,
-        runs=runs,
-        start_loss=start_loss,
-    )
+        t_start = time.perf_counter()
+        grids = [start_grid(self.space, starts, delay0_ms, li) for li in (None, *budget.saturated_starts)]
+        grid = np.concatenate(grids)
+        losses = np.array([r[0] for r in self.evaluate(key, grid)])
+        edges = np.cumsum([0] + [len(g) for g in grids])
+        x0s = [grid[a + int(np.argmin(losses[a:b]))] for a, b in zip(edges[:-1], edges[1:])]  # each saturation's best
+        best = int(np.argmin(losses))
+        start_loss = float(losses[best])
+        # (start, population, generations): the first run and its restarts from the best point at the
+        # starts' own saturation, then one run from the best point at each saturated start's
+        runs_plan = [(x0s[0], budget.popsize * 2**k, max(1, budget.generations // 2**k)) for k in range(budget.restarts + 1)]
+        runs_plan += [(x, budget.popsize, budget.generations) for x in x0s[1:]]
+        bar = tqdm(total=sum(g for _, _, g in runs_plan), desc=f"fit {key}", unit="gen", disable=not self.progress,
+                   dynamic_ncols=True, position=self.position, leave=True)
+        lock = threading.Lock()
 
+        def advance(n: int) -> None:
+            with lock:
+                bar.update(n)
 
-def search_and_refine(
-    cls: str,
-    space: ParamSpace,
-    evaluate: Executor,
-    plan: FitPlan,
-    starts: Sequence[np.ndarray],
-    delay0_ms: float,
-    seed: int,
-    progress: bool = False,
-    position: int = 0,
-) -> ClassFit:
-    """:func:`fit_class` on the class's objective with the plan's budget for its search; for a class
-    the plan refines, then its refinement: :func:`fit_class` on the refinement's objective (its
-    :func:`~.plan.stage_key`) from the search's best point. That point is on the refinement's start
-    grid (gain 1, tau and delay unchanged), so the refinement never ends worse on its own objective.
-    Returns the refinement, with the search in ``.search``."""
-    first = fit_class(cls, space, evaluate, Budget.of(plan, cls), starts, delay0_ms, seed, progress, position)
-    if plan.classes[cls].refine is None:
-        return first
-    key = stage_key(cls, True)
-    refined = fit_class(key, space, evaluate, Budget.of(plan, key), [first.x], float(first.x[Coord.DELAY]) * DELAY_UNIT_MS, seed,
-                        progress, position)
-    refined.cls, refined.search = cls, first
-    return refined
+        try:
+            with ThreadPoolExecutor(len(runs_plan), thread_name_prefix=f"fit-{key}") as pool:
+                futures = [pool.submit(run_cma, key, self.space, self.evaluate, x, p, g, cma_seed(self.seed, key, k), advance)
+                           for k, (x, p, g) in enumerate(runs_plan)]
+                runs = [f.result() for f in futures]
+        finally:
+            bar.close()
+        best_x, best_f = grid[best].copy(), start_loss
+        for r in runs:  # in run order: the earlier run wins a tie
+            if r.best_loss < best_f:
+                best_x, best_f = r.best_x, r.best_loss
+        return ClassFit(
+            cls=key,
+            params=self.space.decode(best_x),
+            x=self.space.clip(best_x),
+            generations=sum(r.generations for r in runs),
+            evaluations=len(grid) + sum(r.generations * r.popsize for r in runs),
+            seconds=time.perf_counter() - t_start,
+            runs=runs,
+            start_loss=start_loss,
+        )
+
+    def search_and_refine(self, cls: str, plan: FitPlan, starts: Sequence[np.ndarray], delay0_ms: float) -> ClassFit:
+        """:meth:`stage` on the class's objective with the plan's budget for its search; for a class
+        the plan refines, then its refinement: :meth:`stage` on the refinement's objective (its
+        :func:`~.plan.stage_key`) from the search's best point. That point is on the refinement's start
+        grid (gain 1, tau and delay unchanged), so the refinement never ends worse on its own objective.
+        Returns the refinement, with the search in ``.search``."""
+        first = self.stage(cls, Budget.of(plan, cls), starts, delay0_ms)
+        if plan.classes[cls].refine is None:
+            return first
+        key = stage_key(cls, True)
+        refined = self.stage(key, Budget.of(plan, key), [first.x], float(first.x[Coord.DELAY]) * DELAY_UNIT_MS)
+        refined.cls, refined.search = cls, first
+        return refined
