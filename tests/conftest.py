@@ -81,6 +81,28 @@ def server(tmp_path_factory):
         yield addr, svc
 
 
+@pytest.fixture
+def nats_url():
+    """The URL of a real nats-server on a free loopback port (skips where none is installed)."""
+    yield from _nats_server()
+
+
+@pytest.fixture
+def nats_js_url():
+    """A nats-server with JetStream (-js, a temporary store directory)."""
+    yield from _nats_server(jetstream=True)
+
+
+def _nats_server(**options):
+    from server_harness import needs_nats_server
+
+    from touchreal.bridge import natsd
+
+    needs_nats_server()
+    with natsd.local_nats_server(**options) as url:
+        yield url
+
+
 # -- leaving the test process ------------------------------------------------------------------------
 # Servers under test run on daemon threads with native libraries loaded (onnxruntime, liblsl through
 # pylsl, numba/LLVM). Now and then one of their C++ threads is still alive when the interpreter

@@ -17,6 +17,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 import waiting
 import websockets
 from touchreal_client import protocol as P
@@ -28,6 +29,14 @@ from touchreal.server.settings import RuntimeConfig, ServeSettings
 
 #: the tests' one waiting helper (tests/waiting.py), importable from here too
 until, wait_until = waiting.until, waiting.wait_until
+
+
+def needs_nats_server() -> None:
+    """Skip the calling test where no nats-server binary is installed."""
+    from touchreal.bridge import natsd
+
+    if not natsd.available():
+        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
 
 
 def free_port() -> int:

@@ -207,13 +207,10 @@ def test_the_command_serves_until_sigint_and_fails_clearly_without_a_stream(serv
 
 
 @pytest.mark.slow
-def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path):
-    from touchreal.bridge import natsd
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+def test_through_a_gateway_the_bridge_demands_only_what_foxglove_shows(tmp_path, nats_url):
     from test_bridge_nats import gateway, publishing
 
-    with natsd.local_nats_server() as url, publishing(tmp_path, url) as (_, svc, _pub), gateway(url) as (gw_addr, _gw):
+    with publishing(tmp_path, nats_url) as (_, svc, _pub), gateway(nats_url) as (gw_addr, _gw):
         async def go():
             bridge = FoxgloveBridge(f"ws://{gw_addr}/v1/stream", port=0)
             async with bridge_running(bridge):

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from server_harness import collect, connect, covers, hello_and_subscribe, stall_one_of_two, until, wait_until
+from server_harness import (collect, connect, covers, hello_and_subscribe, needs_nats_server, stall_one_of_two, until,
+                            wait_until)
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 
@@ -32,23 +33,6 @@ from touchreal.server.settings import RuntimeConfig, ServeSettings
 from touchreal.stream import encode_trial
 
 SENSOR = "lab-1"
-
-
-@pytest.fixture
-def nats_url() -> Iterator[str]:
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
-    with natsd.local_nats_server() as url:
-        yield url
-
-
-@pytest.fixture
-def nats_js_url() -> Iterator[str]:
-    """A nats-server with JetStream (-js, a temporary store directory)."""
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
-    with natsd.local_nats_server(jetstream=True) as url:
-        yield url
 
 
 @contextmanager
@@ -450,8 +434,7 @@ def test_frames_over_the_brokers_max_payload_cross_in_parts_and_equal_the_servic
     """A broker with a 16 kB max_payload (1 MB by default): the full-rate channels of 16 taxels are 41 kB
     per update, so each crosses in parts and the gateway puts it together again, equal to the service's
     own frame; a client sees no gap and the publisher counts the parted frames."""
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
+    needs_nats_server()
     conf = tmp_path / "small.conf"
     conf.write_text("max_payload: 16384\n")
     with natsd.local_nats_server(config=conf) as url, \

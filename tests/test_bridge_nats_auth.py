@@ -22,8 +22,8 @@ import nats
 import numpy as np
 import pytest
 from nats.errors import Error as NatsError
-from server_harness import collect, connect, hello_and_subscribe, n_spikes, until, wait_until
-from test_bridge_nats import SENSOR, gateway, nats_url, publishing  # noqa: F401 (nats_url is a fixture)
+from server_harness import collect, connect, hello_and_subscribe, n_spikes, needs_nats_server, until, wait_until
+from test_bridge_nats import SENSOR, gateway, publishing
 from touchreal_client import protocol as P
 
 from touchreal.commands import gateway as gateway_command
@@ -45,11 +45,6 @@ class Broker:
     url: str
     publisher: NatsAuth
     gateways: dict[str, NatsAuth]  #: gateway id -> its own nkey credentials
-
-
-def _needs_nats_server() -> None:
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
 
 
 def _shipped_env(keys: Path) -> tuple[dict[str, str], NatsAuth, dict[str, NatsAuth]]:
@@ -75,7 +70,7 @@ def _conf_with(tmp_path: Path, users: list[str]) -> Path:
 @pytest.fixture
 def broker(tmp_path) -> Iterator[Broker]:
     """A nats-server running the shipped config, with the credentials of the publisher and both gateways."""
-    _needs_nats_server()
+    needs_nats_server()
     env, publisher, gateways = _shipped_env(tmp_path / "nkeys")
     with natsd.local_nats_server(config=CONF, env=env) as url:
         yield Broker(url, publisher, gateways)
@@ -246,7 +241,7 @@ def test_one_identity_holds_one_place_and_a_restarted_gateway_gets_its_own_back(
 def test_issued_credentials_admit_a_new_gateway_under_its_id(tmp_path, capsys):
     """`touchreal gateway credentials --id gateway-3 --out DIR`: its printed entry, added to the shipped
     config, lets a gateway with that seed and id serve; its seed file is the owner's alone."""
-    _needs_nats_server()
+    needs_nats_server()
     parser = argparse.ArgumentParser()
     gateway_command.register(parser.add_subparsers())
     args = parser.parse_args(["gateway", "credentials", "--id", "gateway-3", "--out", str(tmp_path / "keys")])
@@ -404,7 +399,7 @@ def test_no_password_is_shown_anywhere(tmp_path, caplog):
     of a sensor nobody publishes and one whose broker is away: neither password appears in /v1/status,
     /v1/health, /v1/ready, /metrics (service and gateways), the hellos, the error answers or any log
     record down to DEBUG; the URLs are shown masked and ``auth`` names the method."""
-    _needs_nats_server()
+    needs_nats_server()
     caplog.set_level(logging.DEBUG)
     env, _, _ = _shipped_env(tmp_path / "nkeys")
     gw_password = "tr_" + secrets.token_hex(16)

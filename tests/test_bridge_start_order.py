@@ -9,7 +9,7 @@ from contextlib import AsyncExitStack
 
 import pytest
 from server_harness import collect, connect, n_spikes
-from test_bridge_nats import SENSOR, nats_url, publishing  # noqa: F401 (nats_url is a fixture)
+from test_bridge_nats import SENSOR, publishing
 from touchreal_client import protocol as P
 
 from touchreal.bridge.gateway import Gateway, create_gateway_app

@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from mcap.records import Attachment, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
 from server_harness import free_port, running_server, wait_until
-from test_bridge_nats import gateway, nats_url, publishing  # noqa: F401 (nats_url: a fixture)
+from test_bridge_nats import gateway, publishing
 from test_server_stream import _replay_dataset
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockMap

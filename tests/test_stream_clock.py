@@ -193,14 +193,10 @@ def test_a_new_hello_follows_a_parameter_upload_and_a_window_change(tmp_path):
 
 
 @pytest.mark.slow
-def test_clock_messages_pass_through_a_gateway_unchanged(tmp_path):
+def test_clock_messages_pass_through_a_gateway_unchanged(tmp_path, nats_url):
     from test_bridge_nats import gateway, publishing
 
-    from touchreal.bridge import natsd
-
-    if not natsd.available():
-        pytest.skip("nats-server is not installed (Debian: apt-get install nats-server; .ci/run installs it)")
-    with natsd.local_nats_server() as url, publishing(tmp_path, url) as (_, svc, _pub), gateway(url) as (gw_addr, gw):
+    with publishing(tmp_path, nats_url) as (_, svc, _pub), gateway(nats_url) as (gw_addr, gw):
 
         async def go():
             return await _stream(gw_addr, 4.0, classes=["SA1", "RA"])
