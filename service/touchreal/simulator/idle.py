@@ -6,9 +6,9 @@ white noise and the OU processes of one sensor is generated as the one ARMA proc
 autocovariance (spectral factorisation: a sum of independent Gaussian processes is the Gaussian
 process of the summed autocovariance), driven by a single unit Gaussian per sample, and its state
 starts from its stationary distribution. The Gaussians come from a Marsaglia-Tsang ziggurat on a
-xorshift128+ generator inside the kernel: exact N(0, 1) draws at a few ns each. The kernels add the
-mains hum (one waveform, a gain per taxel), the contact signal of the taxels that have one (``idx``:
-a column of ``extra`` each), quantise (ADC, SingleTact resolution) and clip, in one pass over
+xorshift128+ generator inside the kernel: exact N(0, 1) draws at a few ns each. The kernel adds the
+mains hum (one waveform, a gain per taxel) or the SingleTact offset, the contact signal of the taxels that have one (``idx``:
+a column of ``extra`` each), quantises (ADC, SingleTact resolution) and clips, in one pass over
 (tick, taxel) in that order, so the samples do not depend on how the ticks are split into calls.
 """
 
@@ -41,6 +41,7 @@ def _ziggurat_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 _KN, _WN, _FN = _ziggurat_tables()
+_NONE = np.zeros(0)  # an input a channel's kernel call does not use
 _ZIG_R = 3.442620  # start of the tail (the base layer's right edge)
 
 
@@ -113,40 +114,30 @@ def _noise_row(s0, s1, e, b, a, zi, v):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _pvdf_kernel(out, state, b, a, zi, hum, pickup, idx, extra, step, lo, hi):  # pragma: no cover - compiled
+def _idle_kernel(out, state, b, a, zi, hum, pickup, offset, resid, decay, idx, extra, step, lo, hi):  # pragma: no cover - compiled
+    """Per tick: the noise row, then the film's ``hum[k] x pickup`` (when ``hum`` has ticks) or the
+    SingleTact's ``offset + resid`` (``resid`` decayed by ``decay`` in place), ``extra`` on the taxels
+    ``idx``, quantised to ``step`` and clipped to [``lo``, ``hi``] (the sensor's unit)."""
     n, m = out.shape
     s0, s1 = state[0], state[1]
     e, v = np.empty(m), np.empty(m)
     inv = 1.0 / step
+    film = hum.size > 0
     for k in range(n):
         s0, s1 = _noise_row(s0, s1, e, b, a, zi, v)
-        h = hum[k]
-        for i in range(m):
-            v[i] += h * pickup[i]
+        if film:
+            h = hum[k]
+            for i in range(m):
+                v[i] += h * pickup[i]
+        else:
+            for i in range(m):
+                v[i] += offset[i] + resid[i]
+                resid[i] *= decay
         for j in range(idx.size):
             v[idx[j]] += extra[k, j]
         row = out[k]
         for i in range(m):
-            row[i] = np.float32(min(max(np.rint(v[i] * inv), lo), hi) * step)
-    state[0], state[1] = s0, s1
-
-
-@numba.njit(cache=True, nogil=True)
-def _st_kernel(out, state, b, a, zi, offset, resid, decay, idx, extra, step, hi):  # pragma: no cover - compiled
-    n, m = out.shape
-    s0, s1 = state[0], state[1]
-    e, v = np.empty(m), np.empty(m)
-    inv = 1.0 / step
-    for k in range(n):
-        s0, s1 = _noise_row(s0, s1, e, b, a, zi, v)
-        for i in range(m):
-            v[i] += offset[i] + resid[i]
-            resid[i] *= decay
-        for j in range(idx.size):
-            v[idx[j]] += extra[k, j]
-        row = out[k]
-        for i in range(m):
-            row[i] = np.float32(min(max(np.rint(v[i] * inv) * step, 0.0), hi) + 0.0)
+            row[i] = np.float32(min(max(np.rint(v[i] * inv) * step, lo), hi) + 0.0)
     state[0], state[1] = s0, s1
 
 
@@ -210,11 +201,15 @@ class NoiseStream:
              step_v: float, codes: tuple[int, int]) -> None:
         """Fill ``out`` (n ticks at 2 kHz, N) float32 (V): noise + ``hum`` (n,) x ``pickup`` (N,), plus
         ``extra`` (n, len(idx)) on the taxels ``idx``, quantised to ``step_v`` and clipped to the ADC ``codes``."""
-        _pvdf_kernel(out, self.state, self.b, self.a, self.zi, hum, pickup, idx, extra, step_v, *map(float, codes))
+        if hum.size != out.shape[0]:
+            raise ValueError(f"hum has {hum.size} ticks for {out.shape[0]} rows")
+        _idle_kernel(out, self.state, self.b, self.a, self.zi, hum, pickup, _NONE, _NONE, 1.0, idx, extra, step_v,
+                     codes[0] * step_v, codes[1] * step_v)
 
     def singletact(self, out: np.ndarray, offset: np.ndarray, resid: np.ndarray, decay: float, idx: np.ndarray,
                    extra: np.ndarray, step_n: float, max_n: float) -> None:
         """Fill ``out`` (m samples at 100 Hz, N) float32 (N): ``offset`` + noise + ``resid`` (then decayed by
         ``decay`` per sample, in place), plus ``extra`` (m, len(idx)) on the taxels ``idx``, quantised to
         ``step_n`` and clipped to [0, ``max_n``]."""
-        _st_kernel(out, self.state, self.b, self.a, self.zi, offset, resid, decay, idx, extra, step_n, max_n)
+        _idle_kernel(out, self.state, self.b, self.a, self.zi, _NONE, _NONE, offset, resid, decay, idx, extra, step_n,
+                     0.0, max_n)
