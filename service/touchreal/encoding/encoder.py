@@ -156,8 +156,9 @@ def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, hp_sos, has_hp, hp
             if currents:
                 out[n, k] = acc
                 continue
-            # the LIF step of touchreal.encoding.lif._lif_run, written out (tested equal): sharing it as an
-            # inline numba function cost ~12 ms of CPU per 4096-taxel update (measured A/B, 2026-11-25)
+            # the LIF step of touchreal.encoding.lif._lif_run, written out (tested equal): sharing it as a
+            # numba function, inlined or not, made this kernel ~40 % slower (4096 taxels x 3 classes, a
+            # 32 ms chunk: 55 against 40 ms of CPU, measured A/B 2026-11-29)
             vm = vm - vm / tau_n + acc
             if c < nh:
                 vm += ih[n, c]
