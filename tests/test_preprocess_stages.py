@@ -223,6 +223,31 @@ def test_sanitizer_policy_counts_each_repair():
     assert first == 7 and y.shape == (1, 1) and s.stats.duplicate == 3
 
 
+def test_a_clean_block_passes_the_sanitizer_as_a_new_float64_array_whatever_its_dtype():
+    """The fast path (finite, in range, no gap): float32 samples come out as their float64 values,
+    in an array of the sanitizer's own (the caller may reuse its buffer), with the same counts as the
+    same samples in float64; a block needing a repair still gets it."""
+    rng = np.random.default_rng(3)
+    t = np.arange(64) / 2000.0
+    x = rng.normal(0.0, 0.5, (64, 5)).astype(np.float32)
+    a, b = Sanitizer(2000.0, (-5.0, 5.0), 5), Sanitizer(2000.0, (-5.0, 5.0), 5)
+    _, ya = a.push(t, x)
+    _, yb = b.push(t, x.astype(np.float64))
+    assert ya.dtype == np.float64 and not np.shares_memory(ya, x)
+    np.testing.assert_array_equal(ya, yb)
+    kept = ya.copy()
+    x[:] = 0.0  # the caller reuses its buffer
+    np.testing.assert_array_equal(ya, kept)
+    assert a.stats.as_dict() == b.stats.as_dict() == {**a.stats.as_dict(), "accepted": 320}
+    y64 = np.full((64, 5), 1.0)
+    _, same = a.push(t + 64 / 2000.0, y64)
+    assert not np.shares_memory(same, y64)
+    x[10, 2], x[20, 4] = np.nan, 7.0  # one non-finite, one beyond the range
+    _, y = a.push(t + 128 / 2000.0, x)
+    assert y[10, 2] == y[9, 2] and y[20, 4] == 5.0
+    assert a.stats.non_finite == 1 and a.stats.out_of_range == 1
+
+
 @settings(max_examples=30, deadline=None)
 @given(x=arrays(np.float64, st.tuples(st.integers(1, 300), st.integers(1, 3)), elements=st.floats(-10, 10)))
 def test_sos_kernel_equals_scipy_sosfilt(x):

@@ -62,8 +62,13 @@ class Sanitizer:
         return self.t0 + np.asarray(slot) / self.fs
 
     def push(self, t: np.ndarray, x: np.ndarray) -> tuple[int, np.ndarray]:
+        """Place samples ``x`` stamped ``t`` on the grid; (the first slot out, the (m, n_taxels) float64
+        values of the consecutive slots from it, a new array). Each repair is counted in :attr:`stats`;
+        a block that needs none (finite, in range, no gap) costs one conversion and two reductions."""
         t = np.asarray(t, dtype=np.float64).ravel()
-        x = np.asarray(x, dtype=np.float64)
+        x = np.asarray(x)
+        if x.dtype not in (np.float32, np.float64):
+            x = x.astype(np.float64)
         if x.ndim == 1:
             x = x[:, None]
         if x.shape != (t.size, self.n_taxels):
@@ -73,8 +78,9 @@ class Sanitizer:
             return first, np.zeros((0, self.n_taxels))
 
         finite_t = np.isfinite(t)
-        self.stats.bad_time += int(np.count_nonzero(~finite_t))
-        t, x = t[finite_t], x[finite_t]
+        if not finite_t.all():
+            self.stats.bad_time += int(np.count_nonzero(~finite_t))
+            t, x = t[finite_t], x[finite_t]
         if t.size and self.t0 is None:
             self.t0 = float(t[0])
         if t.size == 0:
@@ -84,17 +90,20 @@ class Sanitizer:
         # keep strictly increasing slots, each above the last emitted one
         running_max = np.maximum.accumulate(np.concatenate(([self.next_slot - 1], slots)))[:-1]
         keep = slots > running_max
-        self.stats.duplicate += int(slots.size - np.count_nonzero(keep))
-        slots, x = slots[keep], x[keep]
+        if not keep.all():
+            self.stats.duplicate += int(slots.size - np.count_nonzero(keep))
+            slots, x = slots[keep], x[keep]
         if slots.size == 0:
             return first, np.zeros((0, self.n_taxels))
 
         x = self._repair_values(x)
         n_out = int(slots[-1] - self.next_slot + 1)
-        out = np.empty((n_out, self.n_taxels))
-        rel = slots - self.next_slot
-        out[rel] = x
-        if n_out > slots.size:  # gaps: interpolate linearly between known neighbours
+        if n_out == slots.size:  # every slot from next_slot on: the samples are the output
+            out = x
+        else:  # gaps: interpolate linearly between known neighbours
+            out = np.empty((n_out, self.n_taxels))
+            rel = slots - self.next_slot
+            out[rel] = x
             known = np.concatenate(([-1], rel))
             known_vals = np.vstack((self.last[None, :], x))
             missing = np.setdiff1d(np.arange(n_out), rel, assume_unique=True)
@@ -108,7 +117,11 @@ class Sanitizer:
         return first, out
 
     def _repair_values(self, x: np.ndarray) -> np.ndarray:
-        x = x.copy()
+        """``x`` as a new float64 array, non-finite values held and out-of-range ones clipped (counted)."""
+        lo, hi = (float(x.min()), float(x.max())) if x.size else (self.lo, self.hi)  # NaN propagates: not finite
+        x = x.astype(np.float64)
+        if self.lo <= lo and hi <= self.hi:  # (False for NaN and infinities beyond the range)
+            return x
         bad = ~np.isfinite(x)
         if bad.any():
             self.stats.non_finite += int(np.count_nonzero(bad))
