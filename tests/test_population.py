@@ -59,7 +59,37 @@ def test_spatial_rule_follows_receptor_depth_and_interpolates_the_films():
     assert dy[0] == 1.0 and dy[2] == pytest.approx(0.25)
     pop = Population.build(grid_patch(4, 3.0), PopulationPlan())
     inside = np.all(np.abs(pop.layout.xy_mm) <= 4.5, axis=1)  # within the grid of taxel centres
-    assert np.allclose(np.asarray(pop.dynamic.sum(axis=1)).ravel()[inside], 1.0)
+    films = np.asarray(pop.rule.films.sum(axis=1)).ravel()
+    ra = pop.layout.cls == CLASSES.index("RA")  # RA's films come from the contacts (surface_wave)
+    assert np.allclose(films[inside & ~ra], 1.0) and not films[ra].any()
+
+
+def _loads(taxels, probe_xy, radius_mm=2.5):
+    """ST channels of a probe at ``probe_xy`` over sensors that feel it within ``radius_mm`` (linear
+    falloff), on a 0.04 N baseline; the films carry 1 V at every taxel."""
+    d = np.hypot(*(taxels - np.asarray(probe_xy)).T)
+    x = np.zeros((1, len(taxels), 4))
+    x[0, :, 0] = 0.04 + 2.0 * np.clip(1.0 - d / radius_mm, 0.0, 1.0) + 0.001 * np.arange(len(taxels)) / len(taxels)
+    x[0, :, 2] = 1.0
+    return x
+
+
+def test_loads_are_localised_on_the_edge_or_corner_they_share_and_films_decay_as_the_surface_wave():
+    from touchreal.population.spatial import wave_weight
+
+    taxels = grid_patch(4, 3.0)  # centres at -4.5, -1.5, 1.5, 4.5
+    pop = Population.build(taxels, PopulationPlan())
+    for probe in [(1.5, 1.5), (1.5, 0.0), (0.0, 0.0)]:
+        pos, contact, _ = pop.rule.localise(_loads(taxels, probe))
+        j = int(np.argmax(_loads(taxels, probe)[0, :, 0]))
+        assert np.allclose(pos[0, j], probe, atol=0.05), (probe, pos[0, j])
+        assert contact[0, j] and contact.sum() == 1  # one contact: the largest load of its neighbourhood
+    # an RA afferent's film input falls off as TouchSim's surface wave from the contact
+    lay = Layout(np.full(3, CLASSES.index("RA")), np.array([[1.5, 1.5], [1.5, 2.5], [1.5, 4.0]]), np.zeros(3, np.int64))
+    pop = Population.with_layout(taxels, PopulationPlan(), lay)
+    x = _loads(taxels, (1.5, 1.5))
+    out = pop.rule.mix(x, pop.rule.rows(np.arange(3)))
+    assert np.allclose(out[0, :, 2], wave_weight(np.array([0.0, 1.0, 2.5]), 0.5), rtol=0.01)  # a far contact adds a little
 
 
 def _one_taxel_recording(stim=None, seed=1):

@@ -2,10 +2,11 @@
 
 :class:`Population` holds the layout (:mod:`.layout`), each afferent's model variant (its
 class's fitted parameters with the variant's input gain, :mod:`touchreal.fitting.variants`) and the spatial
-rule's weight matrices (:mod:`.spatial`). :class:`PopulationEncoder` is the
+rule resolved for its afferents (:mod:`.spatial`). :class:`PopulationEncoder` is the
 :class:`~touchreal.encoding.encoder.Encoder` whose units are afferents: each block of taxel
 channels is mixed into the active afferents' inputs, then runs the same fused input stage and
-LIF kernel, one column per afferent. Only the active afferents are mixed and run.
+LIF kernel, one column per afferent. Only the active afferents are mixed and run; the taxels' loads
+are localised for all of them at once (every 2 ms on the absolute sample grid, held in between).
 """
 
 from __future__ import annotations
@@ -14,14 +15,13 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import sparse
 
 from ..encoding.encoder import Encoder
 from ..params import ClassParams, EncoderParams
 from ..reference.constants import load_constants
 from ..settings import CLASSES
 from .layout import Layout, PopulationPlan, place
-from .spatial import mix, taxel_weights
+from .spatial import RuleState, SpatialRule
 
 
 def variant_params(params: ClassParams, gain: float) -> ClassParams:
@@ -36,8 +36,7 @@ class Population:
     plan: PopulationPlan
     taxels_xy_mm: np.ndarray  # (X, 2)
     layout: Layout
-    static: sparse.csr_matrix  # (A, X)
-    dynamic: sparse.csr_matrix  # (A, X)
+    rule: SpatialRule
 
     @classmethod
     def build(cls, taxels_xy_mm: np.ndarray, plan: PopulationPlan) -> Population:
@@ -53,9 +52,10 @@ class Population:
         taxels = np.asarray(taxels_xy_mm, np.float64).reshape(-1, 2)
         plan = plan.resolved(taxels)
         depth = load_constants().depth_mm[layout.cls]
-        st, dy = taxel_weights(layout.xy_mm, depth, taxels, cell_mm=plan.cell_mm, probe_radius_mm=plan.probe_radius_mm,
-                               min_weight=plan.min_weight)
-        return cls(plan, taxels, layout, st, dy)
+        wave = np.isin(layout.cls, [CLASSES.index(c) for c in plan.surface_wave])
+        rule = SpatialRule.build(layout.xy_mm, depth, wave, taxels, cell_mm=plan.cell_mm, probe_radius_mm=plan.probe_radius_mm,
+                                 min_weight=plan.min_weight)
+        return cls(plan, taxels, layout, rule)
 
     def __len__(self) -> int:
         return len(self.layout)
@@ -82,6 +82,8 @@ class PopulationEncoder(Encoder):
         self.population = population
         self._cls = population.layout.cls
         self._variants: dict[tuple[str, int], ClassParams] = {}
+        self._rule_state = RuleState(len(population.taxels_xy_mm))  # the held localisation, whichever afferents run
+        self._next_k = 0  # absolute grid index of the next sample
         super().__init__(params, len(population.taxels_xy_mm), classes)
 
     @property
@@ -99,12 +101,19 @@ class PopulationEncoder(Encoder):
 
     def _build(self, columns: list[tuple[int, str]]) -> None:
         super()._build(columns)
-        rows = self._taxel_n  # the afferent of each column
-        self._static = self.population.static[rows]
-        self._dynamic = self.population.dynamic[rows]
+        self._rule_rows = self.population.rule.rows(self._taxel_n)  # the afferent of each column
 
     def _input_rows(self) -> np.ndarray:
         return np.arange(len(self.columns), dtype=np.int64)
 
+    def process(self, channels, k0: int | None = None):
+        k = channels.k0 if k0 is None else k0
+        if k != self._next_k:  # not where the last block ended: nothing held applies
+            self._rule_state.valid = False
+        self._next_k = k
+        return super().process(channels, k0)
+
     def _inputs(self, data: np.ndarray) -> np.ndarray:
-        return mix(data, self._static, self._dynamic)
+        out = self.population.rule.mix(data, self._rule_rows, self._next_k, self._rule_state)
+        self._next_k += data.shape[0]
+        return out

@@ -49,6 +49,9 @@ class PopulationPlan:
     probe_radius_mm: float = 0.5  #: radius of the probe the class parameters were fitted for (mm)
     min_weight: float = 1e-3  #: taxel weights below this (relative to 1) are dropped
     variants: dict[str, list[float]] = field(default_factory=dict)  #: per class, each model variant's input gain
+    #: classes whose film channels come from the localised contacts with TouchSim's surface-wave decay
+    #: (population/spatial.py); the others' films are interpolated at the afferent
+    surface_wave: list[str] = field(default_factory=lambda: ["RA"])
 
     def __post_init__(self) -> None:
         bad = [c for c in self.density_per_cm2 if c not in CLASSES]
@@ -62,6 +65,8 @@ class PopulationPlan:
             raise ValueError("probe_radius_mm must be within 0.05-10 mm")
         if not 0.0 <= self.min_weight < 1.0:
             raise ValueError("min_weight must be within [0, 1)")
+        if any(c not in CLASSES for c in self.surface_wave):
+            raise ValueError(f"surface_wave: unknown classes {[c for c in self.surface_wave if c not in CLASSES]}")
         for c, gains in self.variants.items():
             if c not in CLASSES or not gains or any(not (0.0 < g < 1e3) for g in gains):
                 raise ValueError(f"variants[{c!r}] must be a non-empty list of gains in (0, 1000) of a known class")
