@@ -6,7 +6,7 @@ rule resolved for its afferents (:mod:`.spatial`). :class:`PopulationEncoder` is
 :class:`~touchreal.encoding.encoder.Encoder` whose units are afferents: each block of taxel
 channels is mixed into the active afferents' inputs, then runs the same fused input stage and
 LIF kernel, one column per afferent. Only the active afferents are mixed and run; the taxels' loads
-are localised for all of them at once (every 2 ms on the absolute sample grid, held in between).
+are localised for all of them at once (every 5 ms on the absolute sample grid, held in between).
 """
 
 from __future__ import annotations
