@@ -195,3 +195,5 @@ def test_validation_writes_metrics_report_and_figures(tmp_path):
     for name in doc["figures"]["3"]:
         assert (tmp_path / name).stat().st_size > 10_000
     assert "| 3 | RA |" in (tmp_path / "report.md").read_text()
+    assert set(m["RA"]["extents"]) == {"ramp 1 mm", "sine 40 Hz", "sine 150 Hz"}  # per stimulus at the centre
+    assert "| 3 | SA1 | " in (tmp_path / "report.md").read_text().split("Area (mm^2)")[1]

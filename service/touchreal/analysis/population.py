@@ -16,7 +16,9 @@ Per class and pitch:
   ``touchreal evaluate``) of each afferent's train to TouchSim's noisy repeats, over the mean
   distance between those repeats (1 = as close as TouchSim is to itself);
 * ``extent_mm2``: the area over which the class responds to a ramp at a taxel's centre
-  (afferents with a spike, times the area per afferent), beside TouchSim's.
+  (afferents with a spike, times the area per afferent), beside TouchSim's;
+* ``extents``: the same area for every stimulus at a taxel's centre, ``{stimulus: [ours, TouchSim]}``
+  (which class responds wider depends on the stimulus, in TouchSim too).
 """
 
 from __future__ import annotations
@@ -127,12 +129,15 @@ def summarize(pop: Population, conds: list[Condition], pitch_mm: float) -> dict[
                 intra.extend(stn.vr_distance(reps[p], reps[q], VR_TAU_S) for p in range(len(reps)) for q in range(p + 1, len(reps)))
         per_afferent_mm2 = 100.0 / pop.plan.density_per_cm2[cls]
         ramp = next(c for c in conds if c.probe == "centre" and c.stimulus.startswith("ramp"))
+        extents = {c.stimulus: [float(sum(t[i].size > 0 for i in ids) * per_afferent_mm2) for t in (c.ours, c.touchsim)]
+                   for c in conds if c.probe == "centre"}
         out[cls] = {
             "map_r": float(np.mean(rs)) if rs else float("nan"),
             "count_error": float(abs(n_ours - n_ts) / n_ts) if n_ts else float("nan"),
             "vr_ratio": float(np.mean(inter) / np.mean(intra)) if intra and np.mean(intra) > 0 else float("nan"),
             "extent_mm2": float(sum(ramp.ours[i].size > 0 for i in ids) * per_afferent_mm2),
             "extent_touchsim_mm2": float(sum(ramp.touchsim[i].size > 0 for i in ids) * per_afferent_mm2),
+            "extents": extents,
             "spikes": int(n_ours),
             "spikes_touchsim": int(n_ts),
         }

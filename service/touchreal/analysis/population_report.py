@@ -90,6 +90,15 @@ def render(doc: dict) -> str:
         for cls, m in r["classes"].items():
             lines.append(f"| {pitch} | {cls} | {r['afferents'][cls]} | {m['map_r']:.2f} | {100 * m['count_error']:.0f} % | "
                          f"{m['vr_ratio']:.2f} | {m['extent_mm2']:.0f} | {m['extent_touchsim_mm2']:.0f} |")
+    lines += ["", "Area (mm^2) that responds to each stimulus at a taxel's centre, TouchReal / TouchSim:", ""]
+    stimuli = [k for r in doc["pitches"].values() for m in r["classes"].values() for k in m.get("extents", {})]
+    stimuli = list(dict.fromkeys(stimuli))
+    lines += ["| pitch (mm) | class | " + " | ".join(stimuli) + " |", "|---|---|" + "---|" * len(stimuli)]
+    for pitch, r in doc["pitches"].items():
+        for cls, m in r["classes"].items():
+            ext = m.get("extents", {})
+            cells = [f"{ext[k][0]:.0f} / {ext[k][1]:.0f}" if k in ext else "" for k in stimuli]
+            lines.append(f"| {pitch} | {cls} | " + " | ".join(cells) + " |")
     lines.append("")
     for pitch, names in doc["figures"].items():
         lines += [f"## {pitch} mm", ""] + [f"![{n}]({n})" for n in names] + [""]
