@@ -84,10 +84,11 @@ def test_loads_are_localised_on_the_edge_or_corner_they_share_and_films_decay_as
         j = int(np.argmax(_loads(taxels, probe)[0, :, 0]))
         assert np.allclose(pos[0, j], probe, atol=0.05), (probe, pos[0, j])
         assert contact[0, j] and contact.sum() == 1  # one contact: the largest load of its neighbourhood
-    # an RA afferent's film input falls off as TouchSim's surface wave from the contact
+    # an RA afferent's film input falls off as TouchSim's surface wave from where the films localise the vibration
     lay = Layout(np.full(3, CLASSES.index("RA")), np.array([[1.5, 1.5], [1.5, 2.5], [1.5, 4.0]]), np.zeros(3, np.int64))
     pop = Population.with_layout(taxels, PopulationPlan(), lay)
     x = _loads(taxels, (1.5, 1.5))
+    x[0, :, 2] = np.exp(-np.hypot(*(taxels - 1.5).T) / 6.8)  # a film reads a vibration less the farther it is
     out = pop.rule.mix(x, pop.rule.rows(np.arange(3)))
     assert np.allclose(out[0, :, 2], wave_weight(np.array([0.0, 1.0, 2.5]), 0.5), rtol=0.01)  # a far contact adds a little
 

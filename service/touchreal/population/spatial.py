@@ -13,8 +13,11 @@ centre), not where on the cell it sits; its neighbours (the taxels within 1.5 ce
 it on a grid) say more. Each taxel's load is placed at the load-weighted centroid of its
 neighbourhood, each load taken above the neighbourhood's smallest (the shared baseline), clipped
 to the taxel's cell: a probe on a taxel's centre stays there, one on an edge or a corner shared by
-several cells is placed on it. A taxel is a **contact** when its load is the largest of its
-neighbourhood (ties: the lower index), at the localised position.
+several cells is placed on it. The vibration is localised the same way from the films' envelopes
+(``|PVDF|`` smoothed over :data:`HOLD_SAMPLES`, one pole): a taxel is a **vibration contact** when
+its envelope is the largest of its neighbourhood (ties: the lower index), placed at the
+envelope-weighted centroid. The films localise the vibration (they feel it at once, and where the
+SingleTact's sensor does not reach), the SingleTact the load.
 
 **SingleTact channels** (ST, dST: a taxel's load and its rate), every class. Each taxel's load is
 propagated from its localised position to the afferent's receptor depth as TouchSim's static
@@ -27,11 +30,11 @@ mechanics is linear in the load). Depth separates the classes: a deep receptor (
 picks up a contact several millimetres away), so films are not superposed, which would count one
 vibration once per film. For the classes of ``surface_wave`` (default RA: TouchSim's RA units are
 driven by the dynamic component alone, and the fitted RA by the film), the vibration is placed at
-the contacts: at each contact the films are interpolated (bilinear weights of the taxel grid, what
-a film centred there would read) and propagated to the afferent as TouchSim's dynamic component,
-the surface wave's Sneddon deflection decay ``arcsin(a / d) / (pi a)`` relative to its value under
-the probe (1 within the probe's radius ``a``). Contacts superpose. For the other classes the films
-are interpolated at the afferent itself.
+the vibration contacts: at each the films are interpolated (bilinear weights of the taxel grid,
+what a film centred there would read) and propagated to the afferent as TouchSim's dynamic
+component, the surface wave's Sneddon deflection decay ``arcsin(a / d) / (pi a)`` relative to its
+value under the probe (1 within the probe's radius ``a``). Contacts superpose. For the other
+classes the films are interpolated at the afferent itself.
 
 For one taxel (or an afferent on a taxel's centre with no load nearby) every weight is exactly 1,
 so one afferent per class on a lone taxel's centre gets exactly that taxel's channels: the class
@@ -44,10 +47,10 @@ Where it breaks down:
   a cell that only its own sensor feels, a load stays at the centre, so an afferent under such an
   off-centre contact gets less than TouchSim's would, one near the centre more, by up to the
   sensor's blind margin; the coarser the pitch, the more the maps follow the taxels.
-* A contact is where the SingleTact load is: vibration with no load on any taxel nearby (a contact
-  off the patch, or below the sensor's resolution) is placed at the taxels whose baselines happen
-  to be highest. The SingleTact lags the film (100 Hz, low-passed): the first milliseconds of a
-  new contact's vibration go to the contacts held before it.
+* The films are broad (a film reads a vibration several millimetres away), so their envelopes
+  place a vibration less sharply than the loads place a press, and a contact between films is read
+  weaker than one on a film. Where nothing vibrates (a static hold) the envelopes are the films'
+  noise, whose local maxima become weak contacts.
 * Classes outside ``surface_wave`` get the films' own decay with distance, not TouchSim's; the
   wave's delay (at most 1.3 ms over 10 mm) is left out.
 * An afferent outside every cell gets only the static field's tail and the films' values within a
@@ -168,8 +171,10 @@ class SpatialRule:
                    kernel.astype(np.int64), tables, neighbours)
 
     def localise(self, channels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(T, X, 4) channels -> each taxel's localised load position (T, X, 2), contact flags
-        (T, X) and the films interpolated at that position (T, X, 2), sample by sample."""
+        """(T, X, 4) channels -> each taxel's localised load position (T, X, 2), flags of the taxels
+        whose load is the largest of their neighbourhood (T, X) and the films interpolated at that
+        position (T, X, 2), sample by sample (a diagnostic: the stream localises the vibration from
+        the films' envelopes, :meth:`mix`)."""
         x = np.ascontiguousarray(channels, np.float64)
         n_t, n_x = x.shape[:2]
         pos = np.empty((n_t, n_x, 2))
@@ -207,7 +212,8 @@ class SpatialRule:
         flags = np.array([state.valid, state.fresh_weights])
         _mix(x, int(k0), HOLD_SAMPLES, self.taxels_xy_mm, nb.indptr.astype(np.int64), nb.indices.astype(np.int64), self.cell_mm,
              rows.xy, rows.st_ptr, rows.st_idx, rows.fl_ptr, rows.fl_idx, rows.fl_w, rows.wave, rows.kernel, self.tables,
-             1.0 / _TABLE_STEP_MM, self.min_weight, self.probe_radius_mm, state.pos, state.contact, flags, state.w_static, out)
+             1.0 / _TABLE_STEP_MM, self.min_weight, self.probe_radius_mm, state.pos, state.contact, flags, state.w_static,
+             state.env, state.vpos, state.vcontact, out)
         state.valid, state.fresh_weights = bool(flags[0]), bool(flags[1])
         return out
 
@@ -230,12 +236,15 @@ class RuleRows:
 
 
 class RuleState:
-    """The held localisation of a stream (per taxel: position, contact flag) and the static weights
-    of the afferents it was last applied to."""
+    """The held localisation of a stream (per taxel: load position and flag, film envelope, vibration
+    position and contact flag) and the static weights of the afferents it was last applied to."""
 
     def __init__(self, n_taxels: int):
         self.pos = np.zeros((n_taxels, 2))
         self.contact = np.zeros(n_taxels, np.bool_)
+        self.env = np.zeros(n_taxels)
+        self.vpos = np.zeros((n_taxels, 2))
+        self.vcontact = np.zeros(n_taxels, np.bool_)
         self.valid = False  # no localisation yet: the next sample makes one
         self.rows: RuleRows | None = None
         self.fresh_weights = False
@@ -288,9 +297,11 @@ def _film_at(x, taxels, nb_ptr, nb_idx, cell, j, p):  # pragma: no cover - compi
 
 @numba.njit(cache=True, nogil=True)
 def _mix(x, k0, hold, taxels, nb_ptr, nb_idx, cell, xy, st_ptr, st_idx, fl_ptr, fl_idx, fl_w, wave, kernel, tables, inv_step,
-         min_weight, a, pos, contact, flags, w_static, out):  # pragma: no cover - compiled
+         min_weight, a, pos, contact, flags, w_static, env, vpos, vcontact, out):  # pragma: no cover - compiled
     """The rule over a block, localisation held between every ``hold``-th absolute sample; ``flags``:
-    [localisation valid, ``w_static`` fresh for these rows], updated in place with ``pos``, ``contact``."""
+    [localisation valid, ``w_static`` fresh for these rows], updated in place with the loads' ``pos``,
+    ``contact``, the films' envelope ``env`` (one pole of ``hold`` samples, every sample) and the
+    vibration's ``vpos``, ``vcontact``."""
     n_t, n_x = x.shape[0], x.shape[1]
     n_r = xy.shape[0]
     n_tab = tables.shape[1]
@@ -305,10 +316,21 @@ def _mix(x, k0, hold, taxels, nb_ptr, nb_idx, cell, xy, st_ptr, st_idx, fl_ptr, 
     w_wave = np.zeros((n_r, 1))
     waves = False  # wave weights computed for the held contacts
     seg_film = np.zeros((hold, n_x, 2))
+    ex = np.zeros((n_x, 4))
+    alpha = 1.0 - math.exp(-1.0 / hold)
     k = 0
     while k < n_t:
+        if not flags[0]:
+            for j in range(n_x):
+                env[j] = abs(x[k, j, 2])
+        else:
+            for j in range(n_x):
+                env[j] += alpha * (abs(x[k, j, 2]) - env[j])
         if (k0 + k) % hold == 0 or not flags[0]:
             _localise_sample(x[k], taxels, nb_ptr, nb_idx, cell, pos, contact)
+            for j in range(n_x):
+                ex[j, 0] = env[j]
+            _localise_sample(ex, taxels, nb_ptr, nb_idx, cell, vpos, vcontact)
             flags[0] = True
             flags[1] = False
         if not flags[1]:  # static weights of every (afferent, taxel) pair from the held positions
@@ -334,18 +356,18 @@ def _mix(x, k0, hold, taxels, nb_ptr, nb_idx, cell, xy, st_ptr, st_idx, fl_ptr, 
         if not waves:  # the held contacts, their films' interpolation weights and the wave's decay
             n_c = 0
             for j in range(n_x):
-                if contact[j]:
+                if vcontact[j]:
                     n_c += 1
             w_wave = np.zeros((n_r, max(n_c, 1)))
             n_c = 0
             for j in range(n_x):
-                if contact[j]:
+                if vcontact[j]:
                     contacts[n_c] = j
                     m = 0
                     for q in range(nb_ptr[j], nb_ptr[j + 1]):
                         n = nb_idx[q]
-                        tx = 1.0 - abs(pos[j, 0] - taxels[n, 0]) / cell
-                        ty = 1.0 - abs(pos[j, 1] - taxels[n, 1]) / cell
+                        tx = 1.0 - abs(vpos[j, 0] - taxels[n, 0]) / cell
+                        ty = 1.0 - abs(vpos[j, 1] - taxels[n, 1]) / cell
                         tent_n[n_c, m] = n
                         tent_w[n_c, m] = tx * ty if tx > 0.0 and ty > 0.0 else 0.0
                         m += 1
@@ -354,8 +376,8 @@ def _mix(x, k0, hold, taxels, nb_ptr, nb_idx, cell, xy, st_ptr, st_idx, fl_ptr, 
                         tent_w[n_c, q] = 0.0
                     for r in range(n_r):
                         if wave[r]:
-                            dx = xy[r, 0] - pos[j, 0]
-                            dy = xy[r, 1] - pos[j, 1]
+                            dx = xy[r, 0] - vpos[j, 0]
+                            dy = xy[r, 1] - vpos[j, 1]
                             d = math.sqrt(dx * dx + dy * dy)
                             w_wave[r, n_c] = 1.0 if d <= a else two_over_pi * math.asin(a / d)
                     n_c += 1
@@ -363,6 +385,9 @@ def _mix(x, k0, hold, taxels, nb_ptr, nb_idx, cell, xy, st_ptr, st_idx, fl_ptr, 
         e = k + 1  # the samples up to the next re-estimate share these weights
         while e < n_t and (k0 + e) % hold != 0:
             e += 1
+        for kk in range(k + 1, e):
+            for j in range(n_x):
+                env[j] += alpha * (abs(x[kk, j, 2]) - env[j])
         for c in range(n_c):  # the films at each contact
             for kk in range(k, e):
                 f0 = 0.0
