@@ -191,6 +191,10 @@ def test_validation_writes_metrics_report_and_figures(tmp_path):
         assert m[cls]["spikes"] > 0 and m[cls]["spikes_touchsim"] > 0
     # TouchSim's own extents: the deep, vibration-driven PC responds over a wider area than SA1
     assert m["PC"]["extent_touchsim_mm2"] > m["SA1"]["extent_touchsim_mm2"]
+    # RA's films reach the afferents from where the vibration is, not over the whole patch (36 mm^2),
+    # and the ramp's SA1 area exceeds RA's as TouchSim's does
+    assert m["RA"]["extent_mm2"] < 2.0 * m["RA"]["extent_touchsim_mm2"]
+    assert m["RA"]["extent_touchsim_mm2"] < m["SA1"]["extent_touchsim_mm2"] and m["RA"]["extent_mm2"] < m["SA1"]["extent_mm2"]
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["pitches"]["3"]["classes"]["SA1"]["spikes"] == m["SA1"]["spikes"]
     for name in doc["figures"]["3"]:
