@@ -70,6 +70,9 @@ async def hello_and_subscribe(ws, **sub) -> tuple[dict, dict]:
             return hello, json.loads(msg)
 
 
+_POLL_S = 0.1  #: how often :func:`collect` tests its condition while no message arrives
+
+
 async def collect(ws, seconds: float, until=None, clock: list | None = None, *, what: str | None = None,
                   into: list | None = None) -> list:
     """Frames (decoded) and control messages (dicts) received until ``until(frames)`` is true;
@@ -79,7 +82,8 @@ async def collect(ws, seconds: float, until=None, clock: list | None = None, *, 
     names ``what`` and what did arrive. Without it, everything received for ``seconds``: a fixed window,
     which a test may assert on only when it measures one (a rate), saying so. To check a property over
     a stretch of the stream, wait for the stretch: ``until=covers(seconds)``.
-    ``into``: the list to append to (another coroutine's ``until`` may watch it); returned.
+    ``into``: the list to append to (another coroutine's ``until`` may watch it); returned. ``until`` is
+    tested on every message and every :data:`_POLL_S` without one.
     """
     frames: list = [] if into is None else into
     end = time.monotonic() + seconds
@@ -87,10 +91,10 @@ async def collect(ws, seconds: float, until=None, clock: list | None = None, *, 
         left = end - time.monotonic()
         if left <= 0:
             break
-        try:
-            msg = await asyncio.wait_for(ws.recv(), max(left, 0.01))
+        try:  # in slices, so that a condition on more than the frames (a service's state) is seen soon after it holds
+            msg = await asyncio.wait_for(ws.recv(), min(max(left, 0.01), _POLL_S))
         except asyncio.TimeoutError:
-            break
+            continue
         if isinstance(msg, bytes):
             frames.append(P.decode_frame(msg))
         else:
