@@ -44,7 +44,22 @@ def test_locking_peaks_at_the_surface_period_at_any_speed_and_the_graph_agrees()
     np.testing.assert_allclose(sess.run(None, {"counts": x, "speed_mm_s": speeds})[0], f, rtol=1e-4, atol=1e-4)
     one = sess.run(None, {"counts": x, "speed_mm_s": speeds[:1]})[0]  # one speed for every row broadcasts
     np.testing.assert_allclose(one, fs.transform(x, speed=speeds[:1]), rtol=1e-4, atol=1e-4)
-    assert len(fs.names()) == f.shape[1] == 3 + 3 * nk
+    # intervals in mm: one RA spike per 2 mm tooth puts the interval histogram's mass at 2, 4, 6 ... mm at every speed
+    mm = np.exp(fs.interval_grid()[0])
+    ni = mm.size
+    hist = f[:, 3 + 3 * nk:].reshape(3, 3, ni)
+    np.testing.assert_allclose(hist[:, 1].sum(axis=1), 1.0, rtol=1e-5)  # each interval adds 1 (normalised)
+    near = np.abs(np.log(mm)[None, :] - np.log([[2.0], [4.0], [6.0], [8.0]])).min(axis=0) < 0.1
+    np.testing.assert_allclose(hist[:, 1, near].sum(axis=1), 1.0, rtol=1e-5)
+    # 2, 4, 5 spikes: intervals to the next 1-4 spikes, 1, 3 + 2 + 1 and 4 + 3 + 2 + 1 of them, of which 1, 3, 4 at 2 mm
+    np.testing.assert_allclose(hist[:, 1, np.abs(np.log(mm / 2.0)) < 0.1].sum(axis=1), [1.0, 0.5, 0.4], rtol=1e-4)
+    assert np.all(hist[:, [0, 2]] == 0)  # silent classes: no interval
+    # two spikes per tooth (1 ms apart) instead of one: the peak stays at the period
+    two = x.copy()
+    two[:, 1:, 1] = np.maximum(two[:, 1:, 1], x[:, :-1, 1])
+    h2 = fs.transform(two, speed=speeds)[:, 3 + 3 * nk:].reshape(3, 3, ni)[:, 1]
+    assert np.all(np.abs(mm[np.argmax(np.where(mm > 1.0, h2, 0), axis=1)] - 2.0) < 0.1)
+    assert len(fs.names()) == f.shape[1] == 3 + 3 * nk + 3 * ni
     with pytest.raises(ValueError, match="speed"):
         fs.transform(x)
 
@@ -111,13 +126,15 @@ def test_streaming_with_the_speed_equals_the_offline_windows(spatial_model, hard
     cls = np.concatenate([np.full(tr.spikes_us[c].size, i) for i, c in enumerate(CLASSES)])
     o = np.argsort(t, kind="stable")
     t, cls = t[o].astype(np.uint64), cls[o]
-    v = tr.entry["params"]["speed_mm_s"]
+    # the robot reports its speed while it slides: the speed of each step's window, as the offline windows measure it
+    # (the interval histograms move with it: a nominal 20 mm/s against a measured 20.00002 differs by a few 1e-6)
+    v = dict(zip(w.steps.tolist(), w.speed[:, 0].tolist()))
     scanning = set(w.steps.tolist())
     dec = StreamingDecoder(model, [3], start_us=0)
     got = {}
-    for lo in range(0, tr.end_us, 8000):  # 8 ms updates; the robot reports its speed while it slides
+    for lo in range(0, tr.end_us, 8000):  # 8 ms updates, each completing at most one 32 ms step
         sel = (t >= lo) & (t < lo + 8000)
-        speed = v if (-(-(lo + 8000) // 32000) * 32000) in scanning else None
+        speed = v.get(-(-(lo + 8000) // 32000) * 32000)
         for step, values in dec.push(t[sel], np.full(sel.sum(), 3), cls[sel], {c: lo + 8000 for c in CLASSES}, speed):
             got[step] = values[0]
     np.testing.assert_allclose(np.array([got[s] for s in w.steps]), expected, rtol=1e-5, atol=1e-6)
@@ -129,7 +146,7 @@ def test_streaming_with_the_speed_equals_the_offline_windows(spatial_model, hard
     mine = {}
     for step, counts, _ in binner.push(t, np.full(t.size, 3), cls, {c: tr.end_us for c in CLASSES}):
         if step in scanning:
-            mine[step] = sess.run(["probabilities"], {"counts": counts, "speed_mm_s": np.full((1, 1), v, np.float32)})[0][0]
+            mine[step] = sess.run(["probabilities"], {"counts": counts, "speed_mm_s": np.full((1, 1), v[step], np.float32)})[0][0]
     np.testing.assert_allclose(np.array([mine[s] for s in w.steps]), expected, rtol=1e-5, atol=1e-6)
 
 

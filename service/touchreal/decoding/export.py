@@ -54,7 +54,7 @@ def to_onnx(pipe: Pipeline, spec: FeatureSpec, meta: dict[str, Any]) -> onnx.Mod
             target_opset={"": TARGET_OPSET, "ai.onnx.ml": ML_OPSET},
         )
     est = compose.add_prefix(est, "est_")
-    # the feature graph's operators exist unchanged from opset 9 on; use the converter's opset
+    # the feature graph's operators as of opset 16 (the spatial set's ScatterElements with reduction 'add'); use the converter's opset
     opset = next(o.version for o in est.opset_import if o.domain in ("", "ai.onnx"))
     feats = spec.graph(opset, est.ir_version, INPUT_NAME, "features")
     feats.opset_import.extend([o for o in est.opset_import if o.domain != ""])

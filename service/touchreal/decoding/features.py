@@ -1,8 +1,9 @@
 """Decoder features computed from binned counts, twice from one definition: numpy (training, the
 scikit-learn side of the parity tests) and ONNX operators (inside the exported graph).
 
-Every feature is a fixed linear map of the counts or a simple elementwise function of one, so the
-constant matrices built here are the single definition both sides use.
+Every feature is a fixed linear map of the counts or a simple elementwise function of one (the
+``spatial`` set's interval histograms: a sort of the spike bins, differences and a kernel), so the
+constant matrices and grids built here are the single definition both sides use.
 
 * ``counts``: the flattened input, bins oldest -> newest, classes innermost (force models).
 * ``temporal``: Gaussian-smoothed PSTH (sigma 20 ms, truncated at 3 sigma, each row renormalised
@@ -23,7 +24,16 @@ constant matrices built here are the single definition both sides use.
   for the spatial frequencies ``k`` of :data:`SPATIAL_CYCLES_PER_MM` (log-spaced), divided by
   ``max(count, 1)``: each class's phase locking (vector strength) to a surface period ``1 / k``
   mm, the same numbers for one surface at any speed. The phases ``2 pi k v t`` are computed in the
-  graph from ``v``.
+  graph from ``v``. Then per class one histogram of its spike intervals expressed in mm of scanned
+  surface, ``(t_{i+o} - t_i) * v``, from each spike to each of its next :data:`INTERVAL_ORDERS`
+  spikes (1-4: pooled, so a surface that draws two or three spikes per tooth instead of one keeps
+  its peaks at the period and its multiples), on the log-spaced periods of :data:`INTERVAL_MM`
+  (triangular kernel one grid step wide on the log axis, so each interval adds 1 split over its two
+  nearest periods), divided by ``max(number of intervals, 1)``. An interval measures a period to
+  the spike timing (``v * bin``), however few teeth the window holds, where the Fourier magnitude
+  resolves only ``1 / (v * window)`` cycles/mm; normalised by the number of intervals, it does not
+  scale with the spike count. The spike times are the bins holding at least one spike, the latest
+  :meth:`FeatureSpec.max_spikes` of them (``TopK`` in the graph).
 
 A spec with a ``state`` filter (:class:`~touchreal.decoding.state.ExpFilter`, force models at
 closed-loop speed) appends the filtered counts carried across steps to ``counts``; its graph has a
@@ -47,6 +57,10 @@ SPECTRUM_HZ = (4.0, 80.0, 1.0)  #: spectral set: first, last, step of the evalua
 #: spatial set: first, last (cycles per mm) and number of its log-spaced spatial frequencies: surface
 #: periods 0.25-6.7 mm, so the fundamental and second harmonic of periods of about 0.5-6 mm
 SPATIAL_CYCLES_PER_MM = (0.15, 4.0, 70)
+#: spatial set, interval histograms: first, last (mm) and number of their log-spaced periods
+INTERVAL_MM = (0.2, 8.0, 48)
+INTERVAL_ORDERS = (1, 2, 3, 4)  #: spatial set: intervals from each spike to its next 1, 2, 3 and 4 spikes, one histogram
+INTERVAL_MAX_RATE_HZ = 400.0  #: spatial set: a window's interval histograms read its latest rate x window spikes per class
 SPATIAL_CHUNK = 1024  #: rows per numpy pass of the spatial set
 SPEED_INPUT = "speed_mm_s"  #: the spatial set's second input: scanning speed (mm/s), (batch, 1) or (1, 1)
 
@@ -123,6 +137,18 @@ class FeatureSpec:
         t = (np.arange(self.n_bins) + 0.5) * self.bin_ms / 1000.0
         return k, np.outer(t, k), np.hanning(self.n_bins + 2)[1:-1]
 
+    def interval_grid(self) -> tuple[np.ndarray, float]:
+        """(log of the interval histograms' periods (mm), log step between them)."""
+        lo, hi, n = INTERVAL_MM
+        centres = np.geomspace(lo, hi, n)
+        return np.log(centres), float(np.log(centres[1] / centres[0]))
+
+    def max_spikes(self) -> int:
+        """Spikes per class (the latest) the interval histograms read: ``ceil(INTERVAL_MAX_RATE_HZ x window)``,
+        at most one per bin, at least the highest interval order + 1."""
+        k = int(np.ceil(INTERVAL_MAX_RATE_HZ * self.window_ms / 1000.0 - 1e-9))
+        return int(min(self.n_bins, max(k, max(INTERVAL_ORDERS) + 1)))
+
     # ---------------------------------------------------------------------- names
     def names(self) -> list[str]:
         """Feature order of the matrix fed to the estimator."""
@@ -136,8 +162,10 @@ class FeatureSpec:
                 f"spectrum[c{c}][{f:g}Hz]" for c in range(self.n_classes) for f in freqs]
         if self.kind == "spatial":
             k = self.spatial_grid()[0]
+            mm = np.exp(self.interval_grid()[0])
             return [f"per_mm[c{c}]" for c in range(self.n_classes)] + [
-                f"locking[c{c}][{x:.4g}/mm]" for c in range(self.n_classes) for x in k]
+                f"locking[c{c}][{x:.4g}/mm]" for c in range(self.n_classes) for x in k] + [
+                f"intervals[c{c}][{d:.3g}mm]" for c in range(self.n_classes) for d in mm]
         temporal = [f"psth[bin{b}]" for b in range(self.n_bins)]
         rate = ["rate_hz", "count_var", "frac_nonempty"] + [f"dft_{lo:g}_{hi:g}Hz" for lo, hi in BANDS_HZ]
         return {"temporal": temporal, "rate": rate, "both": temporal + rate}[self.kind]
@@ -199,7 +227,81 @@ class FeatureSpec:
         total, expand = (m.astype(np.float32) for m in self.count_matrices(SPATIAL_CYCLES_PER_MM[2]))
         n = flat @ total
         per_mm = n / (v * np.float32(self.window_ms / 1000.0))
-        return np.concatenate([per_mm, mag / np.maximum(n @ expand, np.float32(1.0))], axis=1)
+        return np.concatenate([per_mm, mag / np.maximum(n @ expand, np.float32(1.0)), self._intervals(xt, v)], axis=1)
+
+    def _intervals(self, xt: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Interval histograms on the spatial-period axis of ``(batch, n_classes, n_bins)`` counts, float32."""
+        nb, k = self.n_bins, self.max_spikes()
+        lc, step = self.interval_grid()
+        lc, step = lc.astype(np.float32), np.float32(step)
+        v3 = v.reshape(-1, 1, 1)
+        out = []
+        for a in range(0, xt.shape[0], SPATIAL_CHUNK):
+            rows = slice(a, a + SPATIAL_CHUNK)
+            key = (xt[rows] > 0).astype(np.float32) * np.arange(1, nb + 1, dtype=np.float32)  # bin index + 1, 0 = no spike
+            top = -np.sort(-key, axis=2)[:, :, :k]  # latest spikes first
+            vr = v3 if v3.shape[0] == 1 else v3[rows]
+            h = np.zeros((top.shape[0], self.n_classes, lc.size), np.float32)
+            nv = np.zeros((top.shape[0], self.n_classes), np.float32)
+            for o in INTERVAL_ORDERS:
+                valid = (top[:, :, o:] > 0).astype(np.float32)
+                d = (top[:, :, :-o] - top[:, :, o:]) * np.float32(self.bin_ms / 1000.0) * vr
+                ld = np.log(np.maximum(d, np.float32(1e-3)))
+                w = np.maximum(np.float32(1.0) - np.abs(ld[..., None] - lc) / step, np.float32(0.0)) * valid[..., None]
+                h += w.sum(axis=2)
+                nv += valid.sum(axis=2)
+            out.append((h / np.maximum(nv, np.float32(1.0))[..., None]).reshape(h.shape[0], -1))
+        return np.concatenate(out, axis=0).astype(np.float32)
+
+    def _interval_nodes(self, xt: str, v3: str, node, const, nodes: list, inits: list) -> list[str]:
+        """Graph of :meth:`_intervals`: the latest spike bins by ``TopK``, the intervals of every order side by
+        side, each one's position ``u`` on the log-period grid, and its triangular weights ``1 - frac(u)`` and
+        ``frac(u)`` added into bins ``floor(u)`` and ``floor(u) + 1`` (``ScatterElements``, reduction add):
+        ``O(intervals)`` per taxel, not ``O(intervals x periods)``. Positions off the grid land in padding bins."""
+        k = self.max_spikes()
+        lc, step = self.interval_grid()
+        n_mm, pad_lo = lc.size, 2
+
+        def ints(name: str, *values: int) -> str:
+            inits.append(numpy_helper.from_array(np.array(values, np.int64), name))
+            return name
+
+        idx = const("bin_index", np.arange(1, self.n_bins + 1))
+        spiking = node("Cast", [node("Greater", [xt, const("zero", np.zeros(1))], "spiking_b")], "spiking", to=TensorProto.FLOAT)
+        nodes.append(helper.make_node("TopK", [node("Mul", [spiking, idx], "spike_key"), ints("max_spikes", k)],
+                                      ["spike_top", "spike_top_i"], axis=-1, largest=1, sorted=1))
+        axis = ints("axis_k", 2)
+        gaps, valids = [], []
+        for o in INTERVAL_ORDERS:
+            later = node("Slice", ["spike_top", ints(f"later{o}_s", 0), ints(f"later{o}_e", k - o), axis], f"later{o}")
+            earlier = node("Slice", ["spike_top", ints(f"earlier{o}_s", o), ints(f"earlier{o}_e", k), axis], f"earlier{o}")
+            gaps.append(node("Sub", [later, earlier], f"gap{o}"))
+            valids.append(node("Cast", [node("Greater", [earlier, "zero"], f"valid{o}_b")], f"valid{o}", to=TensorProto.FLOAT))
+        gap = node("Concat", gaps, "gaps", axis=2)
+        valid = node("Concat", valids, "valid", axis=2)
+        d = node("Mul", [gap, node("Mul", [v3, const("bin_s", np.full(1, self.bin_ms / 1000.0))], "mm_per_bin")], "gaps_mm")
+        ld = node("Log", [node("Max", [d, const("gap_floor", np.full(1, 1e-3))], "gaps_floored")], "gaps_log")
+        off = node("Sub", [ld, const("interval_log_first", np.full(1, lc[0]))], "gaps_off")
+        u = node("Mul", [off, const("interval_inv_step", np.full(1, 1.0 / step))], "grid_pos")
+        u = node("Clip", [u, const("grid_lo", np.full((), -pad_lo)), const("grid_hi", np.full((), n_mm + 1))], "grid_pos_c")
+        lower = node("Floor", [u], "grid_floor")
+        frac = node("Sub", [u, lower], "grid_frac")
+        lo_f = node("Add", [lower, const("grid_pad", np.full(1, pad_lo))], "grid_lo_f")
+        lo_i = node("Cast", [lo_f], "grid_lo_i", to=TensorProto.INT64)
+        hi_i = node("Add", [lo_i, ints("one_i", 1)], "grid_hi_i")
+        w_hi = node("Mul", [frac, valid], "w_hi")
+        w_lo = node("Sub", [valid, w_hi], "w_lo")  # (1 - frac) * valid
+        bc = node("Slice", [node("Shape", ["spike_top"], "top_shape"), ints("sh_s", 0), ints("sh_e", 2)], "bc_shape")
+        shape = node("Concat", [bc, ints("grid_size", n_mm + pad_lo + 3)], "hist_shape", axis=0)
+        nodes.append(helper.make_node("ConstantOfShape", [shape], ["hist_zero"],
+                                      value=numpy_helper.from_array(np.zeros(1, np.float32))))
+        index = node("Concat", [lo_i, hi_i], "grid_idx", axis=2)
+        weight = node("Concat", [w_lo, w_hi], "grid_w", axis=2)
+        nodes.append(helper.make_node("ScatterElements", ["hist_zero", index, weight], ["hist_padded"], axis=2, reduction="add"))
+        hist = node("Slice", ["hist_padded", ints("hist_s", pad_lo), ints("hist_e", pad_lo + n_mm), axis], "hist")
+        n_floor = node("Max", [node("ReduceSum", [valid, axis], "n_intervals", keepdims=1), const("interval_one", np.ones(1))],
+                       "n_intervals_floor")
+        return [node("Flatten", [node("Div", [hist, n_floor], "hist_norm")], "intervals", axis=1)]
 
     def count_matrices(self, n_freqs: int) -> tuple[np.ndarray, np.ndarray]:
         """(total, expand): ``count = flat @ total`` (n_classes) of the flattened counts, ``count @
@@ -253,7 +355,8 @@ class FeatureSpec:
             n = node("MatMul", [flat, const("total", total)], "n")
             per = node("Max", [node("MatMul", [n, const("expand", expand)], "n_per_k"), const("one", np.ones(1))], "n_floor")
             scanned = node("Mul", [SPEED_INPUT, const("window_s", np.full(1, self.window_ms / 1000.0))], "scanned_mm")
-            node("Concat", [node("Div", [n, scanned], "per_mm"), node("Div", [mag, per], "locking")], output_name, axis=1)
+            hists = self._interval_nodes(xt, v3, node, const, nodes, inits)
+            node("Concat", [node("Div", [n, scanned], "per_mm"), node("Div", [mag, per], "locking"), *hists], output_name, axis=1)
         elif self.kind == "spectral":
             cos, sin, total, expand = self.spectrum()
             re = node("MatMul", [flat, const("spec_cos", cos)], "re")

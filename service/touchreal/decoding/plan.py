@@ -4,7 +4,8 @@ Product models (top folder, installed and served): ``force`` (SA1 + RA, 128 ms),
 ``force_ra``, ``force_fast`` (SA1 + RA, 32 ms window and step, with filtered counts carried across
 steps), ``texture`` (temporal features, 500 ms), ``texture_rate``, ``texture_both``,
 ``texture_spectral`` (SA1 + RA + PC spectra in 1 ms bins, 200 ms), ``texture_spatial`` (SA1 + RA + PC
-phase locking on a spatial-frequency axis, with the scanning speed as a second input, 1 ms bins, 200 ms).
+phase locking on a spatial-frequency axis and interval histograms on a spatial-period axis, with the
+scanning speed as a second input, 1 ms bins, 200 ms).
 Sweep models (``sweep/``): force SA1 + RA per other decoding window, the stateful force model per
 other step, the spectral texture model per other window, the spatial texture model per other window, texture per feature set and
 other inference window (the product models are the sweeps' 128 ms and 500 ms points), and texture (temporal, 500 ms) per PC causal preprocessing window (the paper's

@@ -32,7 +32,8 @@ from touchreal_client import features as F
 from .. import __version__
 from ..params import EncoderParams
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
-from .features import BANDS_HZ, SMOOTH_SIGMA_MS, SPATIAL_CYCLES_PER_MM, SPECTRUM_HZ, SPEED_INPUT, FeatureSpec
+from .features import (BANDS_HZ, INTERVAL_MAX_RATE_HZ, INTERVAL_MM, INTERVAL_ORDERS, SMOOTH_SIGMA_MS, SPATIAL_CYCLES_PER_MM,
+                       SPECTRUM_HZ, SPEED_INPUT, FeatureSpec)
 from .model import SCHEMA, SCHEMA_VERSION, params_hash, with_pvdf_window
 from .plan import ModelSpec
 from .state import STATE_INPUT, STATE_OUTPUT, ExpFilter
@@ -135,6 +136,9 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
         "features": {"set": spec.features, "order": fs.names(), "smoothing_sigma_ms": SMOOTH_SIGMA_MS,
                      "bands_hz": [list(b) for b in BANDS_HZ], "spectrum_hz": list(SPECTRUM_HZ),
                      "spatial_cycles_per_mm": list(SPATIAL_CYCLES_PER_MM) if fs.needs_speed else None,
+                     "intervals_mm": list(INTERVAL_MM) if fs.needs_speed else None,
+                     "interval_orders": list(INTERVAL_ORDERS) if fs.needs_speed else None,
+                     "interval_max_rate_hz": INTERVAL_MAX_RATE_HZ if fs.needs_speed else None,
                      "scan_steady": SCAN_STEADY if fs.needs_speed else None, "in_graph": True},
         "estimator": _describe(pipe),
         "params": {"sha256": params_hash(used), "pvdf_window_ms": spec.pvdf_window_ms,
