@@ -35,6 +35,6 @@ def test_spatial_decoder_classifies_close_combs_at_seen_and_unseen_speeds(tmp_pa
     assert set(seen[f"{key}_by_speed_mm_s"]) == {"20", "30", "50", "60"} and set(unseen[f"{key}_by_speed_mm_s"]) == {"40"}
     assert seen[f"{key}_windows"] > 3000 and unseen[f"{key}_windows"] > 1000
     print(f"seen {seen[key]:.3f}, unseen {unseen[key]:.3f}, ceiling {ceiling['texture.pvdf_ceiling.acc_200ms']:.3f}")
-    assert seen[key] >= 0.8, seen[key]  # chance 0.1; measured 0.90
-    assert unseen[key] >= 0.65, unseen[key]  # measured 0.79
+    assert seen[key] >= 0.8, seen[key]  # chance 0.1; measured 0.93
+    assert unseen[key] >= 0.65, unseen[key]  # measured 0.78
     assert ceiling["texture.pvdf_ceiling.acc_200ms"] >= 0.9
