@@ -80,7 +80,7 @@ def test_loads_are_localised_on_the_edge_or_corner_they_share_and_films_decay_as
     taxels = grid_patch(4, 3.0)  # centres at -4.5, -1.5, 1.5, 4.5
     pop = Population.build(taxels, PopulationPlan())
     for probe in [(1.5, 1.5), (1.5, 0.0), (0.0, 0.0)]:
-        pos, contact, _ = pop.rule.localise(_loads(taxels, probe))
+        pos, contact = pop.rule.localise(_loads(taxels, probe))
         j = int(np.argmax(_loads(taxels, probe)[0, :, 0]))
         assert np.allclose(pos[0, j], probe, atol=0.05), (probe, pos[0, j])
         assert contact[0, j] and contact.sum() == 1  # one contact: the largest load of its neighbourhood

@@ -170,22 +170,18 @@ class SpatialRule:
         return cls(taxels, aff, float(cell_mm), float(probe_radius_mm), float(min_weight), pairs, films, wave,
                    kernel.astype(np.int64), tables, neighbours)
 
-    def localise(self, channels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(T, X, 4) channels -> each taxel's localised load position (T, X, 2), flags of the taxels
-        whose load is the largest of their neighbourhood (T, X) and the films interpolated at that
-        position (T, X, 2), sample by sample (a diagnostic: the stream localises the vibration from
-        the films' envelopes, :meth:`mix`)."""
+    def localise(self, channels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T, X, 4) channels -> each taxel's localised load position (T, X, 2) and the flags of the
+        taxels whose load is the largest of their neighbourhood (T, X), sample by sample (a
+        diagnostic: :meth:`mix` localises every :data:`HOLD_SAMPLES` samples)."""
         x = np.ascontiguousarray(channels, np.float64)
         n_t, n_x = x.shape[:2]
         pos = np.empty((n_t, n_x, 2))
         contact = np.empty((n_t, n_x), np.bool_)
-        film = np.empty((n_t, n_x, 2))
-        nb = self.neighbours
-        ptr, idx = nb.indptr.astype(np.int64), nb.indices.astype(np.int64)
+        ptr, idx = self.neighbours.indptr.astype(np.int64), self.neighbours.indices.astype(np.int64)
         for k in range(n_t):
             _localise_sample(x[k], self.taxels_xy_mm, ptr, idx, self.cell_mm, pos[k], contact[k])
-            film[k] = [_film_at(x[k], self.taxels_xy_mm, ptr, idx, self.cell_mm, j, pos[k, j]) for j in range(n_x)]
-        return pos, contact, film
+        return pos, contact
 
     def rows(self, afferents: np.ndarray) -> RuleRows:
         """The rule's arrays for the given afferents, in that order (what an encoder's columns read)."""
@@ -279,20 +275,6 @@ def _localise_sample(x, taxels, nb_ptr, nb_idx, cell, pos, contact):  # pragma: 
         pos[j, 0] = taxels[j, 0] + ox
         pos[j, 1] = taxels[j, 1] + oy
         contact[j] = top
-
-
-@numba.njit(cache=True, nogil=True)
-def _film_at(x, taxels, nb_ptr, nb_idx, cell, j, p):  # pragma: no cover - compiled
-    """The films (PVDF, dPVDF) of one sample interpolated at ``p`` inside taxel j's cell."""
-    f = np.zeros(2)
-    for q in range(nb_ptr[j], nb_ptr[j + 1]):
-        n = nb_idx[q]
-        tx = 1.0 - abs(p[0] - taxels[n, 0]) / cell
-        ty = 1.0 - abs(p[1] - taxels[n, 1]) / cell
-        if tx > 0.0 and ty > 0.0:
-            f[0] += tx * ty * x[n, 2]
-            f[1] += tx * ty * x[n, 3]
-    return f
 
 
 @numba.njit(cache=True, nogil=True)
