@@ -5,7 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from touchreal.sources.live import SimLiveSource
+from touchreal.raw import RawChunk
+from touchreal.sources.live import SIM_RING_BYTES, HopRing, SimLiveSource
 
 
 @pytest.mark.parametrize("seed", [0, 3])
@@ -91,10 +92,10 @@ def test_a_consumer_late_by_more_than_a_catch_up_chunk_keeps_the_schedule():
 
 
 def test_a_simulation_slower_than_real_time_restarts_its_clock_and_says_so():
-    """A skin this machine cannot simulate in real time (32,768 taxels in one process): once the consumer
-    waits for a hop more than a catch-up chunk late, the schedule restarts there (a new clock epoch), the
-    samples stay continuous, and the status counts it."""
-    src = SimLiveSource(32768, 0.005, seed=0, touched=0.05, own_process=True)
+    """A skin this machine cannot simulate in real time (65,536 taxels in one process: about twice real
+    time on a 2-core AMD EPYC): once the consumer waits for a hop more than a catch-up chunk late, the
+    schedule restarts there (a new clock epoch), the samples stay continuous, and the status counts it."""
+    src = SimLiveSource(65536, 0.005, seed=0, touched=0.05, own_process=True)
     try:
         chunks, deadline = [src.next_chunk()], time.monotonic() + 120
         while src.status()["fell_behind"] == 0:
@@ -109,3 +110,31 @@ def test_a_simulation_slower_than_real_time_restarts_its_clock_and_says_so():
     assert clock.epoch >= 1 and clock.sensor_us == round(restarted.pvdf_t[-1] * 1e6)
     assert abs(time.time_ns() // 1000 - clock.wall_us) < 1_000_000  # acquired about now on the new schedule
     assert status["sim_load"] > 1.0 and status["behind_s"] > 0.32 and status["behind_wall_us"] is not None
+
+
+def test_hops_cross_in_shared_memory_of_bounded_size_freed_on_close():
+    """The ring holds at most SIM_RING_BYTES (a large skin gets fewer hops ahead, never fewer than 4), a
+    hop that does not fit a slot is refused with the reason, and closing the source frees the memory."""
+    big = HopRing.slots_for(65536, 10, 32)
+    assert 4 <= big < 32 and big * HopRing._layout(65536, 10)[1] <= SIM_RING_BYTES
+    assert HopRing.slots_for(16, 10, 32) == 32
+    ring = HopRing(3, 10, 4)
+    try:
+        rng = np.random.default_rng(0)
+        hop = RawChunk(np.arange(1.0), rng.normal(size=(1, 3)).astype(np.float32), np.arange(10.0),
+                       rng.normal(size=(10, 3)).astype(np.float32))
+        got = ring.take(3, *ring.put(3, hop))
+        for f in ("st_t", "st", "pvdf_t", "pvdf"):
+            assert np.array_equal(getattr(got, f), getattr(hop, f)) and getattr(got, f).dtype == getattr(hop, f).dtype
+        ring.put(3, RawChunk(*(np.zeros_like(a) for a in (hop.st_t, hop.st, hop.pvdf_t, hop.pvdf))))
+        assert got.pvdf.any()  # taken hops are copies: the slot is written again without touching them
+        with pytest.raises(ValueError, match="does not fit a slot"):
+            ring.put(0, RawChunk(np.zeros(0), np.zeros((0, 3), np.float32), np.zeros(11), np.zeros((11, 3), np.float32)))
+    finally:
+        ring.close(unlink=True)
+    src = SimLiveSource(3, 0.005, seed=2, own_process=True)
+    name = src.hops._ring.shm.name
+    assert src.next_chunk() is not None
+    src.close()
+    with pytest.raises(FileNotFoundError):
+        HopRing(3, 10, 4, name=name)

@@ -24,6 +24,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from multiprocessing.context import BaseContext
+from multiprocessing.shared_memory import SharedMemory
 from typing import Protocol
 
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from touchreal_client.clock import ClockPoint
 
 from ..recording import Dataset, Trial
-from ..settings import PVDF_FS_HZ
+from ..settings import PVDF_FS_HZ, ST_FS_HZ
 from ..raw import RawChunk, taxel_grid
 from .replay import ReplaySource
 from ..simulator.large import LargeSkinSource
@@ -46,6 +47,9 @@ SEGMENT_GRID_US = 160_000  #: segment offsets are multiples of this (lcm of 10 m
 #: most its sample's time + the class delay, <= 500 ms, + one 5 kHz grid sample) reaches the next trial's span;
 #: it also covers the longest look-ahead (a 512 ms window: 512.5 ms). tests/test_replay_boundaries.py checks it
 SEGMENT_GUARD_US = 1_100_000
+#: shared memory for the simulated hops in flight between the simulation's process and the service (bytes; Docker
+#: gives a container 64 MiB of /dev/shm by default): a skin whose hops need more gets fewer of them in flight
+SIM_RING_BYTES = 32 << 20
 
 
 class LiveSource(Protocol):
@@ -134,6 +138,11 @@ class _Paced:
         return self._start_wall_us + int(round(self._due_s * 1e6))
 
 
+def hop_ticks(update_s: float) -> int:
+    """PVDF ticks (2 kHz) in a hop of ``update_s`` (s): the most a simulated hop holds."""
+    return max(1, int(round(update_s * PVDF_FS_HZ)))
+
+
 class SimHops:
     """The simulated e-skin cut into hops, unpaced (sans-I/O): :func:`~touchreal.simulator.scene.default_scene`
     over ``n_taxels`` taxels (a grid of 10 mm pitch), looping forever. With several taxels the script
@@ -158,7 +167,7 @@ class SimHops:
             self.scene = SceneSource(default_scene(spots), taxels_xy_mm=positions, seed=seed, t0_s=t0_s)
         else:
             self.scene = LargeSkinSource(positions, touched, seed=seed, t0_s=t0_s)
-        self._hop_ticks = max(1, int(round(update_s * PVDF_FS_HZ)))
+        self._hop_ticks = hop_ticks(update_s)
         self.zero_s = self.scene.requested_s  #: the sensor clock's instant (s) at which the stream starts
 
     def _hop_ticks_left(self) -> int:
@@ -177,30 +186,96 @@ class SimHops:
         """Nothing to do: a hop is simulated when it is read."""
 
 
-def _simulate_hops(conn: Connection, n_taxels: int, update_s: float, seed: int, t0_s: float | None, ahead: int,
-                   touched: float | None = None) -> None:
-    """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
-    simulated, then (newest sample's instant (s), hop, wall time (s) its simulation took) triples, never more
-    than ``ahead`` beyond those the parent has taken (it sends how many it took, an int). Ends when the
-    parent's end of ``conn`` closes."""
-    hops = SimHops(n_taxels, update_s, seed, t0_s, touched)
+class HopRing:
+    """Slots in shared memory for the hops in flight from the simulation's process to the service, so
+    that a hop's samples cross between the processes as one copy in and one copy out (through a pipe,
+    pickled, the copies and the pipe's 64 KiB writes cost a third of the simulation's own CPU at
+    16,384 taxels). A slot holds one hop of ``n_taxels`` taxels and at most ``pv_rows`` PVDF ticks (the
+    SingleTact samples among them: at most ``pv_rows`` / 20 + 1): times float64 (s), samples float32 (as
+    the simulated skin makes them). The owner (``name`` None) creates the memory; the other side attaches
+    by its ``name``."""
 
-    def simulated() -> tuple[float, RawChunk, float]:
+    def __init__(self, n_taxels: int, pv_rows: int, slots: int, name: str | None = None):
+        self.n_taxels, self.pv_rows, self.slots = n_taxels, pv_rows, slots
+        self.st_rows, self.slot_bytes = self._layout(n_taxels, pv_rows)
+        self.shm = SharedMemory(name=name, create=name is None, size=slots * self.slot_bytes if name is None else 0)
+
+    @staticmethod
+    def _layout(n_taxels: int, pv_rows: int) -> tuple[int, int]:
+        """(SingleTact rows, bytes) of a slot."""
+        st_rows = int(pv_rows * ST_FS_HZ // PVDF_FS_HZ) + 1
+        rows = st_rows + pv_rows
+        return st_rows, rows * (8 + 4 * n_taxels)
+
+    @classmethod
+    def slots_for(cls, n_taxels: int, pv_rows: int, wanted: int) -> int:
+        """Slots within :data:`SIM_RING_BYTES` (at least 4, at most ``wanted``)."""
+        return max(4, min(wanted, SIM_RING_BYTES // cls._layout(n_taxels, pv_rows)[1]))
+
+    def _views(self, slot: int, n_st: int, n_pv: int) -> tuple[np.ndarray, ...]:
+        """(st_t, st, pvdf_t, pvdf) of ``slot`` holding ``n_st`` SingleTact and ``n_pv`` PVDF rows."""
+        off = slot * self.slot_bytes
+        views = []
+        for dtype, cap, rows, width in ((np.float64, self.st_rows, n_st, 0), (np.float32, self.st_rows, n_st, self.n_taxels),
+                                        (np.float64, self.pv_rows, n_pv, 0), (np.float32, self.pv_rows, n_pv, self.n_taxels)):
+            shape = (rows, width) if width else (rows,)
+            views.append(np.ndarray(shape, dtype, self.shm.buf, off))
+            off += np.dtype(dtype).itemsize * cap * max(width, 1)
+        return tuple(views)
+
+    def put(self, slot: int, hop: RawChunk) -> tuple[int, int]:
+        """Copy ``hop`` into ``slot``; its (SingleTact, PVDF) row counts."""
+        n_st, n_pv = hop.st_t.size, hop.pvdf_t.size
+        if n_st > self.st_rows or n_pv > self.pv_rows or hop.st.shape[1:] != (self.n_taxels,) or hop.pvdf.shape[1:] != (self.n_taxels,):
+            raise ValueError(f"a hop of {n_st} + {n_pv} rows x {hop.pvdf.shape[1:]} taxels does not fit a slot of "
+                             f"{self.st_rows} + {self.pv_rows} rows x {self.n_taxels}")
+        for view, a in zip(self._views(slot, n_st, n_pv), (hop.st_t, hop.st, hop.pvdf_t, hop.pvdf)):
+            view[...] = a
+        return n_st, n_pv
+
+    def take(self, slot: int, n_st: int, n_pv: int) -> RawChunk:
+        """A copy of the hop in ``slot`` (the slot can be written again)."""
+        return RawChunk(*(v.copy() for v in self._views(slot, n_st, n_pv)))
+
+    def close(self, unlink: bool = False) -> None:
+        self.shm.close()
+        if unlink:
+            self.shm.unlink()
+
+
+def _simulate_hops(conn: Connection, ring_name: str, slots: int, n_taxels: int, update_s: float, seed: int,
+                   t0_s: float | None, touched: float | None = None) -> None:
+    """The body of :class:`SimHopsProcess`'s process: sends the stream's zero (s) once its first hop is
+    simulated, then per hop (newest sample's instant (s), slot, SingleTact rows, PVDF rows, wall time (s)
+    its simulation took), the hop itself in that slot of the :class:`HopRing` ``ring_name``; never more than
+    ``slots`` beyond those the parent has taken (it sends how many it took, an int), so a slot is written
+    again only after the parent has taken its hop. Ends when the parent's end of ``conn`` closes."""
+    hops = SimHops(n_taxels, update_s, seed, t0_s, touched)
+    ring = HopRing(n_taxels, hop_ticks(update_s), slots, name=ring_name)
+    sent = 0
+
+    def simulated() -> tuple[float, int, int, int, float]:
+        nonlocal sent
         t = time.perf_counter()
         newest, hop = hops.next_newest_s(), hops.read_hop()
-        return newest, hop, time.perf_counter() - t
+        slot = sent % slots
+        rows = ring.put(slot, hop)
+        sent += 1
+        return newest, slot, *rows, time.perf_counter() - t
 
-    first = simulated()  # before the source counts as open
     try:
+        first = simulated()  # before the source counts as open
         conn.send(hops.zero_s)
         conn.send(first)
-        credit = ahead - 1
+        credit = slots - 1
         while True:
             for _ in range(credit):
                 conn.send(simulated())
             credit = int(conn.recv())
     except (EOFError, OSError, KeyboardInterrupt):
         return
+    finally:
+        ring.close()
 
 
 def _processes() -> BaseContext:
@@ -214,24 +289,32 @@ def _processes() -> BaseContext:
 
 class SimHopsProcess:
     """:class:`SimHops` run in a process of its own, up to ``ahead`` hops before they are taken, so that
-    simulating the skin never competes with the service for its interpreter (the GIL). Only the
-    hops move between the processes (pickled through a pipe); the caller still releases each at the
-    instant of its newest sample. ``close()`` ends the process."""
+    simulating the skin never competes with the service for its interpreter (the GIL). The hops' samples
+    cross in shared memory (:class:`HopRing`, at most :data:`SIM_RING_BYTES`: a large skin gets fewer
+    hops ahead), their descriptions and the credit of taken hops through a pipe; the caller still releases
+    each at the instant of its newest sample. ``close()`` ends the process and frees the memory."""
 
     def __init__(self, n_taxels: int, update_s: float, seed: int = 0, t0_s: float | None = None, ahead: int = 32,
                  touched: float | None = None):
         ctx = _processes()
+        ticks = hop_ticks(update_s)
+        self._ring = HopRing(n_taxels, ticks, HopRing.slots_for(n_taxels, ticks, ahead))
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_simulate_hops, args=(child, n_taxels, update_s, seed, t0_s, ahead, touched),
+        self._proc = ctx.Process(target=_simulate_hops, args=(child, self._ring.shm.name, self._ring.slots, n_taxels,
+                                                              update_s, seed, t0_s, touched),
                                  name="touchreal-sim", daemon=True)
         self._proc.start()
         child.close()
-        self._hops: deque[tuple[float, RawChunk]] = deque()
+        self._hops: deque[tuple[float, RawChunk, float]] = deque()
         self._taken = 0  #: hops taken since the last credit sent
         #: the simulation's recent real-time factor: wall time simulating per second of signal (about the
         #: last 20 hops; > 1: it cannot keep up in real time on this machine, under its present load)
         self.load = 0.0
-        self.zero_s = float(self._receive())
+        try:
+            self.zero_s = float(self._receive())
+        except BaseException:
+            self.close()
+            raise
 
     def _receive(self):
         try:
@@ -239,13 +322,17 @@ class SimHopsProcess:
         except (EOFError, OSError):
             raise self._ended() from None
 
+    def _receive_hop(self) -> tuple[float, RawChunk, float]:
+        newest, slot, n_st, n_pv, took_s = self._receive()
+        return newest, self._ring.take(slot, n_st, n_pv), took_s
+
     def _ended(self) -> RuntimeError:
         self._proc.join(1.0)
         return RuntimeError(f"the simulated e-skin's process ended (exit code {self._proc.exitcode})")
 
     def prefetch(self) -> None:
         """Hand back the credit of the hops taken and have the next two in hand (waiting if the process is
-        behind): called before a hop's release, so that neither a pipe nor unpickling delays it after."""
+        behind): called before a hop's release, so that neither the pipe nor the copy delays it after."""
         if self._taken:
             try:
                 self._conn.send(self._taken)
@@ -253,7 +340,7 @@ class SimHopsProcess:
                 raise self._ended() from None
             self._taken = 0
         while len(self._hops) < 2 or self._conn.poll():
-            self._hops.append(self._receive())
+            self._hops.append(self._receive_hop())
 
     def next_newest_s(self) -> float:
         if not self._hops:
@@ -272,6 +359,7 @@ class SimHopsProcess:
     def close(self) -> None:
         self._proc.terminate()
         self._proc.join(5.0)
+        self._ring.close(unlink=True)
 
 
 class SimLiveSource:
