@@ -12,7 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from server_harness import connect, hello_and_subscribe, running_server, wait_until
 
 from touchreal.params import default_params
-from touchreal.server.settings import RuntimeConfig
+from touchreal.server.service import Service
+from touchreal.server.settings import RuntimeConfig, ServeSettings
 
 
 def _params_json(**class_updates) -> dict:
@@ -20,6 +21,17 @@ def _params_json(**class_updates) -> dict:
     for cls, upd in class_updates.items():
         d["classes"][cls].update(upd)
     return d
+
+
+def test_a_source_still_opening_is_reported_as_opening_not_failed(tmp_path):
+    """Between the service's start and its first source open (the JIT warm-up runs first) the status says
+    the source is opening; ``failed`` is for a source that could not open."""
+    svc = Service(ServeSettings(state_dir=tmp_path / "state"), RuntimeConfig())
+    assert svc.view.status()["source"] == {"spec": "sim", "state": "opening", "error": None}
+    assert svc.view.ready() == (False, "warming up (compiling the pipeline, opening the source)")
+    svc.source_error = "no such device"
+    svc.opened.set()
+    assert svc.view.status()["source"] == {"spec": "sim", "state": "failed", "error": "no such device"}
 
 
 def test_health_ready_status_and_metrics(tmp_path):

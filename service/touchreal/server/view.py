@@ -143,7 +143,8 @@ class ServiceView:
         taxels (demand, active columns) are id ranges (:func:`touchreal_client.protocol.id_ranges`),
         so the status of a 65,536-taxel skin stays a few kilobytes."""
         rt = self.service.runtime
-        src = rt.source.status() if rt is not None else {"state": "failed", "error": self.service.source_error}
+        src = (rt.source.status() if rt is not None else {"state": "failed", "error": self.service.source_error}
+               if self.service.opened.is_set() else {"state": "opening", "error": None})
         error = rt.error if rt else self.service.source_error
         return {
             "session": self.service.session,
