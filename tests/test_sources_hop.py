@@ -80,8 +80,9 @@ def test_a_sim_process_that_dies_fails_the_source_with_a_reason():
 
 def test_a_consumer_late_by_more_than_a_catch_up_chunk_keeps_the_schedule():
     """The consumer's own lateness is the consumer's to see (the service sheds on it): a fast simulation
-    has the hops ready, so the schedule stays and the late hops' clock says how late they are."""
-    src = SimLiveSource(1, 0.005, seed=1, own_process=True)
+    has the hops ready, so the schedule stays and the late hops' clock says how late they are. On a large
+    skin too, whose first hop pays the skin's start (it does not count in the simulation's load)."""
+    src = SimLiveSource(4096, 0.005, seed=0, touched=0.05, own_process=True)  # its first hop: one tick
     src.next_chunk()
     time.sleep(0.5)  # the stimulus: 100 hops come due, more than one catch-up chunk
     late = src.next_chunk()

@@ -307,6 +307,7 @@ class SimHopsProcess:
         child.close()
         self._hops: deque[tuple[float, RawChunk, float]] = deque()
         self._taken = 0  #: hops taken since the last credit sent
+        self._read = 0  #: hops read
         #: the simulation's recent real-time factor: wall time simulating per second of signal (about the
         #: last 20 hops; > 1: it cannot keep up in real time on this machine, under its present load)
         self.load = 0.0
@@ -352,8 +353,9 @@ class SimHopsProcess:
             self.prefetch()
         self._taken += 1
         _, hop, took_s = self._hops.popleft()
-        if hop.pvdf_t.size:
+        if hop.pvdf_t.size and self._read:  # not the first: it pays the skin's start (~14 ms) for as little as one tick
             self.load += 0.05 * (took_s * PVDF_FS_HZ / hop.pvdf_t.size - self.load)
+        self._read += 1
         return hop
 
     def close(self) -> None:
