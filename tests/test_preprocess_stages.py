@@ -9,7 +9,8 @@ from scipy import signal
 from scipy.interpolate import PchipInterpolator
 
 from touchreal.params import GateCalibration, PreprocessParams
-from touchreal.preprocess.filters import AlphaBeta, SosFilter, butter_lowpass, mains_notches, periodic_history
+from touchreal.preprocess.filters import (HUM_HISTORY_S, AlphaBeta, SosFilter, butter_lowpass, mains_notches, periodic_history,
+                                          prime_with_hum)
 from touchreal.preprocess.gate import calibrate, detect_harmonics, gate_thresholds
 from touchreal.preprocess.resample import CausalPchip
 from touchreal.preprocess.sanitize import Sanitizer
@@ -97,6 +98,27 @@ def test_notches_primed_with_the_hum_start_without_ringing():
     # priming with the exact past equals having filtered that past
     longer = bank().process(_hum(np.arange(-2000, 1000)))[2000:]
     np.testing.assert_allclose(warm, longer, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_priming_with_the_hum_sets_the_state_filtering_its_past_leaves(dtype):
+    """prime_with_hum applies one operator per cascade and block length (the fit and the filtering of
+    the synthetic past, done once on unit blocks): the state equals priming with periodic_history,
+    up to rounding, for any taxels, block lengths (a short block: the constant alone) and dtype."""
+    freqs = [50.0, 150.0, 250.0]
+    bank = lambda n: butter_lowpass(800.0, FS, 4, n, dtype).then(mains_notches(50.0, [1, 3, 5], 30.0, FS, n, dtype))  # noqa: E731
+    rng = np.random.default_rng(1)
+    for n_taxels, n in ((2, 200), (5, 200), (3, 7), (1, 1)):
+        x = (_hum(np.arange(n))[:, :1] * rng.uniform(0.5, 2.0, n_taxels)) + rng.normal(0, 1e-3, (n, n_taxels))
+        want, got = bank(n_taxels), bank(n_taxels)
+        want.prime(periodic_history(x, FS, freqs, int(round(HUM_HISTORY_S * FS))))
+        prime_with_hum(got, x, FS, freqs)
+        assert got.zi.dtype == np.dtype(dtype) and got.zi.shape == want.zi.shape
+        np.testing.assert_allclose(got.zi, want.zi, rtol=0, atol=1e-12 if dtype == np.float64 else 1e-5)
+        y = rng.normal(0, 1e-3, (400, n_taxels))
+        np.testing.assert_allclose(got.process(y), want.process(y), rtol=0, atol=1e-12 if dtype == np.float64 else 1e-5)
+    with pytest.raises(ValueError):
+        prime_with_hum(bank(1), np.zeros((0, 1)), FS, freqs)
 
 
 def test_alpha_beta_tracks_a_ramp_and_rejects_unstable_gains():

@@ -161,10 +161,28 @@ HUM_PRIME_S = 0.1  #: stream start used to estimate the mains hum a filter is pr
 HUM_HISTORY_S = 1.0  #: length of the synthetic past it is primed with (s; > 5 settling times of a Q = 30 notch at 50 Hz)
 
 
+@lru_cache(maxsize=32)
+def _hum_priming(sos: bytes, n_sections: int, dtype: str, fs_hz: float, freqs_hz: tuple[float, ...], n: int) -> np.ndarray:
+    """(n_sections, 2, n): the filter state that priming with the :func:`periodic_history` of a block
+    of ``n`` samples leaves, per unit sample of the block. Both steps are linear in the block (a
+    least-squares fit, then the filter from its steady state for the first sample), so the state of
+    any block is this operator applied to it: the fit and :data:`HUM_HISTORY_S` of filtering run once
+    per cascade and block length, on the ``n`` unit blocks, instead of for every taxel at every start."""
+    filt = SosFilter(np.frombuffer(sos, dtype).reshape(n_sections, 6), n, dtype)
+    filt.prime(periodic_history(np.eye(n), fs_hz, freqs_hz, int(round(HUM_HISTORY_S * fs_hz))))
+    return filt.zi
+
+
 def prime_with_hum(filt: SosFilter, start: np.ndarray, fs_hz: float, freqs_hz: Sequence[float]) -> None:
     """Prime ``filt`` with the past predicted from ``start`` (the first :data:`HUM_PRIME_S` of a
-    stream, (n, n_taxels)) by :func:`periodic_history` at the hum frequencies ``freqs_hz``."""
-    filt.prime(periodic_history(start, fs_hz, freqs_hz, int(round(HUM_HISTORY_S * fs_hz))))
+    stream, (n, n_taxels)) by :func:`periodic_history` at the hum frequencies ``freqs_hz``: its state
+    is set to what filtering that past would leave (:func:`_hum_priming`; equal up to rounding)."""
+    x = np.asarray(start, dtype=np.float64)
+    if x.shape[0] == 0:
+        raise ValueError("periodic_history needs at least one sample")
+    op = _hum_priming(filt.sos.tobytes(), filt.sos.shape[0], filt.dtype.str, float(fs_hz),
+                      tuple(float(f) for f in freqs_hz), x.shape[0])
+    filt.zi = np.ascontiguousarray(np.einsum("sck,kn->scn", op, x).astype(filt.dtype))
 
 
 def mains_frequencies(mains_hz: float, harmonics: Sequence[int], fs_hz: float) -> list[float]:
