@@ -2,7 +2,8 @@
 
 Force: ``StandardScaler`` + ``MLPRegressor`` (64, 32 ReLU units, early stopping) on the flattened
 counts (and, stateful, their filtered counts carried across steps). Texture ``spectral`` and
-``spatial``: ``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping). Other texture sets:
+``spatial``: ``StandardScaler`` + ``MLPClassifier`` (128 ReLU units, early stopping validated on held-out
+training trials, :mod:`touchreal.decoding.early_stopping`). Other texture sets:
 ``StandardScaler`` + an RBF ``SVC`` calibrated to probabilities with
 ``CalibratedClassifierCV(ensemble=False)`` on folds of whole trials (scikit-learn's own
 ``SVC(probability=True)`` is deprecated and calibrates on folds of windows, which would mix a
@@ -31,6 +32,7 @@ from touchreal_client import features as F
 
 from .. import __version__
 from ..params import EncoderParams
+from .early_stopping import PATIENCE, REFIT, VALIDATION_FRACTION, fit_mlp_by_trials
 from .export import INPUT_NAME, REGRESSION_OUTPUT, to_onnx
 from .features import (BANDS_HZ, INTERVAL_MAX_RATE_HZ, INTERVAL_MM, INTERVAL_ORDERS, SMOOTH_SIGMA_MS, SPATIAL_CYCLES_PER_MM,
                        SPECTRUM_HZ, SPEED_INPUT, FeatureSpec)
@@ -80,9 +82,10 @@ def fit_pipeline(spec: ModelSpec, feats: np.ndarray, target: np.ndarray, groups:
                            n_iter_no_change=20, random_state=seed)
         return make_pipeline(StandardScaler(), mlp).fit(feats, target)
     if spec.features in ("spectral", "spatial"):
-        mlp = MLPClassifier(hidden_layer_sizes=(128,), alpha=1e-3, max_iter=300, early_stopping=True,
-                            n_iter_no_change=15, random_state=seed)
-        return make_pipeline(StandardScaler(), mlp).fit(feats, target)
+        # early stopping validated on held-out training trials (early_stopping.py), not on random windows
+        scaler = StandardScaler().fit(feats)
+        mlp, _ = fit_mlp_by_trials(scaler.transform(feats), target, groups, seed, hidden_layer_sizes=(128,), alpha=1e-3)
+        return make_pipeline(scaler, mlp)
     _, first = np.unique(groups, return_index=True)  # one row per trial
     names, per_label = np.unique(target[first], return_counts=True)
     if names.size < 2 or per_label.min() < 2:
@@ -153,6 +156,12 @@ def metadata(spec: ModelSpec, fs: FeatureSpec, pipe: Pipeline, params: EncoderPa
 
 def _describe(pipe: Pipeline) -> str:
     est = pipe.steps[-1][1]
+    if isinstance(est, MLPClassifier) and not est.early_stopping:  # fit_mlp_by_trials
+        head = f"StandardScaler + MLPClassifier(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_}"
+        if getattr(est, "best_validation_score_", None) is None:
+            return head + ": stopped on the training loss, no texture had two training trials to hold one out)"
+        return (head + f": the best epoch on {VALIDATION_FRACTION:g} of the training trials held out (patience {PATIENCE}, "
+                f"validation accuracy {est.best_validation_score_:.4f}){', then refit on all of them' if REFIT else ''})")
     if isinstance(est, (MLPRegressor, MLPClassifier)):
         return f"StandardScaler + {type(est).__name__}(hidden={est.hidden_layer_sizes}, relu, alpha={est.alpha}, iterations={est.n_iter_})"
     svc = est.estimator
