@@ -115,7 +115,7 @@ def test_a_simulation_slower_than_real_time_restarts_its_clock_and_says_so():
 
 def test_hops_cross_in_shared_memory_of_bounded_size_freed_on_close():
     """The ring holds at most SIM_RING_BYTES (a large skin gets fewer hops ahead, never fewer than 4), a
-    hop that does not fit a slot is refused with the reason, and closing the source frees the memory."""
+    hop that does not fit a slot (rows, dtypes, slot index) is refused with the reason, and closing the source frees the memory."""
     big = HopRing.slots_for(65536, 10, 32)
     assert 4 <= big < 32 and big * HopRing._layout(65536, 10)[1] <= SIM_RING_BYTES
     assert HopRing.slots_for(16, 10, 32) == 32
@@ -131,6 +131,10 @@ def test_hops_cross_in_shared_memory_of_bounded_size_freed_on_close():
         assert got.pvdf.any()  # taken hops are copies: the slot is written again without touching them
         with pytest.raises(ValueError, match="does not fit a slot"):
             ring.put(0, RawChunk(np.zeros(0), np.zeros((0, 3), np.float32), np.zeros(11), np.zeros((11, 3), np.float32)))
+        with pytest.raises(ValueError, match="dtypes"):  # float64 samples would be stored rounded to float32
+            ring.put(0, RawChunk(hop.st_t, hop.st.astype(np.float64), hop.pvdf_t, hop.pvdf))
+        with pytest.raises(ValueError, match="not one of the ring's 4"):
+            ring.put(4, hop)
     finally:
         ring.close(unlink=True)
     src = SimLiveSource(3, 0.005, seed=2, own_process=True)

@@ -224,8 +224,15 @@ class HopRing:
         return tuple(views)
 
     def put(self, slot: int, hop: RawChunk) -> tuple[int, int]:
-        """Copy ``hop`` into ``slot``; its (SingleTact, PVDF) row counts."""
+        """Copy ``hop`` into ``slot``; its (SingleTact, PVDF) row counts. A hop of other dtypes, or
+        larger than a slot, is refused (ValueError) rather than stored changed."""
         n_st, n_pv = hop.st_t.size, hop.pvdf_t.size
+        if not 0 <= slot < self.slots:
+            raise ValueError(f"slot {slot} is not one of the ring's {self.slots}")
+        dtypes = tuple(a.dtype for a in (hop.st_t, hop.st, hop.pvdf_t, hop.pvdf))
+        if dtypes != (np.float64, np.float32, np.float64, np.float32):
+            raise ValueError(f"a hop of dtypes {[str(d) for d in dtypes]} is not the ring's (times float64, samples float32): "
+                             "storing it would change its values")
         if n_st > self.st_rows or n_pv > self.pv_rows or hop.st.shape[1:] != (self.n_taxels,) or hop.pvdf.shape[1:] != (self.n_taxels,):
             raise ValueError(f"a hop of {n_st} + {n_pv} rows x {hop.pvdf.shape[1:]} taxels does not fit a slot of "
                              f"{self.st_rows} + {self.pv_rows} rows x {self.n_taxels}")
