@@ -58,12 +58,14 @@ class FoxgloveClient:
             self.channels.update({c["topic"]: c for c in m["channels"]})
 
     async def read_until(self, done: Callable[[], bool], seconds: float) -> None:
+        """Read the server's messages until ``done()``; a condition that other tasks make true (another
+        client's reader) is looked at again at least every 0.2 s, even while the server is quiet."""
         end = time.monotonic() + seconds
         while not done():
             left = end - time.monotonic()
             assert left > 0, "timed out waiting on the Foxglove server"
             try:
-                await self._read(left)
+                await self._read(min(left, 0.2))
             except asyncio.TimeoutError:
                 pass
 
