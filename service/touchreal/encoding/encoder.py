@@ -157,8 +157,9 @@ def _encode_columns(channels, src, w, i_sat, sos, has_lp, zi, hp_sos, has_hp, hp
                 out[n, k] = acc
                 continue
             # the LIF step of touchreal.encoding.lif._lif_run, written out (tested equal): sharing it as a
-            # numba function, inlined or not, made this kernel ~40 % slower (4096 taxels x 3 classes, a
-            # 32 ms chunk: 55 against 40 ms of CPU, measured A/B 2026-11-29)
+            # numba function (inline="always", with or without a spiked flag) made this kernel ~20 % slower
+            # (4096 taxels x 3 classes, a 32 ms chunk, one thread: 52 against 43.5 ms of CPU, A/B on the AMD
+            # EPYC VM 2026-11-29); called per column rather than per sample, ~26 %
             vm = vm - vm / tau_n + acc
             if c < nh:
                 vm += ih[n, c]
