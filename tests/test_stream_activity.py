@@ -74,6 +74,25 @@ def test_nan_bursts_stuck_sensors_and_drift_on_idle_taxels_are_counted_not_woken
     assert awake[t > 3.5, 5].mean() < 0.2  # the baseline follows slow drift
 
 
+def test_the_detector_reads_float32_samples_as_float64_bit_for_bit():
+    """The simulated skin's (and a device's) float32 samples are read without a float64 copy: the
+    verdicts, the counters and every learned state are those of the same samples in float64."""
+    src = SimHops(64, HOP_S, seed=1, touched=0.1)
+    hops = [src.read_hop() for _ in range(int(3.0 / HOP_S))]
+    for h in hops[100:104]:  # a NaN burst
+        h.pvdf[:, 3] = np.nan
+        h.st[:, 4] = np.nan
+    assert hops[0].pvdf.dtype == np.float32
+    wide = [RawChunk(h.st_t, h.st.astype(np.float64), h.pvdf_t, h.pvdf.astype(np.float64)) for h in hops]
+    d32, d64 = ActivityDetector(64), ActivityDetector(64)
+    for a, b in zip(hops, wide):
+        assert np.array_equal(d32.push(a), d64.push(b))
+    assert d32.counters == d64.counters and d32.counters["non_finite"] > 0
+    for band in ("_st", "_pv"):
+        for name in ("base", "rest", "var", "recent", "hp_var", "zi", "last_x"):
+            assert np.array_equal(getattr(getattr(d32, band), name), getattr(getattr(d64, band), name)), (band, name)
+
+
 def test_a_taxel_flickering_at_its_band_edge_does_not_thrash():
     def flicker(t, x):
         x[:, 4] += 0.3 * ((t % 0.4) < 0.01)  # a 10 ms burst out of band every 0.4 s, less than the hold apart
@@ -184,8 +203,7 @@ def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
         old.process(h)
     running = old.awake_taxels
     assert 0 < running < 64
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
-    new.continue_activity(old)
+    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
     new.set_active({c: range(64) for c in new.classes})
     assert new.awake_taxels == running
     changes, parts = 0, []
@@ -195,6 +213,37 @@ def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
         changes += before != sorted(int(x) for b in new.blocks for x in b.taxels)
     parts.append(new.finish())
     assert changes > 5 and len(SpikeEvents.concatenate(parts)) > 100
+
+
+def test_a_restart_builds_the_awake_taxels_only(monkeypatch):
+    """A pipeline that continues another after a shed builds blocks for the taxels kept awake and nothing
+    else, and keeps the source's mains frequency: building every taxel's chain first (the dense block, then the start's blocks of every taxel)
+    made each restart of a 16,384-taxel skin cost more than the signal it shed, so a service that fell
+    behind shed 80 % of its signal."""
+    import touchreal.stream as stream
+
+    params = default_params()
+    src = SimHops(256, HOP_S, seed=2, touched=0.05)
+    old = StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan())
+    old.set_active({c: range(256) for c in old.classes})
+    for _ in range(int(3.0 / HOP_S)):
+        old.process(src.read_hop())
+    kept = int((old._member & old.detector.awake).sum())
+    assert 0 < kept < 64
+    built: list[int] = []
+    real_init = stream._TaxelBlock.__init__
+
+    def counting_init(self, params, acquisition, taxels, *args, **kwargs):
+        built.append(len(taxels))
+        real_init(self, params, acquisition, taxels, *args, **kwargs)
+
+    monkeypatch.setattr(stream._TaxelBlock, "__init__", counting_init)
+    new = StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan(), continues=old)
+    assert sum(built) == kept == new.awake_taxels
+    assert new.acq.mains.hz == old.acq.mains.hz is not None  # the source's mains, not resolved again
+    built.clear()
+    StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan())
+    assert built == [256]  # a fresh start runs every taxel until the detector has judged it, built once
 
 
 def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on_its_first_chunk():
@@ -209,8 +258,7 @@ def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on
     for h in hops[:400]:
         old.process(h)
     assert old.awake_taxels == 0
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
-    new.continue_activity(old)
+    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
     new.set_active({c: range(64) for c in new.classes})
     parts = []
     for h in hops[420:]:
@@ -230,8 +278,7 @@ def test_chunks_a_shed_drops_still_teach_the_detector():
     for _ in range(int(1.0 / HOP_S)):
         old.observe(src.read_hop())
     assert old.awake_taxels == 64  # nothing ran: the start's blocks are still every taxel
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
-    new.continue_activity(old)
+    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
     new.set_active({c: range(64) for c in new.classes})
     new.process(src.read_hop())
     assert 0 < new.awake_taxels < 32

@@ -134,7 +134,9 @@ class StreamEncoder:
     in, so that a block is a patch of the skin rather than a strip of ids: a
     region demands fewer blocks. ``activity`` (an :class:`ActivityPlan`) instead runs only the
     taxels a contact keeps awake, grouped by the encoder itself (no ``taxel_block`` or ``order``;
-    :meth:`_follow_activity`). Spikes and channels stay addressed by taxel id; spikes of one
+    :meth:`_follow_activity`). ``continues``, the pipeline this one replaces after shedding load,
+    hands over the source's mains frequency and, activity-driven, its detector and the taxels it
+    keeps awake (only those start). Spikes and channels stay addressed by taxel id; spikes of one
     instant come sorted by id.
 
     ``update_s`` (the service's ``preprocess.update_ms``) splits the sources into two cadences: a
@@ -166,6 +168,7 @@ class StreamEncoder:
         activity: ActivityPlan | None = None,
         order: np.ndarray | None = None,
         population: Population | None = None,
+        continues: "StreamEncoder | None" = None,
     ):
         wanted = tuple(params.classes) if classes is None else tuple(classes)
         missing = [c for c in wanted if c not in params.classes]
@@ -202,14 +205,16 @@ class StreamEncoder:
         for c in self.classes:
             groups.setdefault(self.source[c], []).append(c)
         windows = [s for s in groups if s is not None]
-        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess)
+        carried = continues is not None and continues.n_taxels == n_taxels  #: a restart after a shed, of the same skin
+        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess,
+                               continues.acq.mains.hz if carried else None)
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
         self._groups = groups
         size = n_taxels if taxel_block is None else taxel_block
-        self.blocks = [_TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source,
-                                   population)
-                       for a in range(0, n_taxels, size)]
+        self.blocks = [] if activity is not None else [
+            _TaxelBlock(params, self.acq, range(a, min(a + size, n_taxels)), groups, dtype, self.channels_source, population)
+            for a in range(0, n_taxels, size)]
         self.active: dict[str, tuple[int, ...]] = {c: tuple(self.units(c)) for c in self.classes}
         #: dense: per block, its demand (per class its local columns; whether it shows channels)
         self._wants: list[tuple[dict[str, list[int]], bool]] = [
@@ -221,9 +226,15 @@ class StreamEncoder:
         self._demand = {c: np.ones(n_taxels, bool) for c in self.classes}
         self._shown = np.ones(n_taxels, bool)
         self._young = False  #: activity-driven: the last block holds the taxels woken since the last regrouping
-        if self.detector is not None:  # every taxel runs until the detector has judged it
-            self.blocks = self._start_blocks(np.arange(n_taxels))
         self._member = np.ones(n_taxels, bool)  #: taxels in a running block (activity-driven compute)
+        if self.detector is not None:
+            if carried and continues.detector is not None:
+                # a restart after shedding load: the scene did not change, so neither its learned noise nor its
+                # contacts start again. Taxels kept running only by their recent spikes stop (these neurons
+                # start from rest, and each restart's first spikes would keep them running through the next)
+                self.detector = continues.detector
+                self._member = continues._member & self.detector.awake
+            self.blocks = self._start_blocks(np.flatnonzero(self._member))  # at a start, every taxel until judged
         self._spiked_s = np.full(n_taxels, -np.inf)  #: per taxel: sensor time (s) of its latest spike
         self._regroup_at = -np.inf  #: sensor time (s) of the next regrouping of the awake taxels
         #: per taxel woken but not started yet: the newest sample time before it woke (-inf: before any), else inf
@@ -405,17 +416,6 @@ class StreamEncoder:
         taxel of a detector that saw too little to judge them."""
         if self.detector is not None:
             self.detector.push(chunk)
-
-    def continue_activity(self, previous: StreamEncoder) -> None:
-        """Take over ``previous``'s detector and the running taxels it keeps awake (a restart after shedding
-        load: the scene did not change, so neither its learned noise nor its contacts start again). Taxels
-        kept running only by their recent spikes stop: the new pipeline's neurons start from rest (and each
-        restart's first spikes would otherwise keep them running through the next restart)."""
-        if self.detector is None or previous.detector is None or previous.n_taxels != self.n_taxels:
-            return
-        self.detector = previous.detector
-        self._member = previous._member & self.detector.awake
-        self.blocks = self._start_blocks(np.flatnonzero(self._member))
 
     @property
     def awake_taxels(self) -> int:

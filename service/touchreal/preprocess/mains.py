@@ -82,15 +82,16 @@ def resolve_mains(start: np.ndarray, params: PreprocessParams, fs_hz: float) -> 
 
 class MainsResolver:
     """Collects a stream's first :data:`HUM_PRIME_S` of sanitized PVDF and resolves its mains once
-    (:func:`resolve_mains`); :attr:`hz` is None until then."""
+    (:func:`resolve_mains`); :attr:`hz` is None until then. ``hz``: the mains already resolved on
+    this source (a pipeline that restarts after shedding load: the source's hum did not change)."""
 
-    def __init__(self, params: PreprocessParams, fs_hz: float):
+    def __init__(self, params: PreprocessParams, fs_hz: float, hz: float | None = None):
         self.params = params
         self.fs_hz = fs_hz
         self.n_start = int(round(HUM_PRIME_S * fs_hz))
         self._start: list[np.ndarray] = []
         self._held = 0
-        self.hz: float | None = None
+        self.hz: float | None = hz
 
     def push(self, x: np.ndarray) -> None:
         """The stream's next sanitized PVDF samples (n, N); resolves once :data:`HUM_PRIME_S` arrived."""

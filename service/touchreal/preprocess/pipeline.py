@@ -110,11 +110,12 @@ class Acquisition:
     and the raw history rings that a (re)starting branch is rebuilt from (the last
     :data:`ST_HISTORY_S` of SingleTact; the hum estimate plus two frames of ``max_window_ms`` of PVDF),
     and the stream's mains frequency, resolved from its first PVDF samples (:attr:`mains`, for
-    ``params``). Several :class:`Preprocessor` s (taxel blocks) can share one."""
+    ``params``) unless ``mains_hz`` gives it. Several :class:`Preprocessor` s (taxel blocks) can share one."""
 
-    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0, params: PreprocessParams | None = None):
+    def __init__(self, n_taxels: int = 1, max_window_ms: float = 128.0, params: PreprocessParams | None = None,
+                 mains_hz: float | None = None):
         self.n_taxels = n_taxels
-        self.mains = MainsResolver(params or PreprocessParams(), PVDF_FS_HZ)
+        self.mains = MainsResolver(params or PreprocessParams(), PVDF_FS_HZ, mains_hz)
         self.st_in = Sanitizer(ST_FS_HZ, ST_RANGE_N, n_taxels)
         self.pv_in = Sanitizer(PVDF_FS_HZ, PVDF_RANGE_V, n_taxels)
         self.n_pv = int(round(HUM_PRIME_S * PVDF_FS_HZ)) + 2 * frame_length(max_window_ms, PVDF_FS_HZ) + 16

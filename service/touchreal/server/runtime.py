@@ -346,10 +346,7 @@ class Runtime:
         self.sheds += 1
         # the new pipeline is built now (keeping what the activity detector learned of the scene): the chunks
         # acquired meanwhile are part of the backlog dropped
-        previous = self.encoder
-        self._new_encoder(*self._params())
-        if previous is not None:
-            self.encoder.continue_activity(previous)
+        self._new_encoder(*self._params(), continues=self.encoder)
         self._apply_demand(self._demand())
         log.warning("compute is %.0f ms behind acquisition (max_lag_ms %.0f): %.0f ms of signal shed, the pipeline "
                     "restarts from rest", self.lag_s * 1e3, self.max_lag_s * 1e3, seconds * 1e3)
@@ -373,12 +370,13 @@ class Runtime:
             self.encoder.set_active(columns, demand.channel_taxels)
             self.active, self.active_channels = columns, demand.channel_taxels
 
-    def _new_encoder(self, rev: int, params: EncoderParams) -> None:
-        """A pipeline from rest for parameter revision ``rev`` (every column demanded until set_active)."""
+    def _new_encoder(self, rev: int, params: EncoderParams, continues: StreamEncoder | None = None) -> None:
+        """A pipeline from rest for parameter revision ``rev`` (every column demanded until set_active);
+        ``continues``: the one it replaces after a shed (its activity detector carries over)."""
         self.enc_rev, self.active, self._enc_stats = rev, None, {}
         self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
                                      update_s=params.preprocess.update_ms / 1000.0, activity=self.activity,
-                                     order=self.order, population=self.population)
+                                     order=self.order, population=self.population, continues=continues)
         self.decoders = {}
         self._cost.restart()
 
