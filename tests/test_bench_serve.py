@@ -32,12 +32,13 @@ def test_light_subscribers_see_every_frame_in_order_with_its_size(tmp_path):
 
 
 def test_tree_cpu_counts_the_descendants_of_a_process():
-    """The whole-service bench reads the CPU of a process tree: a grandchild's busy loop is counted."""
+    """The whole-service bench reads the CPU of a process tree: a grandchild's busy loop is counted,
+    and not in the parent's own CPU."""
     import subprocess
     import sys
     import time
 
-    from touchreal.bench.serve_skin import tree_cpu_s
+    from touchreal.bench.serve_skin import process_cpu_s, tree_cpu_s
 
     burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.6: pass\ntime.sleep(60)"
     parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, time\n"
@@ -47,6 +48,7 @@ def test_tree_cpu_counts_the_descendants_of_a_process():
         while tree_cpu_s(parent.pid) < 0.6:  # the parent alone sleeps: only its grandchild's loop gets here
             assert time.monotonic() < deadline, tree_cpu_s(parent.pid)
             time.sleep(0.1)
+        assert process_cpu_s(parent.pid) < 0.3
     finally:
         subprocess.run(["pkill", "-P", str(parent.pid)])
         parent.kill()
@@ -73,3 +75,5 @@ def test_whole_service_bench_runs_both_configurations_and_states_ratios():
     assert all(c >= w - 0.005 for c, w in zip(computed, cpu)) and rows[0][5] == "1.000"
     assert float(rows[1][5]) == pytest.approx(computed[1] / computed[0], rel=0.03)
     assert float(rows[0][6].rstrip("%")) == 100.0 and float(rows[1][6].rstrip("%")) < 100.0  # dense runs every taxel
+    sim = [float(r[11]) for r in rows]  # the simulation's process, part of the tree's CPU
+    assert all(0.0 < s_ < c for s_, c in zip(sim, cpu)), out.stdout
