@@ -291,8 +291,7 @@ class Service:
             if n:
                 m.events.labels(c).inc(n)
         for c, lat in upd.latency_us.items():
-            for v in lat:
-                m.latency.labels(c).observe(float(v))
+            m.latency.observe(c, lat)
         if self.runtime is not None:
             for kind, v in self.runtime.counters.items():
                 m.faults.labels(kind).set(v)
