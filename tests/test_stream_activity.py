@@ -190,21 +190,26 @@ def test_moving_contacts_on_a_large_scene_wake_taxels_without_latency_and_within
         assert s.size and abs(s.min() - d.min()) <= 1e-3, (k, d.min(), s.min() if s.size else None)
 
 
+def _spikes_subscriber(n: int, continues: StreamEncoder | None = None) -> StreamEncoder:
+    """An activity-driven encoder of ``n`` taxels whose every spike is wanted (no channels), as the
+    service runs it; ``continues``: the pipeline it replaces after a shed."""
+    se = StreamEncoder(default_params(), n, update_s=0.032, activity=ActivityPlan(), continues=continues)
+    se.set_active({c: range(n) for c in se.classes})
+    return se
+
+
 def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
     """After a shed the new pipeline continues the old one's detector and running taxels (rebuilt from rest);
     taxels that wake and leave within its first 0.1 s (its PVDF filters still hold their start) regroup with
     it, and it goes on encoding."""
-    params = default_params()
     src = SimHops(64, HOP_S, seed=2, touched=0.1)
     hops = [src.read_hop() for _ in range(int(5.0 / HOP_S))]
-    old = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
-    old.set_active({c: range(64) for c in old.classes})
+    old = _spikes_subscriber(64)
     for h in hops[:600]:
         old.process(h)
     running = old.awake_taxels
     assert 0 < running < 64
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
-    new.set_active({c: range(64) for c in new.classes})
+    new = _spikes_subscriber(64, continues=old)
     assert new.awake_taxels == running
     changes, parts = 0, []
     for h in hops[600:]:
@@ -217,15 +222,14 @@ def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
 
 def test_a_restart_builds_the_awake_taxels_only(monkeypatch):
     """A pipeline that continues another after a shed builds blocks for the taxels kept awake and nothing
-    else, and keeps the source's mains frequency: building every taxel's chain first (the dense block, then the start's blocks of every taxel)
-    made each restart of a 16,384-taxel skin cost more than the signal it shed, so a service that fell
-    behind shed 80 % of its signal."""
+    else, and keeps the source's mains frequency: building every taxel's chain first (the dense block,
+    then the start's blocks of every taxel) made each restart of a 16,384-taxel skin cost more than the
+    signal it shed, so a service that fell behind shed 80 % of its signal."""
     import touchreal.stream as stream
 
     params = default_params()
     src = SimHops(256, HOP_S, seed=2, touched=0.05)
-    old = StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan())
-    old.set_active({c: range(256) for c in old.classes})
+    old = _spikes_subscriber(256)
     for _ in range(int(3.0 / HOP_S)):
         old.process(src.read_hop())
     kept = int((old._member & old.detector.awake).sum())
@@ -258,8 +262,7 @@ def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on
     for h in hops[:400]:
         old.process(h)
     assert old.awake_taxels == 0
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
-    new.set_active({c: range(64) for c in new.classes})
+    new = _spikes_subscriber(64, continues=old)
     parts = []
     for h in hops[420:]:
         parts.append(new.process(h))
@@ -271,14 +274,11 @@ def test_a_restart_of_a_pipeline_that_ran_nothing_starts_the_taxels_that_wake_on
 def test_chunks_a_shed_drops_still_teach_the_detector():
     """Observed only (their compute shed), the stream's first second of chunks judges the quiet taxels,
     so the pipeline that continues the detector runs only the awake ones."""
-    params = default_params()
     src = SimHops(64, HOP_S, seed=2, touched=0.1)
-    old = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan())
-    old.set_active({c: range(64) for c in old.classes})
+    old = _spikes_subscriber(64)
     for _ in range(int(1.0 / HOP_S)):
         old.observe(src.read_hop())
     assert old.awake_taxels == 64  # nothing ran: the start's blocks are still every taxel
-    new = StreamEncoder(params, 64, update_s=0.032, activity=ActivityPlan(), continues=old)
-    new.set_active({c: range(64) for c in new.classes})
+    new = _spikes_subscriber(64, continues=old)
     new.process(src.read_hop())
     assert 0 < new.awake_taxels < 32
