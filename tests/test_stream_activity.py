@@ -222,7 +222,7 @@ def test_a_restart_keeps_the_running_taxels_and_merges_wakes_during_its_start():
 
 def test_a_restart_builds_the_awake_taxels_only(monkeypatch):
     """A pipeline that continues another after a shed builds blocks for the taxels kept awake and nothing
-    else, and keeps the source's mains frequency: building every taxel's chain first (the dense block,
+    else, and keeps the source's mains frequency (unless its preprocessing changed with it): building every taxel's chain first (the dense block,
     then the start's blocks of every taxel) made each restart of a 16,384-taxel skin cost more than the
     signal it shed, so a service that fell behind shed 80 % of its signal."""
     import touchreal.stream as stream
@@ -245,6 +245,8 @@ def test_a_restart_builds_the_awake_taxels_only(monkeypatch):
     new = StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan(), continues=old)
     assert sum(built) == kept == new.awake_taxels
     assert new.acq.mains.hz == old.acq.mains.hz is not None  # the source's mains, not resolved again
+    other = params.model_copy(update={"preprocess": params.preprocess.model_copy(update={"mains_hz": 60.0})})
+    assert StreamEncoder(other, 256, update_s=0.032, activity=ActivityPlan(), continues=old).acq.mains.hz is None
     built.clear()
     StreamEncoder(params, 256, update_s=0.032, activity=ActivityPlan())
     assert built == [256]  # a fresh start runs every taxel until the detector has judged it, built once

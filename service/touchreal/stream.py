@@ -206,8 +206,9 @@ class StreamEncoder:
             groups.setdefault(self.source[c], []).append(c)
         windows = [s for s in groups if s is not None]
         carried = continues is not None and continues.n_taxels == n_taxels  #: a restart after a shed, of the same skin
-        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess,
-                               continues.acq.mains.hz if carried else None)
+        # the mains resolved on this source, unless the restart brings preprocessing of other candidates or notches
+        mains_hz = continues.acq.mains.hz if carried and continues.params.preprocess == params.preprocess else None
+        self.acq = Acquisition(n_taxels, max(windows, default=params.preprocess.window_ms), params.preprocess, mains_hz)
         #: the source :meth:`process_channels` returns: the longest window served, else the SingleTact
         self.channels_source: Source = max(windows) if windows else None
         self._groups = groups
