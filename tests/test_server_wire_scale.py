@@ -14,8 +14,8 @@ from touchreal_client import protocol as P
 
 from touchreal.server.settings import RuntimeConfig
 
-#: the largest skin the simulated e-skin serves in real time here (at 4,225 taxels and more it falls behind and
-#: sheds its updates); the hello lists no taxel of it once P.HELLO_LISTED_TAXELS is lowered below its size
+#: a skin whose region's channels (every taxel's, where the region covers it) stream without shedding here; the
+#: hello lists no taxel of it once P.HELLO_LISTED_TAXELS is lowered below its size
 TAXELS = 1024  # 32 x 32
 
 
@@ -57,8 +57,8 @@ def test_a_large_skin_says_hello_in_a_few_hundred_bytes_and_serves_a_region(tmp_
 
 
 def test_a_16384_taxel_skin_says_hello_and_admits_a_region_at_once(tmp_path):
-    """At 16,384 taxels (frames aside: the simulated e-skin falls behind at this size here): the hello the
-    service sends, the demand a region subscription makes, and /v1/status, which gives it as id ranges."""
+    """At 16,384 taxels: the hello the service sends, the demand a region subscription makes, and
+    /v1/status, which gives it as id ranges (frames of the largest skin: tests/test_server_realtime.py)."""
     with running_server(tmp_path, RuntimeConfig(taxels=16384)) as (addr, svc):
 
         async def go():
