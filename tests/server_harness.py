@@ -56,6 +56,14 @@ def running_server(state_dir: Path, config: RuntimeConfig | None = None, port: i
         yield addr, svc
 
 
+def memory_mib(field: str = "VmRSS") -> float:
+    """This process's ``VmRSS`` (now) or ``VmHWM`` (peak) from /proc/self/status (MiB)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no {field} in /proc/self/status")
+
+
 def connect(addr: str, **kw):
     """A client that, like ours, does not offer permessage-deflate unless asked (``compression=...``)."""
     return websockets.connect(f"ws://{addr}/v1/stream", **{"compression": None, "open_timeout": 10, **kw})

@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import pytest
 from helpers import synthetic_trial
-from server_harness import collect, connect, hello_and_subscribe, n_spikes, running_server, wait_until
+from server_harness import collect, connect, hello_and_subscribe, memory_mib, n_spikes, running_server, wait_until
 from touchreal_client import protocol as P
 
 from touchreal.params import default_params
@@ -194,13 +194,6 @@ def test_hostile_bodies_get_422_naming_the_field_never_500(tmp_path):
         assert http.get("/v1/health").json()["status"] == "ok"
 
 
-def _vm_rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS in /proc/self/status")
-
-
 def _stream_body(addr: str, head: str, chunk: bytes, total: int) -> tuple[str, int]:
     """Send ``head`` then up to ``total`` bytes of ``chunk``s while watching for the answer; returns the
     status line the server sent and how many body bytes it had been sent by then."""
@@ -230,7 +223,7 @@ def test_a_200_mb_put_is_refused_before_it_is_read_and_rss_stays_flat(tmp_path):
     big = 200 * 1024 * 1024
     chunk = b" " * (256 * 1024)
     with running_server(tmp_path, token="s3cret") as (addr, svc):
-        rss0 = _vm_rss_mb()
+        rss0 = memory_mib()
         head = (f"PUT /v1/params HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n"
                 f"Content-Length: {big}\r\n\r\n")
         status, sent = _stream_body(addr, head, chunk, big)
@@ -245,7 +238,7 @@ def test_a_200_mb_put_is_refused_before_it_is_read_and_rss_stays_flat(tmp_path):
         frame = f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n"
         status, sent = _stream_body(addr, chunked, frame, big)
         assert status.startswith("HTTP/1.1 413") and sent < big // 10
-        grown = _vm_rss_mb() - rss0
+        grown = memory_mib() - rss0
         assert grown < 50, f"RSS grew by {grown:.0f} MB"
         with httpx.Client(base_url=f"http://{addr}") as http:
             assert http.get("/v1/health").json()["status"] == "ok"

@@ -11,7 +11,7 @@ import time
 import httpx
 import numpy as np
 import pytest
-from server_harness import connect, hello_and_subscribe, running_server, wait_until
+from server_harness import connect, hello_and_subscribe, memory_mib, running_server, wait_until
 from touchreal_client import protocol as P
 from touchreal_client.clock import ClockMap, ClockPoint
 
@@ -97,12 +97,6 @@ def test_a_skin_the_machine_serves_streams_without_shedding(tmp_path):
     assert np.median(state["sa1_latency_ms"]) < 100
 
 
-def _rss_kib(field: str) -> int:
-    """This process's ``VmRSS`` or ``VmHWM`` (peak) from /proc (KiB)."""
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith(field + ":"))
-
-
 @pytest.mark.slow  # 65,536 taxels: one to two minutes
 def test_the_largest_skin_the_service_accepts_streams_end_to_end(tmp_path):
     """65,536 taxels (the protocol's largest: ids are uint16), the large scene at 1 % touched, one client
@@ -111,7 +105,7 @@ def test_the_largest_skin_the_service_accepts_streams_end_to_end(tmp_path):
     contact keeps awake once the detector has judged them, in less than 4 GiB more memory. (On the
     2-core AMD EPYC VM it sheds and its skin falls behind a few times a minute, health degraded with
     the reason; SA1 ~190 ms after its causing sample; 0.8 GiB more at its peak.)"""
-    rss0 = _rss_kib("VmRSS")
+    rss0 = memory_mib()
     with running_server(tmp_path, RuntimeConfig(taxels=P.MAX_TAXELS), sim_touched=0.01, max_lag_ms=MAX_LAG_MS) as (addr, svc):
         wait_until(lambda: svc.runtime is not None and svc.runtime.state != "starting", 300, "the runtime started")
         state = asyncio.run(_watch(addr, lambda s: len(s["sa1_latency_ms"]) >= 500 and s["max_taxel"] >= 49152, 300))
@@ -122,4 +116,4 @@ def test_the_largest_skin_the_service_accepts_streams_end_to_end(tmp_path):
     assert health["status"] == "ok" or (health["status"] == "degraded" and health["reason"]), health
     lat = np.array(state["sa1_latency_ms"])
     assert lat.max() < MAX_LAG_MS + 20 + DELIVERY_MS, np.percentile(lat, [50, 99, 100])
-    assert _rss_kib("VmHWM") - rss0 < 4 * 2**20
+    assert memory_mib("VmHWM") - rss0 < 4 * 1024
