@@ -23,8 +23,8 @@ _COMPUTE_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.
 class SpikeLatency:
     """A histogram with one label (the afferent class) observed a whole update's spikes at a time:
     prometheus_client's :class:`~prometheus_client.Histogram` takes one value per call (about 1.5 us
-    with its label lookup), and a large skin's service sends some 100,000 spikes a second, whose
-    observation held the event loop (and the GIL the encoder needs) ~0.15 s per s. Exposed as a
+    with its label lookup), and a large skin's service sends some 100,000 spikes a second: ~0.15 s per s
+    of the event loop's time (and of the GIL the encoder needs). Exposed as a
     prometheus_client collector in the same text as a Histogram's (cumulative ``le`` buckets, +Inf,
     sum and count)."""
 
@@ -48,9 +48,10 @@ class SpikeLatency:
             return
         counts = np.bincount(np.searchsorted(self.bounds, v, side="left"), minlength=self.bounds.size + 1)
         with self._lock:
-            self._counts.setdefault(label, np.zeros(self.bounds.size + 1, np.int64))
+            if label not in self._counts:
+                self._counts[label], self._sums[label] = np.zeros_like(counts), 0.0
             self._counts[label] += counts
-            self._sums[label] = self._sums.get(label, 0.0) + float(v.sum())
+            self._sums[label] += float(v.sum())
 
     def describe(self) -> list[HistogramMetricFamily]:
         return [HistogramMetricFamily(self.name, self.documentation, labels=["cls"])]

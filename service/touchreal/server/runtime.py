@@ -372,7 +372,7 @@ class Runtime:
 
     def _new_encoder(self, rev: int, params: EncoderParams, continues: StreamEncoder | None = None) -> None:
         """A pipeline from rest for parameter revision ``rev`` (every column demanded until set_active);
-        ``continues``: the one it replaces after a shed (its activity detector carries over)."""
+        ``continues``: the one it replaces after a shed (its mains and activity detector carry over)."""
         self.enc_rev, self.active, self._enc_stats = rev, None, {}
         self.encoder = StreamEncoder(params, self.source.n_taxels, taxel_block=self.taxel_block, dtype=self.dtype,
                                      update_s=params.preprocess.update_ms / 1000.0, activity=self.activity,
