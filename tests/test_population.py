@@ -200,5 +200,23 @@ def test_validation_writes_metrics_report_and_figures(tmp_path):
     for name in doc["figures"]["3"]:
         assert (tmp_path / name).stat().st_size > 10_000
     assert "| 3 | RA |" in (tmp_path / "report.md").read_text()
-    assert set(m["RA"]["extents"]) == {"ramp 1 mm", "sine 40 Hz", "sine 150 Hz"}  # per stimulus at the centre
+    assert set(m["RA"]["extents"]) == {"ramp 1 mm", "sine 40 Hz", "sine 165 Hz"}  # per stimulus at the centre
     assert "| 3 | SA1 | " in (tmp_path / "report.md").read_text().split("Area (mm^2)")[1]
+
+
+@pytest.mark.parametrize("mains_hz", [50.0, 60.0])
+def test_the_validations_fast_vibration_passes_the_shipped_mains_notches(mains_hz):
+    # a burst on a notched mains harmonic would measure the notch, not the population (150 Hz, the
+    # third harmonic of 50 Hz, reaches the gate at under a tenth of its amplitude)
+    from scipy.signal import sosfreqz
+
+    from touchreal.analysis.population import FAST_HZ
+    from touchreal.preprocess.filters import mains_notches
+    from touchreal.settings import PVDF_FS_HZ
+
+    p = default_params().preprocess
+    notches = mains_notches(mains_hz, p.notch_harmonics, p.notch_q, PVDF_FS_HZ)
+    gain = lambda f: abs(sosfreqz(notches.sos, worN=[f], fs=PVDF_FS_HZ)[1][0])  # noqa: E731
+    assert gain(FAST_HZ) > 0.95
+    if mains_hz == 50.0:
+        assert gain(150.0) < 0.1
