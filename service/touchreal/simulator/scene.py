@@ -108,7 +108,7 @@ def default_scene(positions_mm: Sequence[Sequence[float]] = ((0.0, 0.0),), skin:
         RampHold(1.0, 95.0, 95.0, 0.0),
         SineBurst.calibrated(30.0, skin, resting=False),
         SineBurst.calibrated(100.0, skin, resting=False),
-        SineBurst.calibrated(250.0, skin, resting=False),
+        SineBurst.calibrated(265.0, skin, resting=False),  # off the mains harmonics the PVDF notches (250 Hz: 50 Hz x 5)
         TextureSlide(0.5, slide_s=1.5),
         TextureSlide(2.0, slide_s=1.5),
         TextureSlide(4.0, slide_s=1.5),
