@@ -2,8 +2,8 @@
 
 A ``--side`` x ``--side`` patch of ``--pitch`` mm (default 4 x 4 at 3 and 5 mm) carries a
 population at the fingertip densities (default plan, variants of gain 1: the cost does not depend
-on the gains). The simulated patch records a probe that presses and vibrates at a taxel's centre
-(``--seconds`` of signal); the recording is then fed to the stream encoder in 32 ms chunks, as the
+on the gains). The simulated patch records a probe that presses and vibrates (the validation's fast burst) at a
+taxel's centre (``--seconds`` of signal); the recording is then fed to the stream encoder in 32 ms chunks, as the
 service does, with every afferent subscribed. Reported: the encoder's process CPU seconds per
 second of signal (below 2 on this 2-core machine is real time; below 1 leaves a core), beside the
 taxel encoder on the same recording in the same run, and the CPU's name.
@@ -36,6 +36,7 @@ def _cpu_per_s(params, raw, n_taxels: int, population, seconds: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
+    from touchreal.analysis.population import FAST_HZ
     from touchreal.bench.skin import cpu_name
     from touchreal.params import default_params
     from touchreal.population.encoder import Population
@@ -52,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         skin = patch_skin(pitch)
         centre = (float(taxels[0, 0]), float(taxels[0, 1]))
         scene = Scene((SceneEvent(0.3, RampHold(1.0, 20.0, 20.0, 1.0), centre),
-                       SceneEvent(2.0, SineBurst.calibrated(150.0, skin, resting=False), centre)), loop_s=3.5)
+                       SceneEvent(2.0, SineBurst.calibrated(FAST_HZ, skin, resting=False), centre)), loop_s=3.5)
         raw = SceneSource(scene, taxels_xy_mm=taxels, seed=0, skin=skin, t0_s=0.0).read(args.seconds + 0.1)
         pop = Population.build(taxels, PopulationPlan())
         _cpu_per_s(params, raw, len(taxels), pop, 0.5)  # compile and warm every kernel
