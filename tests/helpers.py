@@ -1,10 +1,15 @@
-"""Synthetic raw recordings for tests that must run without ../shared."""
+"""Synthetic raw recordings for tests that must run without ../shared, and what the shipped PVDF notches pass."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from scipy.signal import sosfreqz
+
+from touchreal.params import default_params
+from touchreal.preprocess.filters import mains_notches
 from touchreal.recording import Trial
+from touchreal.settings import PVDF_FS_HZ
 
 
 def synthetic_trial(duration_s: float = 1.5, seed: int = 0, freq_hz: float = 200.0, depth_n: float = 3.0) -> Trial:
@@ -25,3 +30,10 @@ def synthetic_trial(duration_s: float = 1.5, seed: int = 0, freq_hz: float = 200
     pvdf = 0.004 * dforce + burst + mains + rng.normal(0, 0.003, pv_t.size)
     cmd = np.zeros(int(duration_s * 5000), np.float32)
     return Trial(st_t=st_t, st=st.astype(np.float32), pvdf_t=pv_t, pvdf=pvdf.astype(np.float32), cmd_depth=cmd)
+
+
+def shipped_notch_gain(mains_hz: float, freq_hz: float) -> float:
+    """|H| at ``freq_hz`` of the shipped parameters' mains notches on ``mains_hz`` mains."""
+    p = default_params().preprocess
+    sos = mains_notches(mains_hz, p.notch_harmonics, p.notch_q, PVDF_FS_HZ).sos
+    return float(abs(sosfreqz(sos, worN=[freq_hz], fs=PVDF_FS_HZ)[1][0]))
