@@ -10,11 +10,12 @@ same object; offline encoding is the same object fed once.
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .encoding.encoder import Encoder, SpikeEvents
+from .encoding.encoder import Encoder, SpikeEvents, ih_basis
 from .population.encoder import Population, PopulationEncoder
 from .params import EncoderParams
 from .preprocess.activity import ActivityDetector, ActivityPlan
@@ -43,6 +44,27 @@ def class_latency_s(params: EncoderParams, cls: str) -> float:
     ``delay_ms`` excluded (the look-ahead of the branches its source reads, less the one grid
     sample a spike's stamp is ahead of its sample); a spike's stamp moves by ``delay_ms``."""
     return Preprocessor.latency_s(class_source(params, cls)) - 1.0 / OUT_FS_HZ
+
+
+MEMORY_TAUS = 5.0  #: a decay has left e^-5 (0.7 %) of its start after this many time constants
+
+
+def chain_memory_s(params: EncoderParams, classes: Sequence[str]) -> float:
+    """How long (s) the chain of ``classes`` may still act on an input after its raw samples went
+    quiet: per class, its source's longest window (a loud sample stays in the gate's frames that
+    long), its negative-part lead, its post-spike current and :data:`MEMORY_TAUS` time constants of
+    its membrane and of its input high-pass (their residues fall below 1 % of where they started).
+    Activity-driven compute holds a taxel awake at least this long after its last loud chunk or
+    spike, so a neuron that restarts from rest has forgotten nothing the dense chain remembers."""
+    longest = 0.0
+    ih_s = ih_basis().shape[1] / OUT_FS_HZ
+    for c in classes:
+        cp = params.classes[c]
+        window_s = (class_source(params, c) or 0.0) / 1000.0
+        highpass_s = 0.0 if cp.highpass_hz is None else 1.0 / (2.0 * np.pi * cp.highpass_hz)
+        longest = max(longest, window_s + cp.negative_lead_ms / 1000.0 + ih_s
+                      + MEMORY_TAUS * (cp.tau_ms / 1000.0 + highpass_s))
+    return longest
 
 
 class _TaxelBlock:
@@ -221,6 +243,8 @@ class StreamEncoder:
         self._wants: list[tuple[dict[str, list[int]], bool]] = [
             ({c: list(range(len(b.taxels))) if population is None else list(self.active[c]) for c in self.classes}, True)
             for b in self.blocks]
+        if activity is not None:  # the hold covers the chain's memory of these parameters
+            activity = replace(activity, hold_s=max(activity.hold_s, chain_memory_s(params, self.classes)))
         #: activity-driven compute (None: dense, every demanded block runs on every chunk)
         self.detector = None if activity is None else ActivityDetector(n_taxels, activity)
         #: activity-driven: per class, the taxels whose spikes are wanted; the taxels whose channels are wanted
@@ -234,6 +258,7 @@ class StreamEncoder:
                 # contacts start again. Taxels kept running only by their recent spikes stop (these neurons
                 # start from rest, and each restart's first spikes would keep them running through the next)
                 self.detector = continues.detector
+                self.detector.plan = activity  # resolved for this pipeline's parameters
                 self._member = continues._member & self.detector.awake
             self.blocks = self._start_blocks(np.flatnonzero(self._member))  # at a start, every taxel until judged
         self._spiked_s = np.full(n_taxels, -np.inf)  #: per taxel: sensor time (s) of its latest spike

@@ -67,7 +67,9 @@ class ActivityPlan:
     teach_ratio: float = 9.0
     energy_ratio: float = 1.8  #: out of band: the PVDF's recent high-passed mean square > this x the noise's
     energy_tau_s: float = 0.02  #: "recent": about 40 PVDF samples (the ratio's noise sd ~0.22: 1.8 is 3.6 sd)
-    hold_s: float = 1.0  #: a taxel sleeps once it has been in band this long
+    #: a taxel sleeps once it has been in band this long (and spiked no more): at least, as the stream
+    #: encoder lengthens it to its chain's memory (:func:`touchreal.stream.chain_memory_s`; 0.33 s for the shipped parameters)
+    hold_s: float = 1.0
     baseline_tau_s: float = 0.5  #: the baseline's time constant on quiet chunks
     noise_tau_s: float = 2.0  #: the noise level's time constant (and how long a new taxel learns from every chunk)
     drift_tau_s: float = 5.0  #: the baseline's time constant on loud chunks (constant load, drift)
