@@ -10,8 +10,8 @@ same object; offline encoding is the same object fed once.
 from __future__ import annotations
 
 import copy
-from dataclasses import replace
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
